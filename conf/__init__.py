@@ -1,0 +1,1 @@
+"""Hydra configuration tree of the toolkit (shipped as package data)."""

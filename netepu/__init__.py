@@ -1,0 +1,1 @@
+"""NeTePu: keypoint-driven neural geometry/texture rendering and re-identification."""

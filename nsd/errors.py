@@ -1,0 +1,36 @@
+"""Exception types of the toolkit.
+
+Every error names what was wrong and where (file, camera, frame) and, where
+possible, what to do about it. They subclass :class:`ValueError` so that callers
+that only know the standard library can still catch them.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "CalibrationError",
+    "CheckpointError",
+    "ConfigError",
+    "FootageError",
+    "NSDError",
+]
+
+
+class NSDError(ValueError):
+    """Base class of every error raised on bad input."""
+
+
+class CalibrationError(NSDError):
+    """A calibration file or camera is unreadable or physically impossible."""
+
+
+class FootageError(NSDError):
+    """A scene folder, video or image folder cannot be used."""
+
+
+class ConfigError(NSDError):
+    """A configuration value is out of its documented range."""
+
+
+class CheckpointError(NSDError):
+    """A checkpoint is missing, corrupt or incompatible with the scene."""

@@ -1,0 +1,179 @@
+r"""Pinhole projection with OpenCV's lens distortion, in torch: the one copy.
+
+Conventions (OpenCV): a world point :math:`X` maps to camera coordinates
+:math:`X_c = R X + t` (``R`` world-to-camera, ``t`` in scene units); the camera
+looks along :math:`+z_c`, :math:`x_c` to the right, :math:`y_c` down. Normalised
+coordinates :math:`(x, y) = (X_c/Z_c, Y_c/Z_c)` are distorted with
+coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``
+
+.. math::
+    r^2 = x^2 + y^2,\quad
+    \rho = \frac{1 + k_1 r^2 + k_2 r^4 + k_3 r^6}{1 + k_4 r^2 + k_5 r^4 + k_6 r^6}
+
+    x_d = x \rho + 2 p_1 x y + p_2 (r^2 + 2 x^2),\quad
+    y_d = y \rho + p_1 (r^2 + 2 y^2) + 2 p_2 x y
+
+and pixels are :math:`u = K (x_d, y_d, 1)^T`, with pixel centres at integer
+coordinates and (0, 0) the centre of the top-left pixel.
+
+Every projection in the toolkit (calibration, synthetic renderer, NeTePu
+renderer, inverse rendering) calls these functions; they are differentiable and
+work in float32 and float64.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "distort_normalized",
+    "pixel_to_normalized",
+    "project_points",
+    "relative_rotation",
+    "rotate_points",
+    "undistort_normalized",
+]
+
+SUPPORTED_DISTORTION_SIZES = (0, 4, 5, 8)
+
+
+def _coefficients(dist: Tensor) -> tuple[Tensor, ...]:
+    """Split ``dist`` (..., n) into (k1, k2, p1, p2, k3, k4, k5, k6), zero-padded."""
+    n = dist.shape[-1]
+    if n not in SUPPORTED_DISTORTION_SIZES:
+        raise ValueError(
+            f"distortion has {n} coefficients; supported: {SUPPORTED_DISTORTION_SIZES} "
+            "(OpenCV order k1, k2, p1, p2[, k3[, k4, k5, k6]])"
+        )
+    pad = torch.zeros(*dist.shape[:-1], 8 - n, dtype=dist.dtype, device=dist.device)
+    full = torch.cat([dist, pad], dim=-1)
+    return tuple(full[..., i : i + 1] for i in range(8))
+
+
+def distort_normalized(xy: Tensor, dist: Tensor) -> Tensor:
+    """Apply OpenCV lens distortion to normalised image coordinates.
+
+    Args:
+        xy: undistorted normalised coordinates, shape (..., N, 2).
+        dist: coefficients, shape (..., n) with n in {0, 4, 5, 8}; broadcast over N.
+
+    Returns:
+        Distorted normalised coordinates, shape (..., N, 2).
+    """
+    if dist.shape[-1] == 0:
+        return xy
+    k1, k2, p1, p2, k3, k4, k5, k6 = _coefficients(dist)
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return torch.stack([xd, yd], dim=-1)
+
+
+def undistort_normalized(xy_d: Tensor, dist: Tensor, iterations: int = 20) -> Tensor:
+    """Invert :func:`distort_normalized` by fixed-point iteration (as OpenCV does).
+
+    Args:
+        xy_d: distorted normalised coordinates, shape (..., N, 2).
+        dist: coefficients, shape (..., n).
+        iterations: fixed-point steps; 20 reach ~1e-10 for usual lenses.
+
+    Returns:
+        Undistorted normalised coordinates, shape (..., N, 2).
+    """
+    if dist.shape[-1] == 0:
+        return xy_d
+    k1, k2, p1, p2, k3, k4, k5, k6 = _coefficients(dist)
+    x0, y0 = xy_d[..., 0], xy_d[..., 1]
+    x, y = x0, y0
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        icdist = (1 + r2 * (k4 + r2 * (k5 + r2 * k6))) / (1 + r2 * (k1 + r2 * (k2 + r2 * k3)))
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x = (x0 - dx) * icdist
+        y = (y0 - dy) * icdist
+    return torch.stack([x, y], dim=-1)
+
+
+def rotate_points(points: Tensor, R: Tensor) -> Tensor:
+    """Rotate row-vector points: ``points @ R^T``.
+
+    Args:
+        points: shape (..., N, 3).
+        R: rotation, shape (..., 3, 3).
+    """
+    return points @ R.transpose(-1, -2)
+
+
+def project_points(
+    points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """Project world points to pixels.
+
+    Args:
+        points: world points, shape (..., N, 3).
+        K: intrinsics, shape (..., 3, 3).
+        R: world-to-camera rotation, shape (..., 3, 3).
+        t: world-to-camera translation, shape (..., 3).
+        dist: distortion coefficients, shape (..., n) (the leading dims of the
+            points without N), or None.
+
+    Returns:
+        ``(uv, depth)``: pixels (..., N, 2) and camera-space depth :math:`Z_c` (..., N).
+        Points with :math:`Z_c \\le 0` are behind the camera; their ``uv`` is finite
+        (|Z_c| is clamped at 1e-9, 1e-6 in float32) but meaningless: mask them
+        with ``depth > 0``.
+
+    Example:
+        >>> K = torch.tensor([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+        >>> uv, z = project_points(torch.tensor([[0.0, 0.0, 2.0]]), K, torch.eye(3), torch.zeros(3))
+        >>> uv.tolist(), z.tolist()
+        ([[50.0, 40.0]], [2.0])
+    """
+    cam = rotate_points(points, R) + t.unsqueeze(-2)
+    z = cam[..., 2]
+    eps = 1e-9 if cam.dtype == torch.float64 else 1e-6
+    safe = torch.where(z.abs() < eps, torch.full_like(z, eps), z)
+    xy = cam[..., :2] / safe.unsqueeze(-1)
+    if dist is not None:
+        xy = distort_normalized(xy, dist)
+    uv = xy @ K[..., :2, :2].transpose(-1, -2) + K[..., :2, 2].unsqueeze(-2)
+    return uv, z
+
+
+def pixel_to_normalized(uv: Tensor, K: Tensor, dist: Tensor | None = None) -> Tensor:
+    """Pixels to undistorted normalised coordinates (the ray direction is (x, y, 1)).
+
+    Args:
+        uv: pixels, shape (..., N, 2).
+        K: intrinsics, shape (..., 3, 3); skew is honoured.
+        dist: distortion coefficients, shape (..., n) (the leading dims of the
+            points without N), or None.
+
+    Returns:
+        Normalised coordinates, shape (..., N, 2).
+    """
+    fx, fy = K[..., 0, 0].unsqueeze(-1), K[..., 1, 1].unsqueeze(-1)
+    cx, cy = K[..., 0, 2].unsqueeze(-1), K[..., 1, 2].unsqueeze(-1)
+    s = K[..., 0, 1].unsqueeze(-1)
+    y = (uv[..., 1] - cy) / fy
+    x = (uv[..., 0] - cx - s * y) / fx
+    xy = torch.stack([x, y], dim=-1)
+    if dist is not None:
+        xy = undistort_normalized(xy, dist)
+    return xy
+
+
+def relative_rotation(R_v: Tensor, R_w: Tensor) -> Tensor:
+    r"""Rotation taking camera-``v`` coordinates to camera-``w`` coordinates.
+
+    :math:`R_{v \to w} = R_w R_v^T`: a direction :math:`d_v` seen by camera ``v`` is
+    :math:`R_{v \to w} d_v` in camera ``w``. NSD rotates its latent point cloud with it.
+
+    Args:
+        R_v, R_w: world-to-camera rotations, shape (..., 3, 3).
+    """
+    return R_w @ R_v.transpose(-1, -2)
