@@ -1,0 +1,213 @@
+r"""Multi-subject bidirectional novel-view synthesis (NSD eq. 2-7), the model.
+
+For a pair of views :math:`(v, w)` of the same instant:
+
+1. the detector B gives each view N windows, depths and presences;
+2. focal spatial transformers crop the windows; the encoder E gives each an
+   appearance vector and a 3D latent cloud;
+3. to re-synthesise view :math:`v` *from* view :math:`w` (eq. 2), each source
+   window's cloud is rotated by :math:`R_{w \to v}` and decoded with the source
+   appearance into a window image and mask;
+4. the decoded windows are re-ordered into :math:`v`'s slots by the appearance
+   association (eq. 4-5);
+5. they are pasted back with :math:`v`'s own boxes (inverse focal ST) and
+   composited by depth over :math:`v`'s median background (eq. 7);
+
+and symmetrically for :math:`w` from :math:`v`: each reconstruction takes its
+boxes, depths and background from the target view and its pose and
+appearance from the other view. ``mode="autoencoder"`` re-synthesises each view
+from itself (the paper's auto-encoder ablation); ``depth=False`` uses the
+additive compositor of eq. 6 (the no-depth ablation); ``focal=False`` the
+classical spatial transformer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from nsd.association import (
+    appearance_similarity,
+    apply_association,
+    association_softmax,
+    hard_association,
+)
+from nsd.compositor import Composite, additive_composite, blend, erf_transmittance_composite
+from nsd.decoder import Decoder
+from nsd.detector import Detections, Detector
+from nsd.encoder import Encoder, rotate_latent
+from nsd.errors import ConfigError
+from nsd.focal_st import crop, paste
+
+__all__ = ["BiNVS", "BiNVSConfig", "Rendering", "Windows"]
+
+
+@dataclass
+class BiNVSConfig:
+    """How windows are cropped, associated and composited (every field a config value)."""
+
+    num_windows: int = 2  # N: subjects per frame (an upper bound when presence is on)
+    crop_size: int = 64  # h = w of the window crops
+    focal: bool = True  # focal spatial transformer (False: classical, for the ablation)
+    depth: bool = True  # erf-transmittance compositor (False: additive eq. 6, ablation)
+    mode: str = "bi_nvs"  # "bi_nvs" or "autoencoder" (each view from itself, ablation)
+    association: bool = True  # appearance association across views (eq. 4-5)
+    association_dims: int = 16  # leading appearance entries compared
+    association_beta: float = 10.0  # softmax sharpness
+    mask_normalisation: str = "max"  # "max": divide each window's mask by its maximum
+    mask_floor: float = 1e-4  # floor of that maximum
+    crop_padding: str = "zeros"  # grid_sample padding of crops reaching outside the frame
+
+    def validate(self) -> None:
+        if self.num_windows < 1:
+            raise ConfigError(f"model.num_windows must be >= 1, got {self.num_windows}")
+        if self.mode not in ("bi_nvs", "autoencoder"):
+            raise ConfigError(f"model.mode must be 'bi_nvs' or 'autoencoder', got {self.mode!r}")
+        if self.mask_normalisation not in ("max", "none"):
+            raise ConfigError(
+                f"model.mask_normalisation must be 'max' or 'none', got {self.mask_normalisation!r}"
+            )
+        if not 1 <= self.association_dims:
+            raise ConfigError("model.association_dims must be >= 1")
+
+
+@dataclass
+class Windows:
+    """The windows of a batch of frames of one view.
+
+    Attributes:
+        det: boxes (B, N, 4), depths (B, N), presence (B, N).
+        crops: (B, N, 3, h, w) (vignetted by the bump when focal).
+        app: appearance vectors (B, N, D).
+        latent: 3D latent clouds (B, N, P, 3) in this view's camera frame.
+    """
+
+    det: Detections
+    crops: Tensor
+    app: Tensor
+    latent: Tensor
+
+
+@dataclass
+class Rendering:
+    """A re-synthesised full frame.
+
+    Attributes:
+        image: (B, 3, H, W).
+        composite: weights (instance masks), background weight and depth map.
+        layers: pasted subject images (B, N, 3, H, W).
+        masks: pasted subject masks (B, N, H, W) (after association and presence).
+        association: (B, N, N) soft (training) or one-hot (inference) association.
+        window_rgb, window_mask: the decoded windows in target slots, (B, N, 3|1, h, w).
+    """
+
+    image: Tensor
+    composite: Composite
+    layers: Tensor
+    masks: Tensor
+    association: Tensor
+    window_rgb: Tensor
+    window_mask: Tensor
+
+
+class BiNVS(nn.Module):
+    """Detector B, encoder E and decoder D with the Bi-NVS forward pass."""
+
+    def __init__(
+        self, cfg: BiNVSConfig, detector: Detector, encoder: Encoder, decoder: Decoder
+    ) -> None:
+        super().__init__()
+        cfg.validate()
+        if detector.num_windows != cfg.num_windows:
+            raise ConfigError(
+                f"detector has {detector.num_windows} windows but model.num_windows is "
+                f"{cfg.num_windows}"
+            )
+        self.cfg, self.detector, self.encoder, self.decoder = cfg, detector, encoder, decoder
+
+    def windows(self, images: Tensor, backgrounds: Tensor) -> Windows:
+        """Detect, crop and encode the windows of frames (B, 3, H, W)."""
+        det = self.detector(images, backgrounds)
+        size = (self.cfg.crop_size, self.cfg.crop_size)
+        crops = crop(images, det.boxes, size, focal=self.cfg.focal,
+                     padding_mode=self.cfg.crop_padding)
+        B, N = crops.shape[:2]
+        app, latent = self.encoder(crops.flatten(0, 1))
+        return Windows(det, crops, app.view(B, N, -1), latent.view(B, N, *latent.shape[1:]))
+
+    def render(
+        self,
+        target: Windows,
+        source: Windows,
+        rotation: Tensor,
+        background: Tensor,
+        hard: bool = False,
+        associate: bool | None = None,
+    ) -> Rendering:
+        """Re-synthesise the target view from the source view's windows.
+
+        Args:
+            target: windows of the view to synthesise (boxes, depths, presence used).
+            source: windows providing pose (latent) and appearance.
+            rotation: :math:`R_{source \\to target}`, (B, 3, 3).
+            background: the target view's median background, (B, 3, H, W).
+            hard: one-hot association (inference) instead of the softmax.
+            associate: override ``cfg.association`` (False when source is target).
+        """
+        B, N = source.app.shape[:2]
+        latent = rotate_latent(source.latent, rotation.to(source.latent.dtype))
+        rgb, logit = self.decoder(latent.flatten(0, 1), source.app.flatten(0, 1))
+        rgb = rgb.view(B, N, *rgb.shape[1:])
+        mask = torch.sigmoid(logit).view(B, N, *logit.shape[1:])
+        if self.cfg.mask_normalisation == "max":
+            mask = mask / mask.amax((-2, -1), keepdim=True).clamp_min(self.cfg.mask_floor)
+        associate = self.cfg.association if associate is None else associate
+        if associate:
+            M = appearance_similarity(target.app, source.app, self.cfg.association_dims)
+            A = hard_association(M) if hard else association_softmax(M, self.cfg.association_beta)
+            rgb, mask = apply_association(A, rgb), apply_association(A, mask)
+        else:
+            A = torch.eye(N, dtype=rgb.dtype, device=rgb.device).expand(B, N, N)
+        H, W = background.shape[-2:]
+        boxes = target.det.boxes
+        layers = paste(rgb, boxes, (H, W), focal=self.cfg.focal, padding_mode="border")
+        masks = paste(mask, boxes, (H, W), focal=self.cfg.focal, padding_mode="zeros")[:, :, 0]
+        masks = masks.clamp(0.0, 1.0) * target.det.presence[..., None, None]
+        compositor = erf_transmittance_composite if self.cfg.depth else additive_composite
+        comp = compositor(masks, target.det.depths)
+        return Rendering(blend(comp, layers, background), comp, layers, masks, A, rgb, mask)
+
+    def forward(
+        self,
+        image_v: Tensor,
+        image_w: Tensor,
+        background_v: Tensor,
+        background_w: Tensor,
+        rotation_vw: Tensor,
+    ) -> tuple[Rendering, Rendering, Windows, Windows]:
+        """Both directions of Bi-NVS for a batch of view pairs.
+
+        Args:
+            image_v, image_w: (B, 3, H, W) the two views of the same instants.
+            background_v, background_w: their median backgrounds.
+            rotation_vw: :math:`R_{v \\to w}`, (B, 3, 3).
+
+        Returns:
+            (rendering of v, rendering of w, windows of v, windows of w).
+        """
+        both = self.windows(torch.cat([image_v, image_w]), torch.cat([background_v, background_w]))
+        B = image_v.shape[0]
+        win_v, win_w = (
+            Windows(Detections(*(getattr(both.det, k)[s] for k in ("boxes", "depths", "presence"))),
+                    both.crops[s], both.app[s], both.latent[s])
+            for s in (slice(0, B), slice(B, 2 * B))
+        )
+        if self.cfg.mode == "autoencoder":
+            eye = torch.eye(3, dtype=image_v.dtype).expand(B, 3, 3)
+            return (self.render(win_v, win_v, eye, background_v, associate=False),
+                    self.render(win_w, win_w, eye, background_w, associate=False), win_v, win_w)
+        rot_wv = rotation_vw.transpose(-1, -2)
+        return (self.render(win_v, win_w, rot_wv, background_v),
+                self.render(win_w, win_v, rotation_vw, background_w), win_v, win_w)

@@ -1,0 +1,377 @@
+"""One trainer machinery for every model of the toolkit (NSD stages, NeTePu stages).
+
+A *task* holds the models, the optimisers and the data and knows how to take
+one training step; the :class:`Trainer` owns the loop: seeding, progress bar
+with ETA, TensorBoard and CSV logs, periodic evaluation and image grids,
+gradient clipping, atomic checkpoints and exact resume (models, optimisers,
+schedulers, every random number generator and the step counter), and budgets
+in steps or in minutes of training time (evaluation time is not counted).
+
+Exact resume: with the same config, a run stopped at step k and resumed
+produces bit-for-bit the same weights as a run that never stopped, because
+the data sampler draws from a ``numpy.random.Generator`` whose state is saved,
+torch's global RNG (dropout) is saved, and no worker processes are used.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import random
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from torch import nn
+
+from nsd.atomic import atomic_save_torch
+from nsd.errors import CheckpointError, ConfigError
+
+__all__ = [
+    "TrainTask",
+    "Trainer",
+    "TrainerConfig",
+    "is_main_process",
+    "load_checkpoint",
+    "seed_everything",
+]
+
+
+def seed_everything(seed: int) -> np.random.Generator:
+    """Seed python, numpy and torch; return the data generator for the task."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)  # noqa: NPY002 (third-party code may use the global RNG)
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)
+
+
+def is_main_process() -> bool:
+    """True unless this is a non-zero rank of a ``torch.distributed`` job."""
+    return not (torch.distributed.is_available() and torch.distributed.is_initialized()) or (
+        torch.distributed.get_rank() == 0
+    )
+
+
+class TrainTask(Protocol):
+    """What the :class:`Trainer` needs from a model + data + losses bundle."""
+
+    def modules(self) -> Mapping[str, nn.Module]:
+        """Every module whose weights go into the checkpoint."""
+
+    def optimizers(self) -> Mapping[str, torch.optim.Optimizer]:
+        """Optimisers (stepped by the trainer after ``training_step``)."""
+
+    def training_step(self, step: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
+        """Sample a batch with ``rng``, return the loss terms; ``"loss"`` is minimised."""
+
+    def evaluate(self, step: int) -> dict[str, float]:
+        """Validation metrics (no gradients)."""
+
+    def image_grids(self, step: int) -> dict[str, np.ndarray]:
+        """Images for a person to look at: name -> uint8 (H, W, 3)."""
+
+
+@dataclass
+class TrainerConfig:
+    """Settings of the training loop (every field is a Hydra config value)."""
+
+    max_steps: int = 1000  # stop after this many steps (<= 0: no step limit)
+    max_minutes: float = 0.0  # stop after this much training time (<= 0: no limit)
+    eval_at_minutes: list[float] = field(default_factory=list)  # extra evals at these times
+    log_every: int = 10  # steps between scalar logs
+    eval_every: int = 0  # steps between evaluations (0: only at the end)
+    grid_every: int = 0  # steps between image grids (0: only at the end)
+    checkpoint_every: int = 500  # steps between checkpoints (0: only at the end)
+    grad_clip: float = 0.0  # max gradient norm per optimiser (0: no clipping)
+    seed: int = 0
+    resume: bool = True  # continue from <out_dir>/checkpoint.pt when it exists
+    progress: bool = True  # tqdm progress bar
+    detect_anomaly: bool = False  # torch.autograd anomaly detection (slow)
+    stop_on_nonfinite: bool = True  # raise with a clear message on a NaN/Inf loss or gradient
+
+    def validate(self) -> None:
+        if self.max_steps <= 0 and self.max_minutes <= 0:
+            raise ConfigError("trainer: set max_steps > 0 or max_minutes > 0, else it never stops")
+        for k in ("log_every", "eval_every", "grid_every", "checkpoint_every"):
+            if getattr(self, k) < 0:
+                raise ConfigError(f"trainer.{k} must be >= 0, got {getattr(self, k)}")
+        if self.grad_clip < 0:
+            raise ConfigError(f"trainer.grad_clip must be >= 0, got {self.grad_clip}")
+
+
+def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    return {
+        "numpy_generator": rng.bit_generator.state,
+        "numpy_global": np.random.get_state(legacy=False),  # noqa: NPY002
+        "python": random.getstate(),
+        "torch": torch.get_rng_state(),
+    }
+
+
+def _set_rng_state(rng: np.random.Generator, state: Mapping[str, Any]) -> None:
+    rng.bit_generator.state = state["numpy_generator"]
+    np.random.set_state(state["numpy_global"])  # noqa: NPY002
+    random.setstate(state["python"])
+    torch.set_rng_state(state["torch"])
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """Load a checkpoint with ``weights_only=True``; clear errors when it is unusable."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # corrupt or not a torch file
+        raise CheckpointError(f"checkpoint {path} cannot be loaded: {e}") from e
+
+
+class CsvLog:
+    """Append-only CSV of scalars; a new column rewrites the header."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.columns: list[str] = []
+        if path.is_file():
+            with path.open() as f:
+                header = f.readline().strip()
+            self.columns = header.split(",") if header else []
+
+    def write(self, row: Mapping[str, float]) -> None:
+        new = [k for k in row if k not in self.columns]
+        if new:
+            rows = []
+            if self.path.is_file():
+                with self.path.open() as f:
+                    rows = list(csv.DictReader(f))
+            self.columns += new
+            with self.path.open("w", newline="") as f:
+                w = csv.DictWriter(f, self.columns)
+                w.writeheader()
+                w.writerows(rows)
+        with self.path.open("a", newline="") as f:
+            csv.DictWriter(f, self.columns).writerow(dict(row))
+
+
+class Trainer:
+    """The training loop shared by every task.
+
+    Args:
+        task: a :class:`TrainTask`.
+        cfg: loop settings.
+        out_dir: run folder: ``checkpoint.pt``, ``metrics.csv``, ``tb/``, ``grids/``.
+        config: the run's full config (stored in the checkpoint for provenance).
+        on_eval: called with (step, train_minutes, metrics) after every evaluation.
+    """
+
+    def __init__(
+        self,
+        task: TrainTask,
+        cfg: TrainerConfig,
+        out_dir: str | os.PathLike,
+        config: Mapping[str, Any] | None = None,
+        on_eval: Callable[[int, float, dict[str, float]], None] | None = None,
+    ) -> None:
+        cfg.validate()
+        self.task, self.cfg = task, cfg
+        self.out_dir = Path(out_dir)
+        self.config = dict(config or {})
+        self.on_eval = on_eval
+        self.rng = seed_everything(cfg.seed)
+        self.step = 0
+        self.train_seconds = 0.0
+        self.main = is_main_process()
+        self._tb = None
+        self._csv: CsvLog | None = None
+        self._evals_done: set[float] = set()
+        self.history: list[dict[str, float]] = []
+
+    # ------------------------------------------------------------------ state
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out_dir / "checkpoint.pt"
+
+    def state_dict(self) -> dict[str, Any]:
+        task_extra = getattr(self.task, "extra_state", None)
+        schedulers = getattr(self.task, "schedulers", lambda: {})()
+        return {
+            "format": "nsd-netepu-checkpoint-v1",
+            "step": self.step,
+            "train_seconds": self.train_seconds,
+            "evals_done": sorted(self._evals_done),
+            "modules": {k: m.state_dict() for k, m in self.task.modules().items()},
+            "optimizers": {k: o.state_dict() for k, o in self.task.optimizers().items()},
+            "schedulers": {k: s.state_dict() for k, s in schedulers.items()},
+            "rng": _rng_state(self.rng),
+            "task": task_extra() if task_extra else {},
+            "config": self.config,
+        }
+
+    def save(self) -> None:
+        if self.main:
+            atomic_save_torch(self.state_dict(), self.checkpoint_path)
+
+    def load(self, path: str | os.PathLike) -> None:
+        state = load_checkpoint(path)
+        if state.get("format") != "nsd-netepu-checkpoint-v1":
+            raise CheckpointError(f"{path} is not a checkpoint of this toolkit")
+        modules = self.task.modules()
+        missing = sorted(set(modules) - set(state["modules"]))
+        if missing:
+            raise CheckpointError(f"{path} lacks the modules {missing}")
+        for k, m in modules.items():
+            try:
+                m.load_state_dict(state["modules"][k])
+            except RuntimeError as e:
+                raise CheckpointError(f"{path}: module '{k}' does not match the config: {e}") from e
+        for k, o in self.task.optimizers().items():
+            if k in state["optimizers"]:
+                o.load_state_dict(state["optimizers"][k])
+        for k, s in getattr(self.task, "schedulers", lambda: {})().items():
+            if k in state.get("schedulers", {}):
+                s.load_state_dict(state["schedulers"][k])
+        if hasattr(self.task, "load_extra_state"):
+            self.task.load_extra_state(state.get("task", {}))
+        _set_rng_state(self.rng, state["rng"])
+        self.step = int(state["step"])
+        self.train_seconds = float(state["train_seconds"])
+        self._evals_done = set(state.get("evals_done", []))
+
+    # ------------------------------------------------------------------ logging
+    def _log(self, scalars: Mapping[str, float], prefix: str) -> None:
+        if not self.main:
+            return
+        if self._tb is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._tb = SummaryWriter(str(self.out_dir / "tb"))
+            self._csv = CsvLog(self.out_dir / "metrics.csv")
+        for k, v in scalars.items():
+            self._tb.add_scalar(f"{prefix}/{k}", v, self.step)
+        self._csv.write({"step": self.step, "minutes": round(self.train_seconds / 60, 4),
+                         **{f"{prefix}/{k}": v for k, v in scalars.items()}})
+
+    def _grids(self) -> None:
+        if not self.main:
+            return
+        import cv2
+
+        with torch.random.fork_rng(devices=[]):
+            grids = self.task.image_grids(self.step)
+        folder = self.out_dir / "grids"
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, img in grids.items():
+            cv2.imwrite(str(folder / f"{name}_{self.step:07d}.png"),
+                        cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            if self._tb is not None:
+                self._tb.add_image(name, img, self.step, dataformats="HWC")
+
+    def _evaluate(self) -> dict[str, float]:
+        # evaluation must not consume the training RNGs (exact resume, eval-schedule-free)
+        with torch.random.fork_rng(devices=[]):
+            metrics = self.task.evaluate(self.step)
+        metrics = {k: float(v) for k, v in metrics.items()}
+        self._log(metrics, "eval")
+        row = {"step": self.step, "minutes": self.train_seconds / 60, **metrics}
+        self.history.append(row)
+        if self.on_eval:
+            self.on_eval(self.step, self.train_seconds / 60, metrics)
+        return metrics
+
+    # ------------------------------------------------------------------ loop
+    def _done(self) -> bool:
+        c = self.cfg
+        return (c.max_steps > 0 and self.step >= c.max_steps) or (
+            c.max_minutes > 0 and self.train_seconds >= 60 * c.max_minutes
+        )
+
+    def _check_finite(self, losses: Mapping[str, torch.Tensor]) -> None:
+        bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]
+        if bad:
+            raise FloatingPointError(
+                f"step {self.step}: non-finite loss terms {bad}; lower the learning rate or "
+                "the prior weights, or enable trainer.detect_anomaly to find the operation"
+            )
+        for name, opt in self.task.optimizers().items():
+            for g in opt.param_groups:
+                for p in g["params"]:
+                    if p.grad is not None and not torch.isfinite(p.grad).all():
+                        raise FloatingPointError(
+                            f"step {self.step}: non-finite gradient in optimiser '{name}'; "
+                            "enable trainer.grad_clip or lower the learning rate"
+                        )
+
+    def fit(self) -> dict[str, float]:
+        """Train until the budget is spent; returns the final evaluation metrics."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        if self.cfg.resume and self.checkpoint_path.is_file():
+            self.load(self.checkpoint_path)
+        for m in self.task.modules().values():
+            m.train()
+        bar = None
+        if self.cfg.progress and self.main:
+            from tqdm import tqdm
+
+            total = self.cfg.max_steps if self.cfg.max_steps > 0 else None
+            bar = tqdm(total=total, initial=self.step, desc="train", dynamic_ncols=True,
+                       unit="it")
+        minute_marks = sorted(m for m in self.cfg.eval_at_minutes if m not in self._evals_done)
+        ctx = torch.autograd.set_detect_anomaly(True) if self.cfg.detect_anomaly else None
+        if ctx is not None:
+            ctx.__enter__()
+        try:
+            while not self._done():
+                t0 = time.perf_counter()
+                opts = self.task.optimizers()
+                for o in opts.values():
+                    o.zero_grad(set_to_none=True)
+                losses = self.task.training_step(self.step, self.rng)
+                losses["loss"].backward()
+                if self.cfg.stop_on_nonfinite:
+                    self._check_finite(losses)
+                if self.cfg.grad_clip > 0:
+                    for o in opts.values():
+                        params = [p for g in o.param_groups for p in g["params"]]
+                        torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+                for o in opts.values():
+                    o.step()
+                for s in getattr(self.task, "schedulers", lambda: {})().values():
+                    s.step()
+                self.step += 1
+                self.train_seconds += time.perf_counter() - t0
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{losses['loss'].item():.4f}",
+                                    min=f"{self.train_seconds / 60:.1f}")
+                c = self.cfg
+                if c.log_every and self.step % c.log_every == 0:
+                    self._log({k: v.item() for k, v in losses.items()}, "train")
+                while minute_marks and self.train_seconds >= 60 * minute_marks[0]:
+                    self._evaluate()
+                    self._evals_done.add(minute_marks.pop(0))
+                if c.eval_every and self.step % c.eval_every == 0:
+                    self._evaluate()
+                if c.grid_every and self.step % c.grid_every == 0:
+                    self._grids()
+                if c.checkpoint_every and self.step % c.checkpoint_every == 0:
+                    self.save()
+        finally:
+            if ctx is not None:
+                ctx.__exit__(None, None, None)
+            if bar is not None:
+                bar.close()
+        self.save()
+        metrics = self._evaluate()
+        self._grids()
+        if self._tb is not None:
+            self._tb.flush()
+        return metrics
+
+    def throughput(self) -> float:
+        """Training iterations per second so far."""
+        return self.step / self.train_seconds if self.train_seconds > 0 else math.nan
