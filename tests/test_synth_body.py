@@ -7,7 +7,13 @@ import pytest
 import torch
 
 from nsd.errors import ConfigError
-from nsd.synth.body import GROUND_CLEARANCE, Pose, Proportions, make_individual
+from nsd.synth.body import (
+    GROUND_CLEARANCE,
+    KEYPOINT_HOLD_MARGIN,
+    Pose,
+    Proportions,
+    make_individual,
+)
 from nsd.synth.motion import sample_pose
 from nsd.synth.nnopcs import ellipsoid_half_extents
 from nsd.synth.skeleton import BIPED, QUADRUPED, SPECIES, get_species, joint_rotation
@@ -38,11 +44,17 @@ class TestSpecies:
 
     @pytest.mark.parametrize("name", SPECIES_NAMES)
     def test_every_keypoint_sits_in_a_body_part(self, name):
-        # keypoint visibility needs a holding primitive for every keypoint
-        ind = make_individual(name, identity=0, proportion_variation=1.0, seed=3)
-        assert ind.holders.any(1).all(), [
-            n for n, h in zip(ind.species.keypoint_names, ind.holders.any(1), strict=True) if not h
-        ]
+        """Keypoint visibility needs, for every keypoint, a primitive that contains it."""
+        for identity in range(6):
+            ind = make_individual(name, identity=identity, seed=3)
+            body = ind.posed(ind.rest_pose())
+            X = body.joints
+            for k in range(ind.num_keypoints):
+                p = ind.holders[k].nonzero().squeeze(-1)
+                assert p.numel() > 0
+                rel = (X[k] - body.centres[p]).unsqueeze(-2) @ body.axes[p]
+                reach = (rel.squeeze(-2) / (body.radii[p] + KEYPOINT_HOLD_MARGIN)).norm(dim=-1)
+                assert reach.min() <= 1.0, (name, ind.species.keypoint_names[k], reach)
 
     def test_unknown_species_names_the_key(self):
         with pytest.raises(ConfigError, match=r"species.*horse"):

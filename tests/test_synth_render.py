@@ -80,6 +80,20 @@ class TestMasksAndDepth:
         m[1, 2:4, 3] = True
         assert mask_boxes(m).tolist() == [[0, 0, 0, 0], [3, 2, 4, 4]]
 
+    def test_supersampling_changes_rgb_only_and_mostly_at_edges(self, pair):
+        inds, poses, rig, out = pair
+        ss = render_views(inds, poses, rig, supersample=3)
+        for key in ("instance", "depth", "nnopcs", "amodal", "boxes"):
+            assert torch.equal(ss[key], out[key]), key
+        inst = out["instance"]
+        edge = torch.zeros_like(inst, dtype=torch.bool)
+        edge[:, 1:] |= inst[:, 1:] != inst[:, :-1]
+        edge[:, :-1] |= inst[:, 1:] != inst[:, :-1]
+        edge[:, :, 1:] |= inst[:, :, 1:] != inst[:, :, :-1]
+        edge[:, :, :-1] |= inst[:, :, 1:] != inst[:, :, :-1]
+        diff = (ss["rgb"] - out["rgb"]).abs().amax(-1)
+        assert diff[edge].mean() > 3 * diff[~edge].mean()
+
     def test_no_background(self, pair):
         inds, poses, rig, _ = pair
         out = render_views(inds, poses, rig, background=False)

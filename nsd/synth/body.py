@@ -215,7 +215,8 @@ class Individual:
 
         Primitive ``p`` holds keypoint ``k`` when ``p`` lies on segment ``k`` or on
         ``k``'s parent segment (so the relation does not change with the pose) and
-        ``k`` is inside ``p`` grown by :data:`KEYPOINT_HOLD_MARGIN`. Used for
+        ``k`` is inside ``p`` grown by :data:`KEYPOINT_HOLD_MARGIN` (if no
+        primitive qualifies, the nearest one of the two segments). Used for
         keypoint visibility (:mod:`nsd.synth.render`).
         """
         parents = torch.tensor(self.species.parents)
@@ -225,8 +226,13 @@ class Individual:
         )
         rel = self.rest[:, None, :] - self.rest_centres[None]
         local = (rel.unsqueeze(-2) @ self.rest_axes[None]).squeeze(-2)
-        inside = ((local / (self.radii + KEYPOINT_HOLD_MARGIN)) ** 2).sum(-1) <= 1.0
-        return on & inside
+        reach = ((local / (self.radii + KEYPOINT_HOLD_MARGIN)) ** 2).sum(-1)
+        held = on & (reach <= 1.0)
+        # unusual proportions: fall back to the nearest primitive of the two segments
+        nearest = torch.where(on, reach, torch.inf).argmin(-1)
+        none = ~held.any(-1)
+        held[none, nearest[none]] = True
+        return held
 
     def rest_pose(self, dtype: torch.dtype = torch.float64) -> Pose:
         """The neutral pose at the origin, facing +x, standing on the ground."""

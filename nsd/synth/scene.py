@@ -30,7 +30,9 @@ import contextlib
 import fcntl
 import json
 import os
+from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
@@ -64,10 +66,12 @@ __all__ = [
     "default_scene",
     "load_config",
     "tiny_config",
+    "torch_threads",
     "write_scene",
 ]
 
 CLI_KEYS = ("out", "overwrite", "defaults", "hydra")  # synth.yaml keys that are not scene settings
+RENDER_THREADS = 1  # torch threads while writing a scene (see write_scene)
 
 
 @dataclass
@@ -231,28 +235,72 @@ FILES_DOC = {
 }
 
 
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Set torch's intra-op threads to ``n`` inside the block (None: leave them)."""
+    if n is None:
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def write_scene(
     config: SceneConfig,
     out: str | os.PathLike,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    render_threads: int | None = RENDER_THREADS,
 ) -> Path:
     """Render and write a scene folder (see the module docstring).
+
+    Frames are rendered in the calling thread while a second thread encodes and
+    writes the files of the previous frames (PNG and zlib release the GIL), so
+    two cores are used even with ``render_threads=1``.
 
     Args:
         config: the scene settings.
         out: the scene folder to create.
         overwrite: replace an existing folder (else :class:`FileExistsError`).
         progress: called as ``progress(frames_done, num_frames)``.
+        render_threads: torch intra-op threads while rendering, restored
+            afterwards; None leaves torch's setting alone. 1 (the default) is
+            robust on a shared machine: many small parallel ops slow down by
+            orders of magnitude when another process occupies a core.
 
     Returns:
         ``out`` as a :class:`Path`.
     """
     out = Path(out)
     world = build_world(config)
-    with atomic_directory(out, overwrite=overwrite) as tmp:
+    with atomic_directory(out, overwrite=overwrite) as tmp, torch_threads(render_threads):
         _write(world, tmp, progress)
     return out
+
+
+class _Writer:
+    """Runs file writes in one background thread, in order; re-raises their errors."""
+
+    def __init__(self, max_pending: int = 16) -> None:
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="nsd-synth-writer")
+        self.pending: deque[Future] = deque()
+        self.max_pending = max_pending
+
+    def submit(self, fn: Callable, *args) -> None:
+        self.pending.append(self.pool.submit(fn, *args))
+        while len(self.pending) > self.max_pending or (self.pending and self.pending[0].done()):
+            self.pending.popleft().result()
+
+    def finish(self) -> None:
+        while self.pending:
+            self.pending.popleft().result()
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _write(world: SyntheticWorld, root: Path, progress) -> None:
@@ -267,6 +315,7 @@ def _write(world: SyntheticWorld, root: Path, progress) -> None:
     for n in names:
         (gt / "dense" / n).mkdir(parents=True)
     footage = _Footage(root, names, (W, H), cfg.fps, cfg.video)
+    writer = _Writer()
     species = [i.species for i in inds]
     coco = CocoBuilder(
         species, info={"description": "nsd-synth scene", "version": GENERATOR_VERSION}
@@ -301,7 +350,7 @@ def _write(world: SyntheticWorld, root: Path, progress) -> None:
             stats["amodal_overlap"] += int((r["amodal"].sum(1) > 1).flatten(1).any(-1).sum())
             stats["box_overlap"] += int(_pair_boxes_overlap(r["boxes"]).sum())
             for v in range(V):
-                footage.write(v, t, rgb[v])
+                writer.submit(footage.write, v, t, rgb[v])
                 image_id = t * V + v + 1
                 coco.add_image(image_id, footage.file_name(v, t), (W, H), names[v], t)
                 root_depth = [float(rig[v].project(k[:1])[1][0]) for k in kp3]
@@ -322,8 +371,8 @@ def _write(world: SyntheticWorld, root: Path, progress) -> None:
                 stats["all_visible"] += int((va > 0).all())
                 occluded_fraction += [1.0 - a / b for a, b in zip(va, aa, strict=True) if b > 0]
                 if cfg.dense:
-                    save_dense(
-                        gt / "dense" / names[v] / f"{t:06d}.npz",
+                    writer.submit(
+                        save_dense, gt / "dense" / names[v] / f"{t:06d}.npz",
                         depth[v], instance[v], part[v], nnopcs[v], amodal[v],
                     )  # fmt: skip
                 if v in pv_cams and t in pv_frames:
@@ -337,7 +386,9 @@ def _write(world: SyntheticWorld, root: Path, progress) -> None:
                     )  # fmt: skip
             if progress is not None:
                 progress(t + 1, T)
+        writer.finish()
     finally:
+        writer.close()
         footage.close()
     grid = preview_grid([[cells[(v, t)] for t in pv_frames] for v in pv_cams])
     _write_png(gt / "preview.png", grid)
