@@ -1,0 +1,152 @@
+"""The geometry stage of ``netepu-train``: NePu's composite loss on sampled points.
+
+A :class:`GeometryTask` is a :class:`nsd.trainer.TrainTask`: per step it draws
+``batch_size`` training views (:func:`netepu.data.sample_batch`), perturbs
+their keypoints with Gaussian noise (``keypoint_noise`` scene units, NePu's
+augmentation), encodes them to ``z``, renders the silhouette points and the
+in-mask points of each view from the perturbed keypoints and the decoded
+features, and returns the weighted loss of :mod:`netepu.losses`. Evaluation
+renders full maps of the held-out views (:mod:`netepu.evaluation`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from netepu.data import GeometryData, sample_batch
+from netepu.evaluation import comparison_grid, evaluate_views, render_view_set
+from netepu.losses import (
+    GeometryLossWeights,
+    depth_loss,
+    geometry_loss,
+    keypoint_loss,
+    latent_loss,
+    nnopcs_loss,
+    silhouette_loss,
+)
+from netepu.maps import MapSettings
+from netepu.model import GeometryModel
+from nsd.errors import ConfigError
+
+__all__ = ["GeometryStageConfig", "GeometryTask"]
+
+
+@dataclass
+class GeometryStageConfig:
+    """Settings of the geometry stage (``netepu.optim``, ``netepu.points``, ``netepu.eval``)."""
+
+    batch_size: int = 16
+    lr: float = 5e-4
+    weight_decay: float = 0.005
+    lr_decay: float = 0.2
+    lr_decay_every: int = 0
+    near: int = 750
+    far: int = 750
+    foreground: int = 500
+    keypoint_noise: float = 0.01
+    eval_views: int = 16
+
+    @classmethod
+    def from_mapping(cls, *sections: Mapping[str, Any]) -> GeometryStageConfig:
+        names = {f.name for f in fields(cls)}
+        values: dict[str, Any] = {}
+        for sec in sections:
+            unknown = sorted(set(sec) - names)
+            if unknown:
+                raise ConfigError(
+                    f"netepu: unknown stage settings {unknown}; known {sorted(names)}")
+            values.update(sec)
+        cfg = cls(**values)
+        if cfg.batch_size < 1 or min(cfg.near + cfg.far, cfg.foreground) < 1:
+            raise ConfigError("netepu: batch_size and point counts must be >= 1")
+        return cfg
+
+
+class GeometryTask:
+    """Model + data + losses of the geometry stage (see the module docstring).
+
+    Args:
+        model: the geometry model.
+        data: training pools and evaluation views.
+        cfg: stage settings.
+        weights: loss weights.
+        render: how evaluation renders full maps.
+    """
+
+    def __init__(
+        self,
+        model: GeometryModel,
+        data: GeometryData,
+        cfg: GeometryStageConfig,
+        weights: GeometryLossWeights,
+        render: MapSettings,
+    ) -> None:
+        self.model, self.data, self.cfg, self.weights, self.render = (
+            model, data, cfg, weights, render)
+        self.opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.sched = None
+        if cfg.lr_decay_every > 0:
+            self.sched = torch.optim.lr_scheduler.StepLR(self.opt, cfg.lr_decay_every,
+                                                         cfg.lr_decay)
+
+    def modules(self) -> dict[str, nn.Module]:
+        return {"geometry": self.model}
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"geometry": self.opt}
+
+    def schedulers(self) -> dict[str, Any]:
+        return {"geometry": self.sched} if self.sched is not None else {}
+
+    def losses(self, batch: dict[str, Any], rng: np.random.Generator) -> dict[str, Tensor]:
+        """Loss terms of one batch (see :mod:`netepu.losses`)."""
+        m, r = self.model, self.model.radius
+        kps = batch["keypoints"]
+        noise = torch.from_numpy(rng.standard_normal(kps.shape)).to(kps)
+        noisy = kps + self.cfg.keypoint_noise * noise
+        code = m.encode(noisy)
+        ctx = m.prepare(code, batch["camera"], keypoints=noisy)
+        S = batch["sil_uv"].shape[1]
+        out = m.query(ctx, torch.cat([batch["sil_uv"], batch["fg_uv"]], 1))
+        target_depth = (batch["fg_depth"] - ctx.frame.depth_ref[:, None]) / r
+        terms = {
+            "silhouette": silhouette_loss(out["logit"][:, :S], batch["sil_label"]),
+            "keypoints": keypoint_loss(code.keypoints / (2 * r), kps / (2 * r)),
+            "depth": depth_loss(out["depth_norm"][:, S:], target_depth),
+            "nnopcs": nnopcs_loss(out["nnopcs"][:, S:], batch["fg_nnopcs"]),
+            "latent": latent_loss(code.z),
+        }
+        return geometry_loss(terms, self.weights)
+
+    def training_step(self, step: int, rng: np.random.Generator) -> dict[str, Tensor]:
+        c = self.cfg
+        batch = sample_batch(self.data, rng, c.batch_size, c.near, c.far, c.foreground)
+        return self.losses(batch, rng)
+
+    def _eval_sets(self):
+        for name, views in self.data.evaluation.items():
+            n = min(self.cfg.eval_views, len(views))
+            idx = np.linspace(0, len(views) - 1, n).round().astype(int).tolist()
+            yield name, views.subset(idx)
+
+    def evaluate(self, step: int) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for name, views in self._eval_sets():
+            out.update(evaluate_views(self.model, views, self.render, prefix=f"{name}/"))
+        return out
+
+    def image_grids(self, step: int) -> dict[str, np.ndarray]:
+        grids = {}
+        self.model.eval()
+        for name, views in self._eval_sets():
+            sub = views.subset(list(range(min(4, len(views)))))
+            grids[f"geometry_{name}"] = comparison_grid(
+                render_view_set(self.model, sub, self.render), sub)
+        self.model.train()
+        return grids

@@ -1,0 +1,47 @@
+"""Accuracy measures of rendered geometry and recovered keypoints.
+
+* Silhouette IoU per view.
+* NNOPCS MSE (NeTePu table 1) and depth MAE, over the pixels that are
+  foreground in both the ground truth and the render (where both maps are
+  defined); the share of ground-truth pixels this covers is the recall
+  implied by the IoU.
+* MPJPE: mean per-joint position error of 3D keypoints.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["depth_mae", "mpjpe", "nnopcs_mse", "silhouette_iou"]
+
+
+def silhouette_iou(pred: Tensor, target: Tensor) -> Tensor:
+    """Intersection over union of boolean masks (..., H, W) -> (...); 1 when both are empty."""
+    inter = (pred & target).flatten(-2).sum(-1).double()
+    union = (pred | target).flatten(-2).sum(-1).double()
+    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union))
+
+
+def nnopcs_mse(pred: Tensor, target: Tensor, valid: Tensor) -> Tensor:
+    """Mean squared NNOPCS error over valid pixels and channels.
+
+    Args:
+        pred, target: (..., H, W, 3).
+        valid: (..., H, W) bool.
+
+    Returns:
+        Scalar (NaN when no pixel is valid).
+    """
+    d = (pred - target)[valid]
+    return (d.double() ** 2).mean()
+
+
+def depth_mae(pred: Tensor, target: Tensor, valid: Tensor) -> Tensor:
+    """Mean absolute depth error over valid pixels (units of the inputs); scalar."""
+    return (pred - target)[valid].double().abs().mean()
+
+
+def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean per-joint position error of keypoints (..., K, 3) -> scalar (input units)."""
+    return (pred - target).double().norm(dim=-1).mean()

@@ -1,0 +1,100 @@
+"""``netepu-train``: the Hydra app that trains NeTePu's stages with the shared trainer.
+
+``stage`` selects what is trained; each stage is a builder in :data:`STAGES`
+that turns the config into a :class:`nsd.trainer.TrainTask`. The loop,
+checkpoints (exact resume), logs, progress bar and time budgets are
+:class:`nsd.trainer.Trainer`'s, shared with ``nsd-train``. The texture stage
+(next issue) registers its builder here; until then ``stage=texture`` stops
+with a :class:`~nsd.errors.ConfigError`.
+
+Examples::
+
+    netepu-train trainer.max_minutes=20 trainer.max_steps=0
+    netepu-train netepu/model=reference trainer.max_steps=200
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from nsd.errors import ConfigError
+from nsd.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
+
+__all__ = ["STAGES", "build_geometry_stage", "main", "run"]
+
+log = logging.getLogger(__name__)
+
+
+def build_geometry_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
+    """The geometry task of ``cfg``; returns it and config values found at build time."""
+    from netepu.data import build_geometry_data
+    from netepu.geometry_stage import GeometryStageConfig, GeometryTask
+    from netepu.losses import GeometryLossWeights
+    from netepu.maps import MapSettings
+    from netepu.model import build_geometry_model
+
+    net = OmegaConf.to_container(cfg.netepu, resolve=True)
+    data = build_geometry_data(net["data"], progress=log.info)
+    model = build_geometry_model(net["model"], data.config.n_keypoints, data.config.radius)
+    stage = GeometryStageConfig.from_mapping(net["optim"], net["points"], net["eval"])
+    try:
+        weights = GeometryLossWeights(**net["loss"])
+        render = MapSettings(**net["render"])
+        render.validate()
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"netepu.loss / netepu.render: {e}") from e
+    task = GeometryTask(model, data, stage, weights, render)
+    return task, {"n_keypoints": data.config.n_keypoints}
+
+
+STAGES: dict[str, Callable[[DictConfig], tuple[Any, dict[str, Any]]]] = {
+    "geometry": build_geometry_stage,
+}
+
+
+def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
+    """Train ``cfg.stage`` into ``out_dir``; returns the final evaluation metrics."""
+    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
+    if cfg.stage not in STAGES:
+        if cfg.stage == "texture":
+            raise ConfigError("stage=texture: the texture stage is not built yet (next issue); "
+                              "train stage=geometry")
+        raise ConfigError(f"stage must be one of {sorted(STAGES)}, got {cfg.stage!r}")
+    tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
+    seed_everything(tcfg.seed)  # model initialisation is part of the seeded run
+    task, found = STAGES[cfg.stage](cfg)
+    if cfg.get("init_from"):
+        state = load_checkpoint(cfg.init_from)
+        for name, module in task.modules().items():
+            if name in state["modules"]:
+                module.load_state_dict(state["modules"][name])
+    config = OmegaConf.to_container(cfg, resolve=True)
+    config["netepu"]["data"].update(found)
+    trainer = Trainer(task, tcfg, out_dir, config)
+    metrics = trainer.fit()
+    metrics["iterations_per_second"] = trainer.throughput()
+    return metrics
+
+
+@hydra.main(config_path="pkg://nsd.conf", config_name="netepu_train", version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    """Train; returns the validation objective (``cfg.objective``) for sweepers."""
+    from hydra.core.hydra_config import HydraConfig
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    metrics = run(cfg, out_dir)
+    log.info("final metrics: %s", metrics)
+    value = metrics.get(cfg.objective, float("nan"))
+    return float(value) if value is not None and math.isfinite(value) else float("nan")
+
+
+if __name__ == "__main__":
+    main()
