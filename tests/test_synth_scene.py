@@ -259,6 +259,12 @@ class TestDefaultScene:
         assert tuple(cfg.image_size) == (128, 128)
         assert len(build_world(cfg.replace(num_frames=1)).rig) == 4
 
+    def test_switching_rig_kind_keeps_other_kinds_keys(self):
+        cfg = default_config()
+        nepumoo = cfg.replace(num_frames=1, rig={**cfg.rig, "kind": "nepumoo"})
+        rig = build_world(nepumoo).rig
+        assert len(rig) == 24 and rig.names[8] == "ring1_cam0"
+
     def test_cached_once(self, tmp_path):
         cfg = tiny_config(num_frames=2)
         p1 = default_scene(cache_root=tmp_path, config=cfg)
@@ -302,6 +308,7 @@ class TestConfigErrors:
             ({"rig": {"kind": "dome"}}, "rig.kind"),
             ({"rig": {"kind": "corners", "count": 5}}, "rig.count"),
             ({"rig": {"kind": "ring", "distortion": [0.1]}}, "rig.distortion"),
+            ({"rig": {"kind": "ring", "lens": 1}}, "rig"),
             ({"motion": {"interaction": "fight"}}, "motion.interaction"),
             ({"motion": {"speed": 1}}, "motion"),
             ({"light": {"ambient": 2.0}}, "light.ambient"),

@@ -16,14 +16,23 @@ Rigs
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import inspect
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from nsd.calibration import Camera, CameraRig
 from nsd.errors import ConfigError
 
-__all__ = ["corner_rig", "focal_from_fov", "look_at", "make_rig", "nepumoo_rig", "ring_rig"]
+__all__ = [
+    "corner_rig",
+    "focal_from_fov",
+    "look_at",
+    "make_rig",
+    "nepumoo_rig",
+    "rig_from_config",
+    "ring_rig",
+]
 
 RIG_KINDS = ("corners", "ring", "nepumoo")
 
@@ -179,3 +188,23 @@ def make_rig(kind: str, size: tuple[int, int], **params) -> CameraRig:
         return builders[kind](size=size, **params)
     except TypeError as e:
         raise ConfigError(f"rig: bad parameters for a {kind!r} rig: {e}") from e
+
+
+def rig_from_config(rig: Mapping, size: tuple[int, int]) -> CameraRig:
+    """A rig from the ``rig`` mapping of a scene config.
+
+    ``kind`` selects the builder; keys that only other kinds use are ignored
+    (so ``rig.kind=nepumoo`` works on top of the corner defaults); a key that
+    no kind knows raises :class:`ConfigError`. ``distortion`` is passed as ``dist``.
+    """
+    builders = {"corners": corner_rig, "ring": ring_rig, "nepumoo": nepumoo_rig}
+    accepted = {k: set(inspect.signature(f).parameters) - {"size"} for k, f in builders.items()}
+    known = set().union(*accepted.values()) | {"kind", "distortion"}
+    unknown = sorted(set(rig) - known)
+    if unknown:
+        raise ConfigError(f"rig: unknown keys {unknown}; known: {sorted(known)}")
+    kind = rig.get("kind")
+    if kind not in builders:
+        raise ConfigError(f"rig.kind: unknown rig {kind!r}; choose one of {list(builders)}")
+    params = {k: v for k, v in rig.items() if k in accepted[kind] or k == "distortion"}
+    return make_rig(kind, size, **params)

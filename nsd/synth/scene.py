@@ -55,7 +55,7 @@ from nsd.synth.nnopcs import nnopcs_bounds
 from nsd.synth.preview import preview_cell, preview_grid
 from nsd.synth.raycast import ViewRays, camera_rays
 from nsd.synth.render import render_views
-from nsd.synth.rigs import make_rig
+from nsd.synth.rigs import rig_from_config
 from nsd.synth.texture import LOOK_ALIKE_PAIRS, POOL_SIZE
 
 __all__ = [
@@ -140,8 +140,7 @@ def build_world(config: SceneConfig) -> SyntheticWorld:
         )
         for i, sp in enumerate(config.species_of_individuals)
     ]
-    params = {k: v for k, v in config.rig.items() if k != "kind"}
-    rig = make_rig(config.rig["kind"], tuple(config.image_size), **params)
+    rig = rig_from_config(config.rig, tuple(config.image_size))
     for c in rig:
         if np.hypot(*c.center[:2]) >= config.backdrop.wall_radius:
             raise ConfigError(
