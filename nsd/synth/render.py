@@ -154,7 +154,8 @@ def render_views(
         background: composite over the backdrop (True) or over black (False,
             as NeTePu's masked training images).
         supersample: odd samples per pixel side for the RGB image (ground-truth
-            maps always come from the pixel-centre sample).
+            maps always come from the pixel-centre sample); a prepared
+            ``ViewRays`` brings its own.
         backdrop, light: the static world and its light.
 
     Returns:
