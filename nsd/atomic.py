@@ -3,7 +3,7 @@
 A file is written to a temporary sibling and moved into place with
 :func:`os.replace`, which is atomic on POSIX file systems. A folder is built
 under a temporary sibling name and renamed into place at the end; if the
-process dies, only a hidden ``.<name>.partial-*`` folder is left, never a
+process dies, only a hidden ``.<name>.partial-<pid>-*`` folder is left, never a
 folder under the final name.
 """
 
@@ -84,9 +84,25 @@ def atomic_save_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def remove_stale_partials(final: Path) -> None:
-    """Delete ``.<name>.partial-*`` folders left by killed runs next to ``final``."""
+    """Delete ``.<name>.partial-<pid>-*`` folders next to ``final`` left by dead processes.
+
+    Folders of processes that are still running (another writer) are left alone.
+    """
     for p in final.parent.glob(f".{final.name}.partial-*"):
+        pid = p.name.rsplit(".partial-", 1)[1].split("-", 1)[0]
+        if pid.isdigit() and _pid_alive(int(pid)) and int(pid) != os.getpid():
+            continue
         shutil.rmtree(p, ignore_errors=True)
 
 
@@ -107,7 +123,7 @@ def atomic_directory(final: str | os.PathLike, overwrite: bool = True) -> Iterat
     if final.exists() and not overwrite:
         raise FileExistsError(f"{final} exists; pass overwrite=True to replace it")
     remove_stale_partials(final)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-", dir=final.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-{os.getpid()}-", dir=final.parent))
     try:
         yield tmp
     except BaseException:

@@ -40,6 +40,7 @@ from nsd.detector import Detections, Detector
 from nsd.encoder import Encoder, rotate_latent
 from nsd.errors import ConfigError
 from nsd.focal_st import crop, paste
+from nsd.triangulation import ray_distances, window_rays
 
 __all__ = ["BiNVS", "BiNVSConfig", "Rendering", "Windows"]
 
@@ -56,6 +57,8 @@ class BiNVSConfig:
     association: bool = True  # appearance association across views (eq. 4-5)
     association_dims: int = 16  # leading appearance entries compared
     association_beta: float = 10.0  # softmax sharpness
+    association_geometry: float = 0.0  # weight of the ray-distance term (0: appearance only, NSD)
+    association_unit: float = 0.3  # metres of ray distance per unit of cosine similarity
     mask_normalisation: str = "max"  # "max": divide each window's mask by its maximum
     mask_floor: float = 1e-4  # floor of that maximum
     crop_padding: str = "zeros"  # grid_sample padding of crops reaching outside the frame
@@ -131,11 +134,21 @@ class BiNVS(nn.Module):
         """Detect, crop and encode the windows of frames (B, 3, H, W)."""
         det = self.detector(images, backgrounds)
         size = (self.cfg.crop_size, self.cfg.crop_size)
-        crops = crop(images, det.boxes, size, focal=self.cfg.focal,
-                     padding_mode=self.cfg.crop_padding)
+        crops = crop(
+            images, det.boxes, size, focal=self.cfg.focal, padding_mode=self.cfg.crop_padding
+        )
         B, N = crops.shape[:2]
         app, latent = self.encoder(crops.flatten(0, 1))
         return Windows(det, crops, app.view(B, N, -1), latent.view(B, N, *latent.shape[1:]))
+
+    def association_score(
+        self, app_target: Tensor, app_source: Tensor, geometry_cost: Tensor | None = None
+    ) -> Tensor:
+        """Association score (B, N, M): cosine similarity minus the weighted ray distance."""
+        M = appearance_similarity(app_target, app_source, self.cfg.association_dims)
+        if geometry_cost is not None and self.cfg.association_geometry > 0:
+            M = M - self.cfg.association_geometry * geometry_cost / self.cfg.association_unit
+        return M
 
     def render(
         self,
@@ -145,6 +158,7 @@ class BiNVS(nn.Module):
         background: Tensor,
         hard: bool = False,
         associate: bool | None = None,
+        geometry_cost: Tensor | None = None,
     ) -> Rendering:
         """Re-synthesise the target view from the source view's windows.
 
@@ -155,6 +169,8 @@ class BiNVS(nn.Module):
             background: the target view's median background, (B, 3, H, W).
             hard: one-hot association (inference) instead of the softmax.
             associate: override ``cfg.association`` (False when source is target).
+            geometry_cost: ray distances between target and source windows (B, N, N),
+                metres; subtracted from the similarity with ``association_geometry``.
         """
         B, N = source.app.shape[:2]
         latent = rotate_latent(source.latent, rotation.to(source.latent.dtype))
@@ -165,7 +181,7 @@ class BiNVS(nn.Module):
             mask = mask / mask.amax((-2, -1), keepdim=True).clamp_min(self.cfg.mask_floor)
         associate = self.cfg.association if associate is None else associate
         if associate:
-            M = appearance_similarity(target.app, source.app, self.cfg.association_dims)
+            M = self.association_score(target.app, source.app, geometry_cost)
             A = hard_association(M) if hard else association_softmax(M, self.cfg.association_beta)
             rgb, mask = apply_association(A, rgb), apply_association(A, mask)
         else:
@@ -186,6 +202,8 @@ class BiNVS(nn.Module):
         background_v: Tensor,
         background_w: Tensor,
         rotation_vw: Tensor,
+        cameras_v: dict[str, Tensor] | None = None,
+        cameras_w: dict[str, Tensor] | None = None,
     ) -> tuple[Rendering, Rendering, Windows, Windows]:
         """Both directions of Bi-NVS for a batch of view pairs.
 
@@ -193,6 +211,8 @@ class BiNVS(nn.Module):
             image_v, image_w: (B, 3, H, W) the two views of the same instants.
             background_v, background_w: their median backgrounds.
             rotation_vw: :math:`R_{v \\to w}`, (B, 3, 3).
+            cameras_v, cameras_w: per-sample K, R, t, dist of the two views; needed for
+                the geometric association term (``association_geometry > 0``).
 
         Returns:
             (rendering of v, rendering of w, windows of v, windows of w).
@@ -200,14 +220,71 @@ class BiNVS(nn.Module):
         both = self.windows(torch.cat([image_v, image_w]), torch.cat([background_v, background_w]))
         B = image_v.shape[0]
         win_v, win_w = (
-            Windows(Detections(*(getattr(both.det, k)[s] for k in ("boxes", "depths", "presence"))),
-                    both.crops[s], both.app[s], both.latent[s])
+            Windows(
+                Detections(*(getattr(both.det, k)[s] for k in ("boxes", "depths", "presence"))),
+                both.crops[s],
+                both.app[s],
+                both.latent[s],
+            )
             for s in (slice(0, B), slice(B, 2 * B))
         )
         if self.cfg.mode == "autoencoder":
             eye = torch.eye(3, dtype=image_v.dtype).expand(B, 3, 3)
-            return (self.render(win_v, win_v, eye, background_v, associate=False),
-                    self.render(win_w, win_w, eye, background_w, associate=False), win_v, win_w)
+            return (
+                self.render(win_v, win_v, eye, background_v, associate=False),
+                self.render(win_w, win_w, eye, background_w, associate=False),
+                win_v,
+                win_w,
+            )
         rot_wv = rotation_vw.transpose(-1, -2)
-        return (self.render(win_v, win_w, rot_wv, background_v),
-                self.render(win_w, win_v, rotation_vw, background_w), win_v, win_w)
+        cost = None
+        if self.cfg.association_geometry > 0 and cameras_v is not None:
+            cost = self.geometry_cost(
+                win_v.det.boxes, win_w.det.boxes, cameras_v, cameras_w, image_v.shape[-2:]
+            )
+        return (
+            self.render(win_v, win_w, rot_wv, background_v, geometry_cost=cost),
+            self.render(
+                win_w,
+                win_v,
+                rotation_vw,
+                background_w,
+                geometry_cost=None if cost is None else cost.transpose(-1, -2),
+            ),
+            win_v,
+            win_w,
+        )
+
+    @staticmethod
+    def geometry_cost(
+        boxes_v: Tensor,
+        boxes_w: Tensor,
+        cameras_v: dict[str, Tensor],
+        cameras_w: dict[str, Tensor],
+        image_size,
+    ) -> Tensor:
+        """Ray distances (B, N_v, N_w) between the window centres of two views (detached).
+
+        Args:
+            boxes_v, boxes_w: windows (B, N, 4) of the two views.
+            cameras_v, cameras_w: per-sample K (B, 3, 3), R, t, dist.
+            image_size: (H, W) of the frames.
+        """
+        with torch.no_grad():
+            o_v, d_v = window_rays(
+                boxes_v,
+                cameras_v["K"],
+                cameras_v["R"],
+                cameras_v["t"],
+                cameras_v["dist"],
+                tuple(image_size),
+            )
+            o_w, d_w = window_rays(
+                boxes_w,
+                cameras_w["K"],
+                cameras_w["R"],
+                cameras_w["t"],
+                cameras_w["dist"],
+                tuple(image_size),
+            )
+            return ray_distances(o_v, d_v, o_w, d_w)

@@ -105,9 +105,15 @@ class TrainerConfig:
 
 
 def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    legacy = np.random.get_state(legacy=False)  # noqa: NPY002
+    # plain types only, so that checkpoints load with weights_only=True
+    legacy["state"] = {
+        "key": torch.from_numpy(legacy["state"]["key"].astype(np.int64)),
+        "pos": int(legacy["state"]["pos"]),
+    }
     return {
         "numpy_generator": rng.bit_generator.state,
-        "numpy_global": np.random.get_state(legacy=False),  # noqa: NPY002
+        "numpy_global": legacy,
         "python": random.getstate(),
         "torch": torch.get_rng_state(),
     }
@@ -115,7 +121,12 @@ def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
 
 def _set_rng_state(rng: np.random.Generator, state: Mapping[str, Any]) -> None:
     rng.bit_generator.state = state["numpy_generator"]
-    np.random.set_state(state["numpy_global"])  # noqa: NPY002
+    legacy = dict(state["numpy_global"])
+    legacy["state"] = {
+        "key": legacy["state"]["key"].numpy().astype(np.uint32),
+        "pos": legacy["state"]["pos"],
+    }
+    np.random.set_state(legacy)  # noqa: NPY002
     random.setstate(state["python"])
     torch.set_rng_state(state["torch"])
 
@@ -253,8 +264,13 @@ class Trainer:
             self._csv = CsvLog(self.out_dir / "metrics.csv")
         for k, v in scalars.items():
             self._tb.add_scalar(f"{prefix}/{k}", v, self.step)
-        self._csv.write({"step": self.step, "minutes": round(self.train_seconds / 60, 4),
-                         **{f"{prefix}/{k}": v for k, v in scalars.items()}})
+        self._csv.write(
+            {
+                "step": self.step,
+                "minutes": round(self.train_seconds / 60, 4),
+                **{f"{prefix}/{k}": v for k, v in scalars.items()},
+            }
+        )
 
     def _grids(self) -> None:
         if not self.main:
@@ -266,8 +282,9 @@ class Trainer:
         folder = self.out_dir / "grids"
         folder.mkdir(parents=True, exist_ok=True)
         for name, img in grids.items():
-            cv2.imwrite(str(folder / f"{name}_{self.step:07d}.png"),
-                        cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(
+                str(folder / f"{name}_{self.step:07d}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+            )
             if self._tb is not None:
                 self._tb.add_image(name, img, self.step, dataformats="HWC")
 
@@ -318,8 +335,7 @@ class Trainer:
             from tqdm import tqdm
 
             total = self.cfg.max_steps if self.cfg.max_steps > 0 else None
-            bar = tqdm(total=total, initial=self.step, desc="train", dynamic_ncols=True,
-                       unit="it")
+            bar = tqdm(total=total, initial=self.step, desc="train", dynamic_ncols=True, unit="it")
         minute_marks = sorted(m for m in self.cfg.eval_at_minutes if m not in self._evals_done)
         ctx = torch.autograd.set_detect_anomaly(True) if self.cfg.detect_anomaly else None
         if ctx is not None:
@@ -346,8 +362,9 @@ class Trainer:
                 self.train_seconds += time.perf_counter() - t0
                 if bar is not None:
                     bar.update(1)
-                    bar.set_postfix(loss=f"{losses['loss'].item():.4f}",
-                                    min=f"{self.train_seconds / 60:.1f}")
+                    bar.set_postfix(
+                        loss=f"{losses['loss'].item():.4f}", min=f"{self.train_seconds / 60:.1f}"
+                    )
                 c = self.cfg
                 if c.log_every and self.step % c.log_every == 0:
                     self._log({k: v.item() for k, v in losses.items()}, "train")

@@ -55,8 +55,9 @@ class TestAssociation(BaseTester):
         A.sum().backward()
         assert torch.isfinite(z.grad).all()
         same = torch.ones(1, 2, 128)
-        self.assert_close(association_softmax(appearance_similarity(same, same)),
-                          torch.full((1, 2, 2), 0.5))
+        self.assert_close(
+            association_softmax(appearance_similarity(same, same)), torch.full((1, 2, 2), 0.5)
+        )
 
     @pytest.mark.parametrize("beta", [0.1, 1.0, 10.0, 1e3])
     def test_beta_extremes_finite(self, beta):
@@ -72,4 +73,5 @@ class TestAssociation(BaseTester):
         x = torch.randn(1, 3, 4)
         assert self.gradcheck(
             lambda a, b, x: apply_association(association_softmax(appearance_similarity(a, b)), x),
-            [a, b, x])
+            [a, b, x],
+        )

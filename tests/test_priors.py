@@ -12,8 +12,12 @@ from nsd.priors import aspect_prior, position_prior, presence_prior, scale_prior
 
 def test_position_prior_uses_batch_mean_per_window():
     # window 0 at opposite positions over the batch: mean centred -> no penalty
-    boxes = torch.tensor([[[0.5, 0.5, 0.6, -0.2], [0.5, 0.5, 0.3, 0.0]],
-                          [[0.5, 0.5, -0.6, 0.2], [0.5, 0.5, 0.3, 0.4]]])
+    boxes = torch.tensor(
+        [
+            [[0.5, 0.5, 0.6, -0.2], [0.5, 0.5, 0.3, 0.0]],
+            [[0.5, 0.5, -0.6, 0.2], [0.5, 0.5, 0.3, 0.4]],
+        ]
+    )
     # window 1 mean centre (0.3, 0.2): 0.13; averaged over 2 windows
     assert position_prior(boxes).item() == pytest.approx(0.13 / 2)
 

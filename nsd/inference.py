@@ -1,0 +1,182 @@
+"""Inference API: frames in, one record per subject out (no autograd, batched).
+
+At test time NSD needs a single image: the detector places the windows, the
+encoder encodes them, the decoder renders each window in its own view (no
+rotation) and the compositor resolves occlusions with the predicted depths.
+The composited weights are the *raw* visible instance masks.
+
+Mask refinement (``refine="residual"``, the default): the decoder renders
+small windows (32 px by default) and misses thin limbs, so the visible masks
+are re-drawn from the background residual: every foreground pixel (evidence
+above 0.5, see :func:`nsd.losses.foreground_evidence`) goes to the subject
+with the largest composited weight there (if that weight exceeds
+``min_weight``). NSD still decides which subject a pixel belongs to and who
+occludes whom; the median background, which NSD already needs, only sharpens
+the silhouettes. ``refine="none"`` returns the raw masks.
+
+Cross-view identities come from the appearance association: in each frame,
+the windows of every view are matched one-to-one (Hungarian on the cosine
+similarity of their association dims) to the windows of the first view that
+shows any subject; unmatched windows open new identities.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.optimize import linear_sum_assignment
+from torch import Tensor
+
+from nsd.association import appearance_similarity
+from nsd.bi_nvs import BiNVS
+from nsd.losses import foreground_evidence
+
+__all__ = ["Decomposition", "associate_views", "decompose", "mask_boxes"]
+
+
+@dataclass
+class Decomposition:
+    """Per-subject results for a batch of B frames of one or more views.
+
+    Attributes:
+        windows: window boxes (B, N, 4) = (sx, sy, tx, ty), normalised.
+        boxes: tight boxes of the visible masks, COCO pixels [x, y, w, h], (B, N, 4).
+        masks: visible instance masks, (B, N, H, W) in [0, 1] (refined, see the module).
+        raw_masks: the compositor's weights, (B, N, H, W).
+        depths: (B, N), smaller is nearer.
+        presence: (B, N) in [0, 1].
+        scores: detection confidence (B, N) in [0, 1].
+        active: (B, N) bool: present and with a non-empty visible mask.
+        crops: (B, N, 3, h, w) the encoder's input crops.
+        app: appearance vectors (B, N, D).
+        latent: 3D latent clouds (B, N, P, 3).
+        reconstruction: the frame re-synthesised from its own windows, (B, 3, H, W).
+    """
+
+    windows: Tensor
+    boxes: Tensor
+    masks: Tensor
+    raw_masks: Tensor
+    depths: Tensor
+    presence: Tensor
+    scores: Tensor
+    active: Tensor
+    crops: Tensor
+    app: Tensor
+    latent: Tensor
+    reconstruction: Tensor
+
+
+def mask_boxes(masks: Tensor) -> Tensor:
+    """Tight COCO boxes [x, y, w, h] (pixel edges) of boolean masks (..., H, W); zeros if empty."""
+    H, W = masks.shape[-2:]
+    rows, cols = masks.any(-1), masks.any(-2)
+    ar_h = torch.arange(H, device=masks.device)
+    ar_w = torch.arange(W, device=masks.device)
+    big = torch.tensor(10**9, device=masks.device)
+    y0 = torch.where(rows, ar_h, big).amin(-1)
+    y1 = torch.where(rows, ar_h, -big).amax(-1) + 1
+    x0 = torch.where(cols, ar_w, big).amin(-1)
+    x1 = torch.where(cols, ar_w, -big).amax(-1) + 1
+    box = torch.stack([x0, y0, x1 - x0, y1 - y0], -1).float()
+    return torch.where(rows.any(-1, keepdim=True), box, torch.zeros_like(box))
+
+
+@torch.inference_mode()
+def decompose(
+    model: BiNVS,
+    images: Tensor,
+    backgrounds: Tensor,
+    mask_threshold: float = 0.5,
+    min_area: int = 4,
+    presence_threshold: float = 0.5,
+    refine: str = "residual",
+    min_weight: float = 0.05,
+    evidence_threshold: float = 0.04,
+    evidence_softness: float = 0.08,
+) -> Decomposition:
+    """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
+
+    Args:
+        model: a trained :class:`BiNVS` (put in eval mode here, restored after).
+        images, backgrounds: (B, 3, H, W) in [0, 1].
+        mask_threshold: visible-mask threshold for boxes, areas and ``active``.
+        min_area: smallest visible area (pixels) of an active subject.
+        presence_threshold: windows below this presence are inactive.
+        refine: ``"residual"`` (silhouettes from the background residual) or ``"none"``.
+        min_weight: smallest composited weight that claims a foreground pixel.
+        evidence_threshold, evidence_softness: as in training (``loss`` config).
+    """
+    was_training = model.training
+    model.eval()
+    try:
+        win = model.windows(images, backgrounds)
+        B = images.shape[0]
+        eye = torch.eye(3, dtype=images.dtype).expand(B, 3, 3)
+        r = model.render(win, win, eye, backgrounds, hard=True, associate=False)
+    finally:
+        model.train(was_training)
+    raw = r.composite.weights
+    if refine == "residual":
+        fg = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness) > 0.5
+        weighted = raw * win.det.presence[..., None, None]
+        owner = weighted.argmax(1, keepdim=True)
+        claim = fg[:, None] & (weighted.amax(1, keepdim=True) > min_weight)
+        masks = (torch.arange(raw.shape[1])[None, :, None, None] == owner) & claim
+        masks = masks.to(raw.dtype)
+    elif refine == "none":
+        masks = raw
+    else:
+        raise ValueError(f"refine must be 'residual' or 'none', got {refine!r}")
+    binary = masks > mask_threshold
+    area = binary.flatten(-2).sum(-1)
+    active = (win.det.presence > presence_threshold) & (area >= min_area)
+    conf = (raw * binary).flatten(-2).sum(-1) / area.clamp_min(1)
+    return Decomposition(
+        windows=win.det.boxes,
+        boxes=mask_boxes(binary),
+        masks=masks,
+        raw_masks=raw,
+        depths=win.det.depths,
+        presence=win.det.presence,
+        scores=win.det.presence * conf,
+        active=active,
+        crops=win.crops,
+        app=win.app,
+        latent=win.latent,
+        reconstruction=r.image,
+    )
+
+
+def associate_views(app: Tensor, active: Tensor, dims: int = 16) -> np.ndarray:
+    """Cross-view subject ids for the windows of one frame.
+
+    Args:
+        app: appearance vectors of every view's windows, (V, N, D).
+        active: (V, N) bool.
+        dims: association dims (as in training).
+
+    Returns:
+        int array (V, N): the subject id of each window, -1 for inactive windows.
+    """
+    V, N = active.shape
+    ids = np.full((V, N), -1, dtype=np.int64)
+    ref_app, ref_ids, next_id = None, None, 0
+    for v in range(V):
+        act = np.flatnonzero(active[v].cpu().numpy())
+        if act.size == 0:
+            continue
+        if ref_app is None:
+            ids[v, act] = np.arange(next_id, next_id + act.size)
+            next_id += act.size
+            ref_app, ref_ids = app[v, act], ids[v, act]
+            continue
+        sim = appearance_similarity(app[v, act][None], ref_app[None], dims)[0].cpu().numpy()
+        rows, cols = linear_sum_assignment(-sim)
+        ids[v, act[rows]] = ref_ids[cols]
+        for i in np.setdiff1d(np.arange(act.size), rows):
+            ids[v, act[i]] = next_id
+            next_id += 1
+    return ids

@@ -1,0 +1,313 @@
+"""``nsd-train``: self-supervised NSD training (Hydra app) and its training task.
+
+Stages (NSD supplement A): with ``model.depth_from_step > 0`` the first steps
+train B, E and D with the additive compositor (stage 1), then E and D are
+re-initialised (``model.reinit_at_depth``) and the depth compositor is turned
+on (stage 2). ``stage=pose`` trains the pose regressor P on the frozen latent
+(stage 3, see :mod:`nsd.pose_stage`).
+
+Loss per view pair (both directions of Bi-NVS):
+
+* image loss: residual-weighted pixel MSE + ``ssim_weight`` x (1 - SSIM);
+* foreground-evidence prior: the composited coverage 1 - T(inf) should match
+  the background-residual evidence (a label-free cue from the median background);
+* weak priors on the windows of both views (position, scale, aspect) and the
+  presence prior.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+
+from nsd.bi_nvs import BiNVS, BiNVSConfig
+from nsd.data import SceneData
+from nsd.decoder import Decoder
+from nsd.detector import Detector
+from nsd.encoder import Encoder
+from nsd.errors import ConfigError
+from nsd.losses import foreground_evidence, total_image_loss
+from nsd.priors import aspect_prior, position_prior, presence_prior, scale_prior
+from nsd.proposals import proposal_prior
+from nsd.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
+from nsd.triangulation import depth_prior, triangulate_midpoints, window_rays
+
+__all__ = ["NSDTask", "build_model", "main", "resolve_scene"]
+
+log = logging.getLogger(__name__)
+
+_BINVS_KEYS = {f for f in BiNVSConfig.__dataclass_fields__}
+
+
+def resolve_scene(scene: str | None) -> Path:
+    """The scene folder to use: the given one, or the built-in default synthetic scene."""
+    if scene:
+        return Path(scene).expanduser()
+    from nsd.synth import default_scene
+
+    return default_scene()
+
+
+def build_model(model_cfg: Mapping[str, Any]) -> BiNVS:
+    """BiNVS with its three networks from the ``model`` config group."""
+    m = dict(model_cfg)
+    cfg = BiNVSConfig(**{k: v for k, v in m.items() if k in _BINVS_KEYS})
+    det = dict(m.get("detector", {}))
+    det["widths"] = tuple(det.get("widths", (16, 32, 64, 64)))
+    enc = dict(m.get("encoder", {}))
+    enc["widths"] = tuple(enc.get("widths", (32, 64, 96, 128)))
+    dec = dict(m.get("decoder", {}))
+    dec["widths"] = tuple(dec.get("widths", (128, 64, 32)))
+    for name, widths, size in (
+        ("detector", det["widths"], det.get("input_size", 64)),
+        ("encoder", enc["widths"], cfg.crop_size),
+        ("decoder", dec["widths"], cfg.crop_size),
+    ):
+        if size % 2 ** len(widths):
+            raise ConfigError(
+                f"model.{name}: input size {size} must be divisible by 2^{len(widths)} "
+                f"(one halving per width in {list(widths)})"
+            )
+    return BiNVS(
+        cfg,
+        Detector(num_windows=cfg.num_windows, **det),
+        Encoder(
+            crop_size=cfg.crop_size,
+            app_dims=enc.pop("app_dims", 128),
+            points=enc.pop("points", 200),
+            **enc,
+        ),
+        Decoder(
+            crop_size=cfg.crop_size,
+            app_dims=model_cfg["encoder"].get("app_dims", 128),
+            points=model_cfg["encoder"].get("points", 200),
+            **dec,
+        ),
+    )
+
+
+def _reset(module: nn.Module) -> None:
+    for m in module.modules():
+        if hasattr(m, "reset_parameters") and m is not module:
+            m.reset_parameters()
+
+
+class NSDTask:
+    """Bi-NVS training on a scene (implements nsd.trainer.TrainTask)."""
+
+    def __init__(self, cfg: DictConfig, data: SceneData, gt: Any = None) -> None:
+        self.cfg, self.data, self.gt = cfg, data, gt
+        self.model = build_model(OmegaConf.to_container(cfg.model, resolve=True))
+        self.depth_from = int(cfg.model.get("depth_from_step", 0))
+        self.reinit = bool(cfg.model.get("reinit_at_depth", True))
+        self.use_depth = bool(cfg.model.depth)
+        self._make_optimizer()
+        self.stage2_started = self.depth_from <= 0
+        self.step = 0
+        if cfg.prior_proposal.weight > 0:
+            data.compute_proposals(
+                cfg.model.num_windows, cfg.loss.evidence_threshold, cfg.loss.evidence_softness
+            )
+
+    def _make_optimizer(self) -> None:
+        o = self.cfg.optim
+        m = self.model
+        self.opt = torch.optim.Adam(
+            [
+                {"params": m.detector.parameters(), "lr": o.lr_detector},
+                {"params": m.encoder.parameters(), "lr": o.lr_encoder},
+                {"params": m.decoder.parameters(), "lr": o.lr_decoder},
+            ],
+            weight_decay=o.weight_decay,
+        )
+
+    # ------------------------------------------------------------ TrainTask
+    def modules(self) -> dict[str, nn.Module]:
+        return {"model": self.model}
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"adam": self.opt}
+
+    def extra_state(self) -> dict[str, Any]:
+        return {"stage2_started": self.stage2_started}
+
+    def load_extra_state(self, state: Mapping[str, Any]) -> None:
+        self.stage2_started = bool(state.get("stage2_started", self.stage2_started))
+        self.model.cfg.depth = self.use_depth and self.stage2_started
+
+    def _update_stage(self, step: int) -> None:
+        if not self.stage2_started and step >= self.depth_from:
+            self.stage2_started = True
+            if self.reinit:
+                _reset(self.model.encoder)
+                _reset(self.model.decoder)
+                self._make_optimizer()
+            log.info("step %d: stage 2 (depth compositor on)", step)
+        self.model.cfg.depth = self.use_depth and self.stage2_started
+
+    def losses(self, batch) -> dict[str, torch.Tensor]:
+        """All loss terms for a batch of view pairs; ``loss`` is their weighted sum."""
+        c = self.cfg
+        cams = self.data.cameras
+        rv, rw, wv, ww = self.model(
+            batch.image_v,
+            batch.image_w,
+            batch.background_v,
+            batch.background_w,
+            batch.rotation_vw,
+            {k: v[batch.view_v] for k, v in cams.items()},
+            {k: v[batch.view_w] for k, v in cams.items()},
+        )
+        out: dict[str, torch.Tensor] = {}
+        total = torch.zeros(())
+        for r, img, bg in (
+            (rv, batch.image_v, batch.background_v),
+            (rw, batch.image_w, batch.background_w),
+        ):
+            ev = foreground_evidence(img, bg, c.loss.evidence_threshold, c.loss.evidence_softness)
+            weight = 1 + c.loss.residual_weight * ev if c.loss.residual_weight > 0 else None
+            terms = total_image_loss(
+                r.image, img, weight, c.loss.ssim_weight, c.loss.ssim_window, c.loss.renormalise
+            )
+            for k, v in terms.items():
+                out[k] = out.get(k, 0) + v / 2
+            if c.loss.foreground_weight > 0:
+                cover = 1 - r.composite.background_weight
+                out["foreground"] = out.get("foreground", 0) + (cover - ev).pow(2).mean() / 2
+        boxes = torch.cat([wv.det.boxes, ww.det.boxes])
+        H, W = batch.image_v.shape[-2:]
+        out["prior_position"] = position_prior(boxes)
+        out["prior_scale"] = scale_prior(boxes, c.prior_scale.target)
+        out["prior_aspect"] = aspect_prior(boxes, c.prior_aspect.ratio, (H, W))
+        out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
+        if c.prior_depth.weight > 0:
+            out["prior_depth"] = self._depth_prior(batch, rv, rw, wv, ww)
+        if batch.proposals_v is not None:
+            out["prior_proposal"] = proposal_prior(
+                boxes,
+                torch.cat([batch.proposals_v, batch.proposals_w]),
+                torch.cat([batch.valid_v, batch.valid_w]),
+            )
+        weights = {
+            "pixel": 1.0,
+            "ssim": c.loss.ssim_weight,
+            "foreground": c.loss.foreground_weight,
+            "prior_position": c.prior_position.weight,
+            "prior_scale": c.prior_scale.weight,
+            "prior_aspect": c.prior_aspect.weight,
+            "prior_presence": c.prior_presence.weight,
+            "prior_proposal": self.proposal_weight(),
+            "prior_depth": c.prior_depth.weight,
+        }
+        for k, v in out.items():
+            total = total + weights[k] * v
+        out["loss"] = total
+        return out
+
+    def _depth_prior(self, batch, rv, rw, wv, ww) -> torch.Tensor:
+        """Triangulated relative-depth consistency for both directions (nsd.triangulation)."""
+        cams = self.data.cameras
+        H, W = batch.image_v.shape[-2:]
+        total = torch.zeros(())
+        for r, tgt, src, vt, vs in (
+            (rv, wv, ww, batch.view_v, batch.view_w),
+            (rw, ww, wv, batch.view_w, batch.view_v),
+        ):
+            o_t, d_t = window_rays(
+                tgt.det.boxes, cams["K"][vt], cams["R"][vt], cams["t"][vt], cams["dist"][vt], (H, W)
+            )
+            o_s, d_s = window_rays(
+                src.det.boxes, cams["K"][vs], cams["R"][vs], cams["t"][vs], cams["dist"][vs], (H, W)
+            )
+            partner = r.association.argmax(-1)  # target slot j <- source window
+            d_s = d_s.gather(1, partner[..., None].expand(-1, -1, 3))
+            points, ok = triangulate_midpoints(o_t, d_t.detach(), o_s, d_s.detach())
+            depth = (points @ cams["R"][vt].transpose(-1, -2) + cams["t"][vt][:, None])[..., 2]
+            ok = ok & (tgt.det.presence > 0.5)
+            total = total + depth_prior(tgt.det.depths, depth, ok, self.cfg.prior_depth.unit) / 2
+        return total
+
+    def proposal_weight(self) -> float:
+        """The proposal prior's weight, annealed linearly to 0 over ``decay_steps``."""
+        p = self.cfg.prior_proposal
+        if p.decay_steps <= 0:
+            return float(p.weight)
+        return float(p.weight) * max(0.0, 1.0 - self.step / p.decay_steps)
+
+    def training_step(self, step: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
+        self.step = step
+        self._update_stage(step)
+        return self.losses(self.data.sample(rng, self.cfg.batch_size))
+
+    def evaluate(self, step: int) -> dict[str, float]:
+        from nsd.evaluation import evaluate_model
+
+        frames = _spread(self.data.val_frames, self.cfg.eval_frames)
+        return evaluate_model(self.model, self.data, frames, self.gt)
+
+    def image_grids(self, step: int) -> dict[str, np.ndarray]:
+        from nsd.visualise import training_grid
+
+        frames = _spread(self.data.val_frames, 3)
+        return {"nsd": training_grid(self.model, self.data, frames)}
+
+
+def _spread(frames: np.ndarray, n: int) -> np.ndarray:
+    """n frames spread evenly over ``frames``."""
+    if len(frames) <= n:
+        return np.asarray(frames)
+    return np.asarray(frames)[np.linspace(0, len(frames) - 1, n).round().astype(int)]
+
+
+def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
+    """Train according to ``cfg`` into ``out_dir``; returns the final metrics."""
+    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
+    scene = resolve_scene(cfg.data.scene)
+    data = SceneData(
+        scene, cfg.data.image_size, cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames
+    )
+    from nsd.ground_truth import GroundTruth
+
+    gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
+    tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
+    seed_everything(tcfg.seed)  # model initialisation is part of the seeded run
+    if cfg.stage == "pose":
+        from nsd.pose_stage import PoseTask
+
+        task = PoseTask(cfg, data, gt)
+    elif cfg.stage == "decomposition":
+        task = NSDTask(cfg, data, gt)
+    else:
+        raise ConfigError(f"stage must be 'decomposition' or 'pose', got {cfg.stage!r}")
+    if cfg.init_from:
+        state = load_checkpoint(cfg.init_from)
+        task.model.load_state_dict(state["modules"]["model"])
+    trainer = Trainer(task, tcfg, out_dir, OmegaConf.to_container(cfg, resolve=True))
+    metrics = trainer.fit()
+    metrics["iterations_per_second"] = trainer.throughput()
+    return metrics
+
+
+@hydra.main(config_path="pkg://nsd.conf", config_name="train", version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    """Train; returns the validation objective (``cfg.objective``) for sweepers."""
+    from hydra.core.hydra_config import HydraConfig
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    metrics = run(cfg, out_dir)
+    value = metrics.get(cfg.objective, float("nan"))
+    log.info("final metrics: %s", metrics)
+    return float(value) if value is not None and math.isfinite(value) else float("nan")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,120 @@
+"""Decomposition metrics: known values, Hungarian matching, COCO AP of ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nsd.evaluation import box_iou, coco_ap, fg_ari, mask_iou, match, score_frame
+from nsd.export_coco import encode_rle
+from nsd.inference import associate_views, mask_boxes
+
+
+def _rect(H, W, x0, y0, x1, y1):
+    m = np.zeros((H, W), bool)
+    m[y0:y1, x0:x1] = True
+    return m
+
+
+def test_mask_and_box_iou_known_values():
+    a = _rect(10, 10, 0, 0, 4, 4)
+    b = _rect(10, 10, 2, 0, 6, 4)
+    assert mask_iou(a[None], b[None])[0, 0] == pytest.approx(8 / 24)
+    assert box_iou(np.array([[0, 0, 4, 4]]), np.array([[2, 0, 4, 4]]))[0, 0] == pytest.approx(
+        8 / 24
+    )
+    assert box_iou(np.array([[0, 0, 1, 1]]), np.array([[5, 5, 1, 1]]))[0, 0] == 0.0
+
+
+def test_match_is_hungarian():
+    iou = np.array([[0.9, 0.8], [0.85, 0.0]])  # greedy would take (0,0) and leave 1 unmatched
+    assert sorted(match(iou)) == [(0, 1), (1, 0)]
+
+
+def test_mask_boxes():
+    m = torch.zeros(2, 8, 8, dtype=torch.bool)
+    m[0, 2:5, 3:7] = True
+    assert mask_boxes(m).tolist() == [[3, 2, 4, 3], [0, 0, 0, 0]]
+
+
+def test_fg_ari():
+    gt = np.array([[-1, 0, 0, 1, 1]])
+    assert fg_ari(gt, np.array([[5, 7, 7, 3, 3]])) == pytest.approx(1.0)  # labels permuted
+    assert fg_ari(gt, np.array([[0, 0, 0, 0, 0]])) == pytest.approx(0.0)
+
+
+def test_score_frame_perfect_and_depth_order():
+    H = W = 20
+    a = _rect(H, W, 2, 2, 10, 18)  # front subject
+    b_amodal = _rect(H, W, 6, 2, 14, 18)
+    b_vis = b_amodal & ~a
+    gt_vis = np.stack([a, b_vis])
+    gt_amo = np.stack([a, b_amodal])
+    gt_boxes = np.array([[2, 2, 8, 16], [10, 2, 4, 16]], float)
+    pred = gt_vis.astype(float)
+    good = score_frame(
+        pred, np.array([0.0, 1.0]), np.ones(2, bool), gt_vis, gt_amo, gt_boxes, [7, 9]
+    )
+    assert good.detected == 2 and good.iou_sum == pytest.approx(2.0)
+    assert good.order_total == 1 and good.order_correct == 1
+    assert good.matches == {7: 0, 9: 1}
+    assert good.ari == [pytest.approx(1.0)]
+    bad = score_frame(
+        pred, np.array([1.0, 0.0]), np.ones(2, bool), gt_vis, gt_amo, gt_boxes, [7, 9]
+    )
+    assert bad.order_correct == 0
+    missing = score_frame(
+        pred[:1], np.array([0.0]), np.ones(1, bool), gt_vis, gt_amo, gt_boxes, [7, 9]
+    )
+    assert missing.detected == 1 and missing.order_total == 0
+
+
+def test_coco_ap_of_ground_truth_is_one():
+    from pycocotools.coco import COCO
+
+    masks = [_rect(32, 32, 2, 2, 12, 20), _rect(32, 32, 15, 5, 30, 30)]
+    gt = COCO()
+    gt.dataset = {
+        "images": [{"id": 1, "width": 32, "height": 32}],
+        "categories": [{"id": 1, "name": "biped"}, {"id": 2, "name": "quadruped"}],
+        "annotations": [
+            {
+                "id": k + 1,
+                "image_id": 1,
+                "category_id": k + 1,
+                "segmentation": encode_rle(m),
+                "area": float(m.sum()),
+                "bbox": [float(v) for v in mask_boxes(torch.as_tensor(m))],
+                "iscrowd": 0,
+            }
+            for k, m in enumerate(masks)
+        ],
+    }
+    gt.createIndex()
+    res = [
+        {
+            "image_id": 1,
+            "category_id": 1,
+            "segmentation": a["segmentation"],
+            "bbox": a["bbox"],
+            "score": 0.9,
+        }
+        for a in gt.dataset["annotations"]
+    ]
+    ap = coco_ap(gt, res, [1])
+    assert ap["coco_segm_ap"] == pytest.approx(1.0) and ap["coco_bbox_ap"] == pytest.approx(1.0)
+    shifted = [{**r, "bbox": [r["bbox"][0] + 6, *r["bbox"][1:]]} for r in res]
+    assert coco_ap(gt, shifted, [1])["coco_bbox_ap"] < 0.5
+
+
+def test_associate_views_hungarian():
+    g = torch.Generator().manual_seed(0)
+    app0 = torch.randn(3, 32, generator=g)
+    app = torch.stack([app0, app0[[2, 0, 1]], app0[[1, 2, 0]]])
+    active = torch.ones(3, 3, dtype=torch.bool)
+    ids = associate_views(app, active)
+    assert ids[0].tolist() == [0, 1, 2]
+    assert ids[1].tolist() == [2, 0, 1] and ids[2].tolist() == [1, 2, 0]
+    active[1, 0] = False
+    assert associate_views(app, active)[1, 0] == -1
