@@ -36,6 +36,7 @@ from sklearn.metrics import adjusted_rand_score
 
 __all__ = [
     "FrameScore",
+    "association_scores",
     "box_iou",
     "coco_ap",
     "evaluate_model",
@@ -276,7 +277,7 @@ def evaluate_model(
                 for w in range(V):
                     if v == w:
                         continue
-                    sim = association_scores(model, dec, data, v, w)
+                    sim = association_scores(model, dec, data.cameras, data.image_size, v, w)
                     for ident, iv in per_view[v].items():
                         if ident in per_view[w]:
                             assoc_total += 1

@@ -22,6 +22,7 @@ shows any subject; unmatched windows open new identities.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -150,32 +151,44 @@ def decompose(
     )
 
 
-def associate_views(app: Tensor, active: Tensor, dims: int = 16) -> np.ndarray:
+def associate_views(
+    app: Tensor,
+    active: Tensor,
+    dims: int = 16,
+    score: Callable[[int, int], Tensor] | None = None,
+) -> np.ndarray:
     """Cross-view subject ids for the windows of one frame.
 
     Args:
         app: appearance vectors of every view's windows, (V, N, D).
         active: (V, N) bool.
         dims: association dims (as in training).
+        score: ``score(v, r)`` -> (N, N) association score between the windows of view
+            ``v`` and the reference view ``r`` (e.g. :func:`nsd.evaluation.association_scores`,
+            which adds the geometric term); default: cosine similarity of ``app``.
 
     Returns:
         int array (V, N): the subject id of each window, -1 for inactive windows.
     """
     V, N = active.shape
     ids = np.full((V, N), -1, dtype=np.int64)
-    ref_app, ref_ids, next_id = None, None, 0
+    ref, ref_act, next_id = None, None, 0
     for v in range(V):
         act = np.flatnonzero(active[v].cpu().numpy())
         if act.size == 0:
             continue
-        if ref_app is None:
+        if ref is None:
             ids[v, act] = np.arange(next_id, next_id + act.size)
             next_id += act.size
-            ref_app, ref_ids = app[v, act], ids[v, act]
+            ref, ref_act = v, act
             continue
-        sim = appearance_similarity(app[v, act][None], ref_app[None], dims)[0].cpu().numpy()
+        if score is None:
+            full = appearance_similarity(app[v][None], app[ref][None], dims)[0]
+        else:
+            full = score(v, ref)
+        sim = full[act][:, ref_act].cpu().numpy()
         rows, cols = linear_sum_assignment(-sim)
-        ids[v, act[rows]] = ref_ids[cols]
+        ids[v, act[rows]] = ids[ref, ref_act[cols]]
         for i in np.setdiff1d(np.arange(act.size), rows):
             ids[v, act[i]] = next_id
             next_id += 1

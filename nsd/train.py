@@ -138,7 +138,12 @@ class NSDTask:
         return {"adam": self.opt}
 
     def extra_state(self) -> dict[str, Any]:
-        return {"stage2_started": self.stage2_started}
+        return {
+            "stage2_started": self.stage2_started,
+            "cameras": list(self.data.rig.names),
+            "image_size": list(self.data.image_size),
+            "scene": str(self.data.footage.scene),
+        }
 
     def load_extra_state(self, state: Mapping[str, Any]) -> None:
         self.stage2_started = bool(state.get("stage2_started", self.stage2_started))
