@@ -191,15 +191,25 @@ def coco_ap(gt_coco, results: list[dict], image_ids: Sequence[int]) -> dict[str,
     return out
 
 
-def association_scores(model, dec, data, v: int, w: int) -> torch.Tensor:
-    """The model's association score (N, N) between the windows of views v and w of a frame."""
-    cams = data.cameras
+def association_scores(
+    model, dec, cameras: dict[str, torch.Tensor], image_size: Sequence[int], v: int, w: int
+) -> torch.Tensor:
+    """The model's association score (N, N) between the windows of views v and w of a frame.
+
+    Args:
+        model: the trained BiNVS.
+        dec: the frame's :class:`nsd.inference.Decomposition` (one entry per view).
+        cameras: stacked per-view K (V, 3, 3), R, t, dist at ``image_size``
+            (:meth:`nsd.calibration.CameraRig.stacked`).
+        image_size: (H, W) of the decomposed frames.
+        v, w: the two views.
+    """
     cost = model.geometry_cost(
         dec.windows[v][None],
         dec.windows[w][None],
-        {k: c[v][None] for k, c in cams.items()},
-        {k: c[w][None] for k, c in cams.items()},
-        data.image_size,
+        {k: c[v][None] for k, c in cameras.items()},
+        {k: c[w][None] for k, c in cameras.items()},
+        tuple(image_size),
     )
     return model.association_score(dec.app[v][None], dec.app[w][None], cost)[0]
 
