@@ -34,7 +34,9 @@ class PairBatch:
         rotation_vw: :math:`R_{v \\to w}`, (B, 3, 3).
         frame, view_v, view_w: (B,) int64 indices.
         proposals_v, proposals_w: label-free window proposals (B, N, 4) (see
-            :mod:`nsd.proposals`), with validity (B, N), when computed.
+            :mod:`nsd.proposals`), with validity (B, N), when computed; multi-view
+            proposals (:mod:`nsd.occupancy`) also carry camera-space depths (B, N)
+            and share slots across views.
     """
 
     image_v: Tensor
@@ -49,6 +51,8 @@ class PairBatch:
     valid_v: Tensor | None = None
     proposals_w: Tensor | None = None
     valid_w: Tensor | None = None
+    proposal_depth_v: Tensor | None = None
+    proposal_depth_w: Tensor | None = None
 
 
 def split_frames(num_frames: int, val_fraction: float) -> tuple[np.ndarray, np.ndarray]:
@@ -105,9 +109,30 @@ class SceneData:
         self.train_frames, self.val_frames = split_frames(len(self.frames), val_fraction)
         self.proposals: Tensor | None = None
         self.proposal_valid: Tensor | None = None
+        self.proposal_depths: Tensor | None = None
+
+    def compute_multiview_proposals(
+        self, k: int, threshold: float, softness: float, resolution: int = 48
+    ) -> None:
+        """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.occupancy)."""
+        from nsd.losses import foreground_evidence
+        from nsd.occupancy import multiview_proposals, voxel_grid
+
+        grid = voxel_grid(self.rig, self.image_size, resolution)
+        boxes, depths, valid = [], [], []
+        for t in range(len(self.frames)):
+            ev = foreground_evidence(
+                to_float(self.frames[t]), self.backgrounds, threshold, softness
+            )
+            b, d, ok = multiview_proposals(ev, grid, k)
+            boxes.append(b)
+            depths.append(d)
+            valid.append(ok)
+        self.proposals, self.proposal_valid = torch.stack(boxes), torch.stack(valid)
+        self.proposal_depths = torch.stack(depths)
 
     def compute_proposals(self, k: int, threshold: float, softness: float) -> None:
-        """Residual-evidence window proposals for every frame and view (nsd.proposals)."""
+        """Single-view residual-evidence window proposals for every frame and view."""
         from nsd.losses import foreground_evidence
         from nsd.proposals import evidence_proposals
 
@@ -153,6 +178,9 @@ class SceneData:
         if self.proposals is not None:
             batch.proposals_v, batch.valid_v = self.proposals[t_, v_], self.proposal_valid[t_, v_]
             batch.proposals_w, batch.valid_w = self.proposals[t_, w_], self.proposal_valid[t_, w_]
+        if self.proposal_depths is not None:
+            batch.proposal_depth_v = self.proposal_depths[t_, v_]
+            batch.proposal_depth_w = self.proposal_depths[t_, w_]
         return batch
 
     def sample(

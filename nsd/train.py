@@ -35,11 +35,13 @@ from nsd.decoder import Decoder
 from nsd.detector import Detector
 from nsd.encoder import Encoder
 from nsd.errors import ConfigError
+from nsd.evaluation import evaluate_model
 from nsd.losses import foreground_evidence, total_image_loss
 from nsd.priors import aspect_prior, position_prior, presence_prior, scale_prior
-from nsd.proposals import proposal_prior
+from nsd.proposals import association_prior, match_proposals, proposal_prior
 from nsd.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 from nsd.triangulation import depth_prior, triangulate_midpoints, window_rays
+from nsd.visualise import training_grid
 
 __all__ = ["NSDTask", "build_model", "main", "resolve_scene"]
 
@@ -113,10 +115,22 @@ class NSDTask:
         self._make_optimizer()
         self.stage2_started = self.depth_from <= 0
         self.step = 0
-        if cfg.prior_proposal.weight > 0:
-            data.compute_proposals(
-                cfg.model.num_windows, cfg.loss.evidence_threshold, cfg.loss.evidence_softness
-            )
+        pp = cfg.prior_proposal
+        if (
+            pp.weight > 0
+            or cfg.prior_association.weight > 0
+            or cfg.prior_depth.source == "proposals"
+        ):
+            args = (cfg.model.num_windows, cfg.loss.evidence_threshold, cfg.loss.evidence_softness)
+            if pp.source == "multiview":
+                data.compute_multiview_proposals(*args, resolution=pp.resolution)
+            elif pp.source == "single_view":
+                data.compute_proposals(*args)
+            else:
+                raise ConfigError(
+                    f"prior_proposal.source must be 'multiview' or 'single_view' when proposal, "
+                    f"association or proposal-depth priors are on, got {pp.source!r}"
+                )
 
     def _make_optimizer(self) -> None:
         o = self.cfg.optim
@@ -194,14 +208,38 @@ class NSDTask:
         out["prior_scale"] = scale_prior(boxes, c.prior_scale.target)
         out["prior_aspect"] = aspect_prior(boxes, c.prior_aspect.ratio, (H, W))
         out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
-        if c.prior_depth.weight > 0:
-            out["prior_depth"] = self._depth_prior(batch, rv, rw, wv, ww)
+        matching = None
         if batch.proposals_v is not None:
-            out["prior_proposal"] = proposal_prior(
-                boxes,
-                torch.cat([batch.proposals_v, batch.proposals_w]),
-                torch.cat([batch.valid_v, batch.valid_w]),
-            )
+            props = torch.cat([batch.proposals_v, batch.proposals_w])
+            valid = torch.cat([batch.valid_v, batch.valid_w])
+            matching = match_proposals(boxes, props, valid)
+            out["prior_proposal"] = proposal_prior(boxes, props, valid, matching)
+        if c.prior_depth.weight > 0:
+            if c.prior_depth.source == "proposals" and batch.proposal_depth_v is not None:
+                target = torch.cat([batch.proposal_depth_v, batch.proposal_depth_w])
+                depths = torch.cat([wv.det.depths, ww.det.depths])
+                out["prior_depth"] = depth_prior(
+                    depths,
+                    target.gather(1, matching),
+                    valid.gather(1, matching),
+                    c.prior_depth.unit,
+                )
+            elif c.prior_depth.source == "triangulation":
+                out["prior_depth"] = self._depth_prior(batch, rv, rw, wv, ww)
+            else:
+                raise ConfigError(
+                    f"prior_depth.source {c.prior_depth.source!r} needs multi-view proposals"
+                    if c.prior_depth.source == "proposals"
+                    else f"prior_depth.source must be 'proposals' or 'triangulation', got "
+                    f"{c.prior_depth.source!r}"
+                )
+        if c.prior_association.weight > 0 and batch.proposal_depth_v is not None:
+            B = batch.image_v.shape[0]
+            mv, mw = matching[:B], matching[B:]
+            out["prior_association"] = (
+                association_prior(rv.association, mv, batch.valid_v, mw, batch.valid_w)
+                + association_prior(rw.association, mw, batch.valid_w, mv, batch.valid_v)
+            ) / 2
         weights = {
             "pixel": 1.0,
             "ssim": c.loss.ssim_weight,
@@ -212,6 +250,7 @@ class NSDTask:
             "prior_presence": c.prior_presence.weight,
             "prior_proposal": self.proposal_weight(),
             "prior_depth": c.prior_depth.weight,
+            "prior_association": c.prior_association.weight,
         }
         for k, v in out.items():
             total = total + weights[k] * v
@@ -254,14 +293,10 @@ class NSDTask:
         return self.losses(self.data.sample(rng, self.cfg.batch_size))
 
     def evaluate(self, step: int) -> dict[str, float]:
-        from nsd.evaluation import evaluate_model
-
         frames = _spread(self.data.val_frames, self.cfg.eval_frames)
         return evaluate_model(self.model, self.data, frames, self.gt)
 
     def image_grids(self, step: int) -> dict[str, np.ndarray]:
-        from nsd.visualise import training_grid
-
         frames = _spread(self.data.val_frames, 3)
         return {"nsd": training_grid(self.model, self.data, frames)}
 
