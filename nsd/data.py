@@ -124,7 +124,7 @@ class SceneData:
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness
             )
-            b, d, ok = multiview_proposals(ev, grid, k)
+            b, d, ok, _ = multiview_proposals(ev, grid, k)
             boxes.append(b)
             depths.append(d)
             valid.append(ok)

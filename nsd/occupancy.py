@@ -34,6 +34,7 @@ the carving is one gather per view over the grid.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -43,6 +44,7 @@ from nsd.calibration import CameraRig
 from nsd.projection import project_points
 
 __all__ = [
+    "MultiviewProposals",
     "VoxelGrid",
     "cluster_individuals",
     "multiview_proposals",
@@ -51,6 +53,22 @@ __all__ = [
     "voxel_grid",
     "working_volume",
 ]
+
+
+class MultiviewProposals(NamedTuple):
+    """Visual-hull proposals of one frame.
+
+    Attributes:
+        boxes: windows (V, k, 4) = (sx, sy, tx, ty), normalised.
+        depths: camera-space depth of each individual in each view (V, k).
+        valid: (V, k) bool.
+        owners: the individual owning each foreground pixel (V, H, W), -1 elsewhere.
+    """
+
+    boxes: Tensor
+    depths: Tensor
+    valid: Tensor
+    owners: Tensor
 
 
 @dataclass
@@ -262,7 +280,7 @@ def multiview_proposals(
     min_scale: float = 0.2,
     max_scale: float = 1.0,
     min_views: int = 2,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> MultiviewProposals:
     """Proposals for all views of one frame from its occupancy.
 
     Args:
@@ -275,9 +293,9 @@ def multiview_proposals(
         min_views: as in :func:`occupied_voxels`.
 
     Returns:
-        boxes (V, k, 4) = (sx, sy, tx, ty); depths (V, k) camera-space; valid (V, k) bool.
-        Slot ``j`` is the same cluster (individual) in every view. A window covers the
-        foreground pixels its individual owns (:func:`owned_pixels`).
+        :class:`MultiviewProposals`. Slot ``j`` is the same cluster (individual) in
+        every view. A window covers the foreground pixels its individual owns
+        (:func:`owned_pixels`).
     """
     V = evidence.shape[0]
     H, W = grid.image_size
@@ -287,13 +305,13 @@ def multiview_proposals(
     valid = torch.zeros(V, k, dtype=torch.bool)
     occ = occupied_voxels(evidence, grid, min_views)
     idx = torch.nonzero(occ).flatten()
+    owners = torch.full((V, H, W), -1, dtype=torch.long)
     if len(idx) < min_voxels:
-        return boxes, depths, valid
+        return MultiviewProposals(boxes, depths, valid, owners)
     labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k)
     keep = labels >= 0
     idx, labels = idx[keep], labels[keep]
     f = grid.uv.new_tensor([W, H]) / 2  # pixels per normalised unit
-    owners = torch.full((V, H, W), -1, dtype=torch.long)
     for v in range(V):
         vis = grid.inside[v, idx]
         z = grid.depth[v, idx[vis]]
@@ -314,4 +332,4 @@ def multiview_proposals(
             boxes[v, j] = torch.cat([half.clamp(min_scale, max_scale), centre])
             depths[v, j] = z[sel].mean()
             valid[v, j] = True
-    return boxes, depths, valid
+    return MultiviewProposals(boxes, depths, valid, owners)

@@ -294,7 +294,12 @@ class NSDTask:
 
     def evaluate(self, step: int) -> dict[str, float]:
         frames = _spread(self.data.val_frames, self.cfg.eval_frames)
-        return evaluate_model(self.model, self.data, frames, self.gt)
+        metrics = evaluate_model(self.model, self.data, frames, self.gt)
+        if self.cfg.get("eval_train_frames", 0) > 0:
+            seen = _spread(self.data.train_frames, self.cfg.eval_train_frames)
+            train = evaluate_model(self.model, self.data, seen, self.gt)
+            metrics.update({f"train_{k}": v for k, v in train.items()})
+        return metrics
 
     def image_grids(self, step: int) -> dict[str, np.ndarray]:
         frames = _spread(self.data.val_frames, 3)

@@ -57,7 +57,7 @@ def test_proposals_match_visible_boxes_with_shared_slots_and_depth_order(two_peo
     rig, _, _, out = two_people
     ev = out["instance"].ge(0).float()
     grid = voxel_grid(rig, ev.shape[-2:], 40)
-    boxes, depths, valid = multiview_proposals(ev, grid, 2)
+    boxes, depths, valid, owners = multiview_proposals(ev, grid, 2)
     assert valid.all()
     H, W = ev.shape[-2:]
     slot_of = []
@@ -76,6 +76,14 @@ def test_proposals_match_visible_boxes_with_shared_slots_and_depth_order(two_peo
         assert (zgt[0] < zgt[1]) == (zp[0] < zp[1])
     # the slot of each individual is the same in every view
     assert all(s == slot_of[0] for s in slot_of)
+    # most foreground pixels are owned by the right individual (the coarse hull blurs
+    # ownership where the two overlap)
+    right = sum(
+        ((owners[v] == slot_of[0][i]) & (out["instance"][v] == i)).sum()
+        for v in range(len(rig))
+        for i in range(2)
+    )
+    assert right / out["instance"].ge(0).sum() > 0.75
 
 
 def test_owned_pixels_front_wins():
