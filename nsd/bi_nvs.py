@@ -34,7 +34,14 @@ from nsd.association import (
     association_softmax,
     hard_association,
 )
-from nsd.compositor import Composite, additive_composite, blend, erf_transmittance_composite
+from nsd.compositor import (
+    Composite,
+    additive_composite,
+    blend,
+    erf_transmittance_composite,
+    masks_overlap,
+    separate_composite,
+)
 from nsd.decoder import Decoder
 from nsd.detector import Detections, Detector
 from nsd.encoder import Encoder, rotate_latent
@@ -85,12 +92,14 @@ class Windows:
         crops: (B, N, 3, h, w) (vignetted by the bump when focal).
         app: appearance vectors (B, N, D).
         latent: 3D latent clouds (B, N, P, 3) in this view's camera frame.
+        on: (B, N) bool, windows that were encoded (None: all of them).
     """
 
     det: Detections
     crops: Tensor
     app: Tensor
     latent: Tensor
+    on: Tensor | None = None
 
 
 @dataclass
@@ -104,6 +113,8 @@ class Rendering:
         masks: pasted subject masks (B, N, H, W) (after association and presence).
         association: (B, N, N) soft (training) or one-hot (inference) association.
         window_rgb, window_mask: the decoded windows in target slots, (B, N, 3|1, h, w).
+        occlusion_reasoning: False when the masks did not overlap and the erf compositor's
+            pairwise terms were skipped (its exact non-overlapping form was used).
     """
 
     image: Tensor
@@ -113,6 +124,7 @@ class Rendering:
     association: Tensor
     window_rgb: Tensor
     window_mask: Tensor
+    occlusion_reasoning: bool = True
 
 
 class BiNVS(nn.Module):
@@ -130,16 +142,42 @@ class BiNVS(nn.Module):
             )
         self.cfg, self.detector, self.encoder, self.decoder = cfg, detector, encoder, decoder
 
-    def windows(self, images: Tensor, backgrounds: Tensor) -> Windows:
-        """Detect, crop and encode the windows of frames (B, 3, H, W)."""
+    def windows(
+        self, images: Tensor, backgrounds: Tensor, min_presence: float | None = None
+    ) -> Windows:
+        """Detect, crop and encode the windows of frames (B, 3, H, W).
+
+        Args:
+            images, backgrounds: (B, 3, H, W).
+            min_presence: windows whose presence is below this are switched off: they are
+                neither cropped nor encoded (their crops, appearance and latent are zeros).
+                None: every window is encoded (training).
+        """
         det = self.detector(images, backgrounds)
         size = (self.cfg.crop_size, self.cfg.crop_size)
-        crops = crop(
-            images, det.boxes, size, focal=self.cfg.focal, padding_mode=self.cfg.crop_padding
-        )
-        B, N = crops.shape[:2]
-        app, latent = self.encoder(crops.flatten(0, 1))
-        return Windows(det, crops, app.view(B, N, -1), latent.view(B, N, *latent.shape[1:]))
+        B, N = det.presence.shape
+        if min_presence is None:
+            crops = crop(
+                images, det.boxes, size, focal=self.cfg.focal, padding_mode=self.cfg.crop_padding
+            )
+            app, latent = self.encoder(crops.flatten(0, 1))
+            return Windows(det, crops, app.view(B, N, -1), latent.view(B, N, *latent.shape[1:]))
+        on = det.presence >= min_presence  # (B, N)
+        crops = images.new_zeros(B, N, images.shape[1], *size)
+        app = images.new_zeros(B, N, self.encoder.app_dims)
+        latent = images.new_zeros(B, N, self.encoder.points, 3)
+        if on.any():
+            b_idx, n_idx = torch.nonzero(on, as_tuple=True)
+            c = crop(
+                images[b_idx],
+                det.boxes[b_idx, n_idx][:, None],
+                size,
+                focal=self.cfg.focal,
+                padding_mode=self.cfg.crop_padding,
+            )[:, 0]
+            a, lat = self.encoder(c)
+            crops[b_idx, n_idx], app[b_idx, n_idx], latent[b_idx, n_idx] = c, a, lat
+        return Windows(det, crops, app, latent, on)
 
     def association_score(
         self, app_target: Tensor, app_source: Tensor, geometry_cost: Tensor | None = None
@@ -174,9 +212,18 @@ class BiNVS(nn.Module):
         """
         B, N = source.app.shape[:2]
         latent = rotate_latent(source.latent, rotation.to(source.latent.dtype))
-        rgb, logit = self.decoder(latent.flatten(0, 1), source.app.flatten(0, 1))
-        rgb = rgb.view(B, N, *rgb.shape[1:])
-        mask = torch.sigmoid(logit).view(B, N, *logit.shape[1:])
+        if source.on is None:
+            rgb, logit = self.decoder(latent.flatten(0, 1), source.app.flatten(0, 1))
+            rgb = rgb.view(B, N, *rgb.shape[1:])
+            mask = torch.sigmoid(logit).view(B, N, *logit.shape[1:])
+        else:  # switched-off windows are not decoded: empty windows
+            c = self.cfg.crop_size
+            rgb = latent.new_zeros(B, N, 3, c, c)
+            mask = latent.new_zeros(B, N, 1, c, c)
+            if source.on.any():
+                b_idx, n_idx = torch.nonzero(source.on, as_tuple=True)
+                r_, l_ = self.decoder(latent[b_idx, n_idx], source.app[b_idx, n_idx])
+                rgb[b_idx, n_idx], mask[b_idx, n_idx] = r_, torch.sigmoid(l_)
         if self.cfg.mask_normalisation == "max":
             mask = mask / mask.amax((-2, -1), keepdim=True).clamp_min(self.cfg.mask_floor)
         associate = self.cfg.association if associate is None else associate
@@ -191,8 +238,24 @@ class BiNVS(nn.Module):
         layers = paste(rgb, boxes, (H, W), focal=self.cfg.focal, padding_mode="border")
         masks = paste(mask, boxes, (H, W), focal=self.cfg.focal, padding_mode="zeros")[:, :, 0]
         masks = masks.clamp(0.0, 1.0) * target.det.presence[..., None, None]
-        compositor = erf_transmittance_composite if self.cfg.depth else additive_composite
-        comp = compositor(masks, target.det.depths)
+        if target.on is not None:  # inference: skip occlusion reasoning without overlaps
+            masks = masks * target.on[..., None, None]
+        if not self.cfg.depth:
+            comp = additive_composite(masks, target.det.depths)
+        elif target.on is not None and not masks_overlap(masks).any():
+            comp = separate_composite(masks, target.det.depths)
+            return Rendering(
+                blend(comp, layers, background),
+                comp,
+                layers,
+                masks,
+                A,
+                rgb,
+                mask,
+                occlusion_reasoning=False,
+            )
+        else:
+            comp = erf_transmittance_composite(masks, target.det.depths)
         return Rendering(blend(comp, layers, background), comp, layers, masks, A, rgb, mask)
 
     def forward(

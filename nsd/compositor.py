@@ -32,14 +32,31 @@ Worked cases: one opaque subject alone gets :math:`w = 1 - e^{-2}` and leaks
 :math:`e^{-2}` (13.5 %) background; two opaque subjects at depths 0 and 3 get
 0.865 and 0.117 with :math:`T(\infty) = e^{-4}`; swapping the depths swaps them.
 
-Stability: :math:`\operatorname{erf} \in [-1, 1]` bounds the exponent to
-:math:`[-2N, 0]`, so no exponential over- or underflows whatever the depths
-(1e4 apart or equal). :math:`1 - T(\infty)` is computed with ``expm1``, and the
-sum in :math:`Z`'s denominator is clamped at ``eps`` (1e-12): it only bites when
-every mask is ~0, where :math:`1 - T(\infty) \approx 0` too and all weights go
-to 0 (background weight 1). The background weight is returned as
-:math:`1 - \sum_j w_j`, so the weights sum to exactly 1 by construction, and
-equals :math:`T(\infty)` wherever the denominator is above ``eps``. The cost is
+Stable evaluation: with the subject mass :math:`m = \sum_i S_i` per pixel,
+:math:`Z` is evaluated as
+
+.. math::
+    Z = \frac{\phi(m)}{r}, \qquad
+    \phi(m) = \frac{1 - e^{-2m}}{m}, \qquad
+    r = \frac{\sum_k T(z_k) S_k}{m} \in [e^{-2N}, 1],
+
+the ratio of two quantities that both vanish like :math:`m` as the masks go to
+0 rewritten as a ratio of two bounded ones (:math:`r` is the mask-weighted
+mean of the transmittances). :math:`\phi` is a power series below
+``SERIES_BELOW`` (its limit :math:`\phi(0) = 2`; the closed form loses its
+gradient to cancellation there) and :math:`r = 1` where :math:`m` is below the
+dtype's machine epsilon (its limit: every transmittance is 1 within
+:math:`2m`). So the weights and their gradients keep their limits where every
+mask is exactly 0 (background weight 1, :math:`\partial w_j/\partial S_j = 2`:
+a transparent subject still learns to appear) instead of a 0/0 that a clamp
+would have to turn into a zero gradient. :math:`\operatorname{erf} \in [-1, 1]`
+bounds every exponent to :math:`[-2N, 0]`, so no exponential over- or
+underflows whatever the depths (1e4 apart or equal), and :math:`1/r \le
+e^{2N}`. The background weight is returned as :math:`1 - \sum_j w_j`, so the
+weights sum to exactly 1 by construction, and equals :math:`T(\infty)`. The
+depth map divides by the subject coverage clamped at ``DEPTH_FLOOR`` (1e-6):
+where subjects cover less of a pixel it fades to 0 (no subject), keeping its
+gradient bounded by :math:`|z| / \text{DEPTH\_FLOOR}`. The cost is
 :math:`O(N^2 HW)`: an (N, N) matrix of erf terms applied to the masks.
 
 Additive compositor (NSD eq. 6, the "no depth reasoning" ablation)
@@ -55,9 +72,17 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["Composite", "additive_composite", "blend", "erf_transmittance_composite"]
+__all__ = [
+    "Composite",
+    "additive_composite",
+    "blend",
+    "erf_transmittance_composite",
+    "masks_overlap",
+    "separate_composite",
+]
 
-EPS = 1e-12  # clamp of the normalisation's denominator (see module docstring)
+SERIES_BELOW = 1e-2  # masses m below this use the power series of phi(m) (module docstring)
+DEPTH_FLOOR = 1e-6  # subject coverage below which the depth map fades to 0
 
 
 class Composite(NamedTuple):
@@ -85,16 +110,31 @@ def _check(masks: Tensor, depths: Tensor) -> None:
 
 def _depth_map(weights: Tensor, depths: Tensor) -> Tensor:
     total = weights.sum(1)
-    return (weights * depths[..., None, None]).sum(1) / total.clamp_min(EPS)
+    return (weights * depths[..., None, None]).sum(1) / total.clamp_min(DEPTH_FLOOR)
 
 
-def erf_transmittance_composite(masks: Tensor, depths: Tensor, eps: float = EPS) -> Composite:
+def _coverage_per_mass(mass: Tensor) -> Tensor:
+    """:math:`\\phi(m) = (1 - e^{-2m}) / m` for masses m >= 0, with phi(0) = 2.
+
+    Below ``SERIES_BELOW`` the Taylor series (truncation < 1e-16 relative), above
+    it the closed form, whose autograd gradient is accurate there (relative error
+    ~ machine epsilon / m).
+    """
+    small = mass < SERIES_BELOW
+    safe = torch.where(small, torch.ones_like(mass), mass)  # no 0/0 in the unused branch
+    closed = -torch.expm1(-2 * safe) / safe
+    x = 2 * mass
+    # (1 - e^-x) / x = sum_k (-x)^k / (k + 1)!, Horner form up to x^6
+    series = 1 - x / 2 * (1 - x / 3 * (1 - x / 4 * (1 - x / 5 * (1 - x / 6 * (1 - x / 7)))))
+    return torch.where(small, 2 * series, closed)
+
+
+def erf_transmittance_composite(masks: Tensor, depths: Tensor) -> Composite:
     """Visibility weights of depth-ordered translucent layers (see the module docstring).
 
     Args:
         masks: subject masks :math:`S`, (B, N, H, W), values in [0, 1].
         depths: one depth per subject :math:`z`, (B, N); smaller is nearer.
-        eps: clamp of the normalisation's denominator.
 
     Returns:
         :class:`Composite` with weights (B, N, H, W), background weight (B, H, W)
@@ -110,10 +150,35 @@ def erf_transmittance_composite(masks: Tensor, depths: Tensor, eps: float = EPS)
     E = torch.erf(depths.unsqueeze(-1) - depths.unsqueeze(-2)) + 1
     optical_depth = torch.einsum("bji,bihw->bjhw", E, masks)  # -log T(z_j), in [0, 2N]
     visible = torch.exp(-optical_depth) * masks  # T(z_j) S_j
-    coverage = -torch.expm1(-2 * masks.sum(1))  # 1 - T(inf)
-    weights = visible * (coverage / visible.sum(1).clamp_min(eps)).unsqueeze(1)
+    mass = masks.sum(1)  # m
+    seen = mass > torch.finfo(masks.dtype).eps
+    mean_transmittance = torch.where(  # r, 1 where m ~ 0 (its limit)
+        seen, visible.sum(1) / torch.where(seen, mass, torch.ones_like(mass)), 1.0
+    )
+    weights = visible * (_coverage_per_mass(mass) / mean_transmittance).unsqueeze(1)
     background = 1 - weights.sum(1)
     return Composite(weights, background, _depth_map(weights, depths))
+
+
+def masks_overlap(masks: Tensor, eps: float = 1e-6) -> Tensor:
+    """Per sample, whether any pixel holds two subjects with mask > ``eps``: (B,) bool."""
+    return ((masks > eps).sum(1) > 1).flatten(1).any(1)
+
+
+def separate_composite(masks: Tensor, depths: Tensor) -> Composite:
+    """The erf compositor's exact result when no two masks overlap (occlusion skipped).
+
+    With a single subject at a pixel, :math:`T(z_j) = e^{-S_j}`, the normalisation
+    gives :math:`w_j = 1 - e^{-2 S_j}` and the background keeps :math:`e^{-2 S_j}`;
+    no pair of subjects interacts, so the (N, N) erf matrix is not needed.
+
+    Args:
+        masks: (B, N, H, W) with at most one non-zero mask per pixel.
+        depths: (B, N) (only for the depth map).
+    """
+    _check(masks, depths)
+    weights = -torch.expm1(-2 * masks)
+    return Composite(weights, 1 - weights.sum(1), _depth_map(weights, depths))
 
 
 def additive_composite(masks: Tensor, depths: Tensor) -> Composite:

@@ -54,6 +54,8 @@ class Decomposition:
         app: appearance vectors (B, N, D).
         latent: 3D latent clouds (B, N, P, 3).
         reconstruction: the frame re-synthesised from its own windows, (B, 3, H, W).
+        occlusion_reasoning: False when no masks overlapped and the compositor's pairwise
+            occlusion terms were skipped.
     """
 
     windows: Tensor
@@ -68,6 +70,7 @@ class Decomposition:
     app: Tensor
     latent: Tensor
     reconstruction: Tensor
+    occlusion_reasoning: bool = True
 
 
 def mask_boxes(masks: Tensor) -> Tensor:
@@ -113,7 +116,7 @@ def decompose(
     was_training = model.training
     model.eval()
     try:
-        win = model.windows(images, backgrounds)
+        win = model.windows(images, backgrounds, min_presence=presence_threshold)
         B = images.shape[0]
         eye = torch.eye(3, dtype=images.dtype).expand(B, 3, 3)
         r = model.render(win, win, eye, backgrounds, hard=True, associate=False)
@@ -133,7 +136,7 @@ def decompose(
         raise ValueError(f"refine must be 'residual' or 'none', got {refine!r}")
     binary = masks > mask_threshold
     area = binary.flatten(-2).sum(-1)
-    active = (win.det.presence > presence_threshold) & (area >= min_area)
+    active = win.on & (area >= min_area)
     conf = (raw * binary).flatten(-2).sum(-1) / area.clamp_min(1)
     return Decomposition(
         windows=win.det.boxes,
@@ -148,6 +151,7 @@ def decompose(
         app=win.app,
         latent=win.latent,
         reconstruction=r.image,
+        occlusion_reasoning=r.occlusion_reasoning,
     )
 
 

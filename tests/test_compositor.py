@@ -138,3 +138,20 @@ class TestAdditive(BaseTester):
         self.assert_close(c.background_weight, torch.zeros(1, 1, 1))
         single = additive_composite(torch.ones(1, 1, 1, 1) * 0.3, torch.zeros(1, 1))
         self.assert_close(single.background_weight, torch.full((1, 1, 1), 0.7))
+
+
+class TestSkippingOcclusion(BaseTester):
+    def test_separate_equals_erf_without_overlap(self):
+        from nsd.compositor import masks_overlap, separate_composite
+
+        g = torch.Generator().manual_seed(5)
+        owner = torch.randint(-1, 3, (2, 6, 7), generator=g)
+        masks = torch.stack([(owner == j).double() for j in range(3)], 1)
+        masks = masks * torch.rand(masks.shape, generator=g, dtype=torch.float64)
+        depths = torch.randn(2, 3, generator=g, dtype=torch.float64)
+        assert not masks_overlap(masks).any()
+        fast, full = separate_composite(masks, depths), erf_transmittance_composite(masks, depths)
+        self.assert_close(fast.weights, full.weights)
+        self.assert_close(fast.background_weight, full.background_weight)
+        masks[0, 1, 0, 0] = masks[0, 0, 0, 0] = 0.5
+        assert masks_overlap(masks).tolist() == [True, False]

@@ -1,0 +1,50 @@
+"""Inference: switched-off windows cost nothing; frames without overlap skip occlusion terms."""
+
+from __future__ import annotations
+
+import torch
+
+from nsd.inference import decompose
+from nsd.train import build_model
+from tests.test_nsd_train import tiny_cfg
+
+
+def _model(presence_bias: float):
+    model = build_model(tiny_cfg("model.detector.presence=true").model)
+    with torch.no_grad():
+        model.detector.head.bias.view(-1, 6)[0, 5] = presence_bias  # window 0 presence
+        model.detector.head.bias.view(-1, 6)[1, 5] = 5.0  # window 1 on
+    return model
+
+
+def test_switched_off_window_is_not_encoded_or_decoded():
+    model = _model(-5.0)
+    calls = []
+    model.encoder.register_forward_hook(lambda m, i, o: calls.append(i[0].shape[0]))
+    images, bgs = torch.rand(3, 3, 24, 32), torch.rand(3, 3, 24, 32)
+    dec = decompose(model, images, bgs, refine="none", min_area=0)
+    assert calls == [3]  # one window per frame encoded, not 2
+    assert not dec.active[:, 0].any()
+    assert torch.equal(dec.crops[:, 0], torch.zeros_like(dec.crops[:, 0]))
+    assert torch.equal(dec.app[:, 0], torch.zeros_like(dec.app[:, 0]))
+    assert dec.masks[:, 0].abs().max() == 0
+    # with the window on, it is encoded
+    calls.clear()
+    on = _model(5.0)
+    on.encoder.register_forward_hook(lambda m, i, o: calls.append(i[0].shape[0]))
+    decompose(on, images, bgs, refine="none")
+    assert calls == [6]
+
+
+def test_occlusion_reasoning_skipped_without_overlap():
+    model = _model(5.0)
+    with torch.no_grad():  # two small windows far apart: their masks cannot overlap
+        b = model.detector.head.bias.view(-1, 6)
+        b[:, 0:2] = -6.0  # minimum scale 0.2
+        b[0, 2], b[1, 2] = -1.0, 1.0  # tx = 0.8 tanh(-+1) = -+0.61
+    dec = decompose(model, torch.rand(2, 3, 24, 32), torch.rand(2, 3, 24, 32), refine="none")
+    assert dec.occlusion_reasoning is False
+    with torch.no_grad():
+        model.detector.head.bias.view(-1, 6)[:, 2] = 0.0  # same place: overlapping
+    dec = decompose(model, torch.rand(2, 3, 24, 32), torch.rand(2, 3, 24, 32), refine="none")
+    assert dec.occlusion_reasoning is True
