@@ -1,0 +1,315 @@
+"""nsd-export: the files equal the model's outputs, score like nsd-eval, and fail cleanly.
+
+A tiny checkpoint is trained once per module (a few steps on a 2-camera x 6-frame
+synthetic scene at its native 48 x 48, so exported pixels are the model's pixels).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from pycocotools.coco import COCO
+
+from nsd.crops_io import read_crop_index, read_crops
+from nsd.embeddings_io import read_embeddings
+from nsd.errors import CheckpointError, ConfigError, FootageError
+from nsd.export import export_subjects, load_export_config
+from nsd.mot import read_mot
+
+ROOT = Path(__file__).resolve().parents[1]
+NO_VIEWS = {"views.tensorboard": False, "views.tsne": False, "progress": False}
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[Path, Path]:
+    """(checkpoint.pt, scene) of a tiny decomposition trained for a few steps."""
+    from nsd.synth import tiny_config, write_scene
+    from nsd.train import run
+    from tests.test_nsd_train import tiny_cfg
+
+    root = tmp_path_factory.mktemp("export")
+    scene = write_scene(tiny_config(), root / "scene")
+    cfg = tiny_cfg(
+        f"data.scene={scene}",
+        "data.image_size=[48,48]",
+        "trainer.max_steps=4",
+        "trainer.progress=false",
+        "trainer.checkpoint_every=0",
+        "eval_frames=1",
+    )
+    run(cfg, root / "run")
+    return root / "run" / "checkpoint.pt", scene
+
+
+def _export(ckpt, scene, out, **changes):
+    cfg = load_export_config(
+        checkpoint=str(ckpt), scene=str(scene), out=str(out), **{**NO_VIEWS, **changes}
+    )
+    return export_subjects(cfg)
+
+
+def _reference(ckpt, scene):
+    """The model's own outputs on every frame, one frame (all views) at a time."""
+    from nsd.data import SceneData
+    from nsd.inference import decompose
+    from nsd.model_io import load_decomposition
+
+    trained = load_decomposition(ckpt)
+    H, W = trained.image_size
+    data = SceneData(scene, (W, H), val_fraction=0.0)
+    return data, [decompose(trained.model, *data.views(t)) for t in range(len(data.frames))]
+
+
+def test_round_trip_equals_model_outputs(trained, tmp_path):
+    ckpt, scene = trained
+    s = _export(ckpt, scene, tmp_path / "out", batch_size=4)  # batches straddle frames
+    data, decs = _reference(ckpt, scene)
+    coco = COCO(str(s.out / "subjects.coco.json"))
+    names = data.rig.names
+    assert len(coco.imgs) == len(decs) * len(names) == s.camera_frames
+    emb = read_embeddings(s.out)
+    row = {int(i): k for k, i in enumerate(emb["id"])}
+    n = 0
+    for t, dec in enumerate(decs):
+        for v, cam in enumerate(names):
+            (img,) = [i for i in coco.imgs.values() if i["camera"] == cam and i["frame"] == t]
+            anns = coco.loadAnns(coco.getAnnIds(imgIds=[img["id"]]))
+            active = np.flatnonzero(dec.active[v].numpy())
+            assert sorted(a["slot"] for a in anns) == active.tolist()
+            for a in anns:
+                k = a["slot"]
+                np.testing.assert_array_equal(coco.annToMask(a), dec.masks[v, k].numpy() > 0.5)
+                np.testing.assert_allclose(a["bbox"], dec.boxes[v, k].numpy())
+                assert a["score"] == pytest.approx(float(dec.scores[v, k]), abs=1e-5)
+                assert a["depth"] == pytest.approx(float(dec.depths[v, k]), abs=1e-5)
+                r = row[a["id"]]
+                assert (emb["camera"][r], emb["frame"][r], emb["slot"][r]) == (cam, t, k)
+                assert emb["subject_id"][r] == a["subject_id"] >= 1
+                np.testing.assert_allclose(emb["app"][r], dec.app[v, k].numpy(), atol=1e-5)
+                n += 1
+    assert n == s.subjects == len(emb["id"]) > 0
+    # every window of a frame that the association matched across views shares a subject id
+    for t in range(len(decs)):
+        ids = [a for a in coco.dataset["annotations"] if a["frame"] == t]
+        by_assoc = {}
+        for a in ids:
+            by_assoc.setdefault(a["association_id"], set()).add(a["subject_id"])
+        assert all(len(v) == 1 for v in by_assoc.values())
+
+
+def test_crops_index_and_manifest_checksums(trained, tmp_path):
+    ckpt, scene = trained
+    s = _export(ckpt, scene, tmp_path / "out", **{"crop.size": 24, "crop.chunk": 5})
+    coco = COCO(str(s.out / "subjects.coco.json"))
+    index = read_crop_index(s.out / "crops")
+    assert [r["id"] for r in index] == sorted(coco.anns) and len(index) == s.subjects
+    assert len(list((s.out / "crops").glob("crops-*.npz"))) == -(-s.subjects // 5)
+    first = index[0]
+    ann = coco.anns[first["id"]]
+    np.testing.assert_allclose(
+        [first[k] for k in ("bbox_x", "bbox_y", "bbox_w", "bbox_h")], ann["bbox"], atol=0.01
+    )
+    crops, masks = read_crops(s.out / "crops", [first["id"]])
+    assert crops.shape == (1, 24, 24, 3) and masks[0].any()  # the subject is in its crop
+    manifest = json.loads((s.out / "manifest.json").read_text())
+    assert manifest["counts"]["subjects"] == s.subjects
+    assert manifest["checkpoint"]["step"] == 4 and manifest["scene"]["ground_truth"]
+    for rel, meta in manifest["files"].items():
+        assert hashlib.sha256((s.out / rel).read_bytes()).hexdigest() == meta["sha256"], rel
+    assert set(manifest["files"]) >= {
+        "subjects.coco.json",
+        "embeddings.parquet",
+        "tracks/cam0.txt",
+        "crops/index.csv",
+    }
+
+
+def test_coco_ap_equals_nsd_eval(trained, tmp_path):
+    from nsd.evaluate import evaluate_checkpoint
+    from nsd.evaluation import coco_ap
+    from nsd.ground_truth import GroundTruth
+
+    ckpt, scene = trained
+    s = _export(ckpt, scene, tmp_path / "out")
+    gt = GroundTruth.load(scene).coco
+    dt = COCO(str(s.out / "subjects.coco.json"))
+    assert set(dt.getImgIds()) <= set(gt.getImgIds())  # the scene's own image ids
+    ours = coco_ap(gt, dt.dataset["annotations"], dt.getImgIds())
+    theirs = evaluate_checkpoint(ckpt, scene, frames="all")
+    for k in ("coco_bbox_ap", "coco_bbox_ap50", "coco_segm_ap", "coco_segm_ap50"):
+        assert ours[k] == pytest.approx(theirs[k], abs=1e-9), k
+
+
+def test_mot_files_parse_and_match_coco(trained, tmp_path):
+    ckpt, scene = trained
+    s = _export(ckpt, scene, tmp_path / "out", frames={"start": 1, "stop": None, "step": 2})
+    coco = COCO(str(s.out / "subjects.coco.json"))
+    assert sorted({i["frame"] for i in coco.imgs.values()}) == [1, 3, 5]
+    for cam in ("cam0", "cam1"):
+        rows = read_mot(s.out / "tracks" / f"{cam}.txt")
+        anns = sorted(
+            (a for a in coco.dataset["annotations"] if a["camera"] == cam),
+            key=lambda a: (a["frame"], a["subject_id"]),
+        )
+        rows = rows[np.lexsort((rows[:, 1], rows[:, 0]))]
+        assert len(rows) == len(anns) > 0
+        np.testing.assert_array_equal(rows[:, 0], [a["frame"] + 1 for a in anns])
+        np.testing.assert_array_equal(rows[:, 1], [a["subject_id"] for a in anns])
+        np.testing.assert_allclose(rows[:, 2:6], [np.add(a["bbox"], [1, 1, 0, 0]) for a in anns])
+        assert (np.diff(read_mot(s.out / "tracks" / f"{cam}.txt")[:, 0]) >= 0).all()
+
+
+def test_projector_and_tsne(trained, tmp_path):
+    ckpt, scene = trained
+    s = _export(
+        ckpt,
+        scene,
+        tmp_path / "out",
+        **{"views.tensorboard": True, "views.tsne": True, "views.max_points": 10},
+    )
+    proj = list((s.out / "tensorboard").rglob("metadata.tsv"))
+    assert len(proj) == 1 and (proj[0].parent / "sprite.png").is_file()
+    lines = proj[0].read_text().splitlines()
+    assert lines[0].split("\t") == ["subject_id", "camera", "frame"] and len(lines) == 11
+    assert (s.out / "tsne.png").stat().st_size > 0
+    assert s.manifest["views"] == {"tensorboard": True, "tsne": True}
+
+
+def test_existing_folder_and_bad_settings(trained, tmp_path):
+    ckpt, scene = trained
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="overwrite=true"):
+        _export(ckpt, scene, out, overwrite=False)
+    assert (out / "keep.txt").read_text() == "mine"
+    with pytest.raises(ConfigError, match=r"frames \[99\] are outside"):
+        _export(ckpt, scene, out, frames=[0, 99])
+    with pytest.raises(ConfigError, match=r"crop\.size: must be >= 4"):
+        _export(ckpt, scene, out, **{"crop.size": 0})
+    with pytest.raises(ConfigError, match=r"no key 'crop\.sise'"):
+        load_export_config(**{"crop.sise": 3})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # nothing half-written
+
+
+def test_missing_checkpoint(trained, tmp_path):
+    _, scene = trained
+    with pytest.raises(CheckpointError, match=r"checkpoint .*nope\.pt does not exist"):
+        _export(tmp_path / "nope.pt", scene, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_camera_unknown_to_the_checkpoint(trained, tmp_path):
+    ckpt, scene = trained
+    other = tmp_path / "scene"
+    shutil.copytree(scene, other)
+    (other / "cam1").rename(other / "cam7")
+    calib = other / "calibration.toml"
+    calib.write_text(calib.read_text().replace('"cam1"', '"cam7"'))
+    with pytest.raises(CheckpointError, match=r"cameras \['cam7'\].*not trained with") as e:
+        _export(ckpt, other, tmp_path / "out")
+    assert str(other) in str(e.value)
+    assert not (tmp_path / "out").exists()
+    s = _export(ckpt, other, tmp_path / "out", cameras=["cam0"])  # known cameras only
+    assert sorted(p.name for p in (s.out / "tracks").iterdir()) == ["cam0.txt"]
+
+
+def test_own_image_ids_without_ground_truth(trained, tmp_path):
+    ckpt, scene = trained
+    other = tmp_path / "scene"
+    shutil.copytree(scene, other, ignore=shutil.ignore_patterns("gt"))
+    s = _export(ckpt, other, tmp_path / "out", cameras=["cam1"], frames=[2, 5])
+    images = COCO(str(s.out / "subjects.coco.json")).dataset["images"]
+    assert [(i["id"], i["file_name"], i["camera"], i["frame"]) for i in images] == [
+        (2 * 2 + 1 + 1, "cam1/000002.png", "cam1", 2),  # frame * C + c + 1, C = 2 cameras
+        (5 * 2 + 1 + 1, "cam1/000005.png", "cam1", 5),
+    ]
+    assert (images[0]["width"], images[0]["height"]) == (48, 48)
+    assert not s.manifest["scene"]["ground_truth"]
+
+
+def test_unreadable_frame_mid_export(trained, tmp_path):
+    from nsd.footage import MultiViewFootage
+
+    ckpt, scene = trained
+    other = tmp_path / "scene"
+    shutil.copytree(scene, other)
+    MultiViewFootage(other, image_size=(48, 48)).background()  # cached: fails while streaming
+    (other / "cam1" / "000003.png").write_bytes(b"not a png")
+    with pytest.raises(FootageError, match=r"camera 'cam1' \(.*000003\.png, frame 3\)"):
+        _export(ckpt, other, tmp_path / "out", batch_size=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]  # no export, no partial
+
+
+def test_killed_export_leaves_no_export_folder(trained, tmp_path):
+    ckpt, scene = trained
+    out = tmp_path / "out"
+    code = (
+        "import time, sys\n"
+        "import nsd.export as e\n"
+        "orig = e._Exporter.batch\n"
+        "def batch(self, items):\n"
+        "    orig(self, items); print('written', flush=True); time.sleep(120)\n"
+        "e._Exporter.batch = batch\n"
+        "cfg = e.load_export_config(checkpoint=sys.argv[1], scene=sys.argv[2], out=sys.argv[3],\n"
+        "                           batch_size=1, progress=False)\n"
+        "e.export_subjects(cfg)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(ckpt), str(scene), str(out)],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "written"
+        partials = list(tmp_path.glob(".out.partial-*"))
+        assert len(partials) == 1 and (partials[0] / "crops").is_dir()
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not out.exists()
+    s = _export(ckpt, scene, out)  # re-running starts afresh and removes the dead partial
+    assert s.frames == 6 and not list(tmp_path.glob(".out.partial-*"))
+
+
+def test_cli_runs_and_reports_bad_input(trained, tmp_path):
+    ckpt, scene = trained
+    cmd = [
+        sys.executable,
+        "-m",
+        "nsd.export",
+        f"checkpoint={ckpt}",
+        f"scene={scene}",
+        f"out={tmp_path / 'out'}",
+        "frames=[0,1]",
+        "views.tsne=false",
+        "progress=false",
+    ]
+    ok = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert ok.returncode == 0, ok.stderr
+    assert "exported 2 frames (4 camera-frames" in ok.stdout
+    assert json.loads((tmp_path / "out" / "manifest.json").read_text())["counts"]["frames"] == 2
+    bad = subprocess.run(
+        [*cmd[:3], f"checkpoint={tmp_path / 'missing.pt'}", *cmd[4:]],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert bad.returncode == 2 and "nsd-export: error: checkpoint" in bad.stderr
+
+
+def test_threads_are_not_changed_by_the_library(trained, tmp_path):
+    ckpt, scene = trained
+    before = torch.get_num_threads()
+    _export(ckpt, scene, tmp_path / "out", frames=[0], threads=1)
+    assert torch.get_num_threads() == before
