@@ -11,7 +11,10 @@ entries, leaving the rest free to encode what all subjects share:
 and the windows decoded from view ``w`` are re-ordered into the slots of view
 ``v`` as :math:`\bar I_{v,j} \leftarrow \sum_i A_{j,i} \bar I_{w,i}`. At inference
 the softmax is replaced by the one-hot argmax. Zero appearance vectors give
-:math:`M = 0` (uniform rows); the softmax is computed stably for any ``beta``.
+:math:`M = 0` (uniform rows) with zero, finite gradients; vectors of any
+magnitude are compared without overflow (each is divided by its largest entry
+first, which leaves :math:`M` unchanged); the softmax is computed stably for any
+``beta``.
 """
 
 from __future__ import annotations
@@ -44,9 +47,15 @@ def appearance_similarity(
     """
     a = app_target[..., :dims]
     b = app_source[..., :dims]
+    # M is unchanged by dividing a and b by any constants s_a, s_b (eps / (s_a s_b) in
+    # the denominator); s = max(1, max |entry|) keeps the dot products and norms of
+    # large vectors from overflowing (float32 at |a| ~ 1e19) and is exactly 1 otherwise
+    s_a = a.detach().abs().amax(-1, keepdim=True).clamp_min(1.0)
+    s_b = b.detach().abs().amax(-1, keepdim=True).clamp_min(1.0)
+    a, b = a / s_a, b / s_b
     dot = torch.einsum("bjd,bid->bji", a, b)
     norms = a.norm(dim=-1).unsqueeze(-1) * b.norm(dim=-1).unsqueeze(-2)
-    return dot / (norms + eps)
+    return dot / (norms + eps / (s_a * s_b.transpose(-1, -2)))
 
 
 def association_softmax(similarity: Tensor, beta: float = 10.0) -> Tensor:

@@ -29,6 +29,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from nsd import distributed
 from nsd.bi_nvs import BiNVS, BiNVSConfig
 from nsd.data import SceneData
 from nsd.decoder import Decoder
@@ -169,6 +170,8 @@ class NSDTask:
             if self.reinit:
                 _reset(self.model.encoder)
                 _reset(self.model.decoder)
+                # the ranks' random streams differ: every replica takes rank 0's new weights
+                distributed.broadcast_parameters([self.model.encoder, self.model.decoder])
                 self._make_optimizer()
             log.info("step %d: stage 2 (depth compositor on)", step)
         self.model.cfg.depth = self.use_depth and self.stage2_started
@@ -343,15 +346,18 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
 
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="train", version_base="1.3")
-def main(cfg: DictConfig) -> float:
+def _hydra_main(cfg: DictConfig) -> float:
     """Train; returns the validation objective (``cfg.objective``) for sweepers."""
-    from hydra.core.hydra_config import HydraConfig
-
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    out_dir = distributed.hydra_run_dir()
     metrics = run(cfg, out_dir)
     value = metrics.get(cfg.objective, float("nan"))
     log.info("final metrics: %s", metrics)
     return float(value) if value is not None and math.isfinite(value) else float("nan")
+
+
+def main() -> None:
+    """``nsd-train``; also ``torchrun --nproc_per_node=P -m nsd.train ...`` (docs/scaling.md)."""
+    distributed.run_hydra_app(_hydra_main)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,16 @@ Exact resume: with the same config, a run stopped at step k and resumed
 produces bit-for-bit the same weights as a run that never stopped, because
 the data sampler draws from a ``numpy.random.Generator`` whose state is saved,
 torch's global RNG (dropout) is saved, and no worker processes are used.
+
+Data parallelism (:mod:`nsd.distributed`): under ``torchrun`` every rank runs
+this loop on its own batches (its random streams seeded with
+:func:`nsd.distributed.rank_seed`); gradients are averaged over the ranks
+after ``backward`` (together with the loss terms, which are logged and checked
+as averages), rank 0's parameters are broadcast at the start, and rank 0's
+training clock decides the minute budgets for everyone. Only rank 0 writes
+the checkpoint (with every rank's random state, so resume with the same number
+of ranks is exact), logs, grids and evaluates; the others wait for it at the
+next collective. With one process nothing of this runs.
 """
 
 from __future__ import annotations
@@ -29,6 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from nsd import distributed
 from nsd.atomic import atomic_save_torch
 from nsd.errors import CheckpointError, ConfigError
 
@@ -193,9 +204,12 @@ class Trainer:
         self.out_dir = Path(out_dir)
         self.config = dict(config or {})
         self.on_eval = on_eval
-        self.rng = seed_everything(cfg.seed)
+        self.rank, self.world = distributed.rank(), distributed.world_size()
+        self.rng = seed_everything(distributed.rank_seed(cfg.seed))
         self.step = 0
-        self.train_seconds = 0.0
+        self.train_seconds = 0.0  # the budget clock (rank 0's, shared by every rank)
+        self._own_seconds = 0.0  # rank 0's own clock under torch.distributed
+        self._shared_clock = 0.0  # rank 0's clock as of the last gradient synchronisation
         self.main = is_main_process()
         self._tb = None
         self._csv: CsvLog | None = None
@@ -224,8 +238,13 @@ class Trainer:
         }
 
     def save(self) -> None:
+        """Write the checkpoint (rank 0); under torch.distributed every rank must call it."""
+        ranks = distributed.gather_objects(_rng_state(self.rng)) if self.world > 1 else None
         if self.main:
-            atomic_save_torch(self.state_dict(), self.checkpoint_path)
+            state = self.state_dict()
+            if ranks is not None:
+                state["rng_ranks"] = ranks
+            atomic_save_torch(state, self.checkpoint_path)
 
     def load(self, path: str | os.PathLike) -> None:
         state = load_checkpoint(path)
@@ -248,10 +267,16 @@ class Trainer:
                 s.load_state_dict(state["schedulers"][k])
         if hasattr(self.task, "load_extra_state"):
             self.task.load_extra_state(state.get("task", {}))
-        _set_rng_state(self.rng, state["rng"])
         self.step = int(state["step"])
-        self.train_seconds = float(state["train_seconds"])
+        self.train_seconds = self._own_seconds = float(state["train_seconds"])
         self._evals_done = set(state.get("evals_done", []))
+        ranks = state.get("rng_ranks")
+        if self.world == 1 or self.rank == 0:
+            _set_rng_state(self.rng, state["rng"])  # rank 0's state
+        elif ranks is not None and len(ranks) == self.world:
+            _set_rng_state(self.rng, ranks[self.rank])
+        else:  # saved by a different number of ranks: fresh streams, not bit-exact
+            self.rng = seed_everything(distributed.rank_seed(self.cfg.seed) + self.step)
 
     # ------------------------------------------------------------------ logging
     def _log(self, scalars: Mapping[str, float], prefix: str) -> None:
@@ -289,6 +314,8 @@ class Trainer:
                 self._tb.add_image(name, img, self.step, dataformats="HWC")
 
     def _evaluate(self) -> dict[str, float]:
+        if not self.main:  # rank 0 evaluates; the others wait for it at the next collective
+            return {}
         # evaluation must not consume the training RNGs (exact resume, eval-schedule-free)
         with torch.random.fork_rng(devices=[]):
             metrics = self.task.evaluate(self.step)
@@ -310,8 +337,9 @@ class Trainer:
     def _check_finite(self, losses: Mapping[str, torch.Tensor]) -> None:
         bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]
         if bad:
+            where = f" (averaged over {self.world} ranks)" if self.world > 1 else ""
             raise FloatingPointError(
-                f"step {self.step}: non-finite loss terms {bad}; lower the learning rate or "
+                f"step {self.step}: non-finite loss terms {bad}{where}; lower the learning rate or "
                 "the prior weights, or enable trainer.detect_anomaly to find the operation"
             )
         for name, opt in self.task.optimizers().items():
@@ -323,11 +351,38 @@ class Trainer:
                             "enable trainer.grad_clip or lower the learning rate"
                         )
 
+    def _synchronise(self, losses: Mapping[str, torch.Tensor], t0: float) -> dict[str, Any]:
+        """Average gradients and loss terms over the ranks; share rank 0's clock."""
+        names = sorted(losses)
+        clock = self._own_seconds + time.perf_counter() - t0 if self.main else 0.0
+        extra = torch.stack(
+            [*(torch.as_tensor(losses[k]).detach().double().reshape(()) for k in names),
+             torch.tensor(clock, dtype=torch.float64)]
+        )
+        params = {id(p): p for o in self.task.optimizers().values()
+                  for g in o.param_groups for p in g["params"]}
+        mean = distributed.average_gradients(list(params.values()), extra)
+        self._shared_clock = float(mean[-1]) * self.world  # only rank 0 contributed
+        return {k: mean[i].cpu() for i, k in enumerate(names)}
+
     def fit(self) -> dict[str, float]:
-        """Train until the budget is spent; returns the final evaluation metrics."""
+        """Train until the budget is spent; returns the final evaluation metrics.
+
+        Under torch.distributed every rank calls it and gets rank 0's metrics.
+        """
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        if self.cfg.resume and self.checkpoint_path.is_file():
+        resume = self.cfg.resume and self.checkpoint_path.is_file()
+        if self.world > 1:
+            decided = distributed.broadcast_object(resume)  # rank 0 decides for everyone
+            if decided and not resume:
+                raise CheckpointError(
+                    f"rank {self.rank} cannot read {self.checkpoint_path}, which rank 0 resumes "
+                    "from: put the run directory on a filesystem that every node shares"
+                )
+            resume = decided
+        if resume:
             self.load(self.checkpoint_path)
+        distributed.broadcast_parameters(self.task.modules().values())
         for m in self.task.modules().values():
             m.train()
         bar = None
@@ -348,6 +403,8 @@ class Trainer:
                     o.zero_grad(set_to_none=True)
                 losses = self.task.training_step(self.step, self.rng)
                 losses["loss"].backward()
+                if self.world > 1:
+                    losses = self._synchronise(losses, t0)
                 if self.cfg.stop_on_nonfinite:
                     self._check_finite(losses)
                 if self.cfg.grad_clip > 0:
@@ -359,7 +416,11 @@ class Trainer:
                 for s in getattr(self.task, "schedulers", lambda: {})().values():
                     s.step()
                 self.step += 1
-                self.train_seconds += time.perf_counter() - t0
+                if self.world > 1:
+                    self._own_seconds += time.perf_counter() - t0
+                    self.train_seconds = self._shared_clock
+                else:
+                    self.train_seconds += time.perf_counter() - t0
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(
@@ -387,7 +448,7 @@ class Trainer:
         self._grids()
         if self._tb is not None:
             self._tb.flush()
-        return metrics
+        return distributed.broadcast_object(metrics)
 
     def throughput(self) -> float:
         """Training iterations per second so far."""

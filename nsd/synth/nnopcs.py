@@ -30,6 +30,7 @@ Definition used by the synthetic world
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cache
 
@@ -87,6 +88,16 @@ class NNOPCSBounds:
     extent: float
     lo: tuple[float, float, float]
     hi: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        # a flat body (zero size along some axes) is fine: the cube's side is the
+        # longest side; only a body of zero size along every axis cannot be normalised
+        if not math.isfinite(self.extent) or self.extent <= 0:
+            raise ValueError(
+                f"NNOPCS extent must be a positive finite length, got {self.extent} "
+                f"(bounding box {self.lo} .. {self.hi}): the species' mean body has zero "
+                "size along every axis; give its primitives non-zero radii"
+            )
 
     def normalise(self, points: Tensor) -> Tensor:
         """Rest-pose points (..., 3) metres -> NNOPCS (..., 3), clamped to [0, 1]."""
