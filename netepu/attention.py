@@ -41,9 +41,12 @@ Vector cross-attention (VCA)
         :math:`\sum_j \alpha^g_{ij} W_p^{(g)}\gamma_{ij}
         = W_p^{(g)} \sum_j \alpha^g_{ij}\gamma_{ij}`:
         the projection runs once per pixel instead of once per neighbour.
-        With ``G = C`` and ``H = C`` this equals the reference to rounding; the
-        cost per pixel and neighbour drops from :math:`E C + 2 C^2` to
-        :math:`E H + H G + E G + C` multiply-adds.
+        The per-keypoint part of the offset (NePu: the keypoint's depth) folds
+        into per-keypoint terms as well, so only the relative part's features
+        (:math:`E_R` numbers) are formed per pixel and neighbour. With ``G = C``
+        and ``H = C`` this equals the reference to rounding; the cost per pixel
+        and neighbour drops from :math:`E C + 2 C^2` to
+        :math:`E_R H + H G + G E_R + C` multiply-adds.
 
 Shapes: ``B`` batch (one image / view each), ``N`` keypoints, ``Q`` query
 pixels, ``n`` neighbours, ``C`` channels, ``H`` hidden width of the attention

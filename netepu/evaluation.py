@@ -16,6 +16,7 @@ from netepu.data import ViewSet
 from netepu.maps import MapSettings, RenderedMaps, candidate_region, render_maps
 from netepu.metrics import depth_mae, nnopcs_mse, silhouette_iou
 from netepu.model import GeometryModel
+from netepu.renderer import view_frame
 
 __all__ = ["comparison_grid", "evaluate_views", "render_view_set"]
 
@@ -46,16 +47,11 @@ def evaluate_views(
     pred, gt = maps.silhouette, views.mask
     both = pred & gt
     iou = silhouette_iou(pred, gt)
-    frame_uv = []
-    with torch.no_grad():
-        from netepu.renderer import view_frame
-
-        fr = view_frame(views.keypoints.double(), {k: v.double() for k, v in views.camera.items()},
-                        model.radius)
-        for i in range(len(views)):
-            frame_uv.append(torch.from_numpy(candidate_region(
-                fr.uv[i], float(fr.scale[i]), settings.margin, views.size)))
-    region = torch.stack(frame_uv)
+    frame = view_frame(views.keypoints.double(),
+                       {k: v.double() for k, v in views.camera.items()}, model.radius)
+    region = torch.stack([torch.from_numpy(candidate_region(
+        frame.uv[i], float(frame.scale[i]), settings.margin, views.size))
+        for i in range(len(views))])
     w, h = views.size
     out = {
         "iou": float(iou.mean()),

@@ -15,7 +15,10 @@ Decoder
     :math:`z \mapsto` keypoint positions (MLP with a bottleneck, ``K x 3``) and
     per-keypoint features (MLP, ``K x d_f``), refined by point-transformer
     blocks at the decoded positions. World keypoints are
-    :math:`c + 2 r\,\hat x`.
+    :math:`c + 2 r\,\hat x`. The blocks see the positions without gradient:
+    otherwise the render losses, through the blocks' positional encoding,
+    swamp the keypoint loss in the position MLP, whose ReLUs then die, and ``z``
+    stops encoding the pose (observed on the synthetic cows at lr 2e-3).
 
 Both are permutation-equivariant over keypoints except through the identity
 features: permuting keypoints *and* their identities leaves ``z`` unchanged.
@@ -173,10 +176,20 @@ class KeypointDecoder(nn.Module):
             for i in range(n_blocks)
         )
 
-    def forward(self, z: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(self, z: Tensor, z_features: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Decode.
+
+        Args:
+            z: global code, (B, d_z).
+            z_features: the code the features are decoded from (default ``z``;
+                training passes ``z.detach()`` to keep render losses out of the
+                encoder, see :meth:`netepu.model.GeometryModel.encode`).
+        """
         B = z.shape[0]
         pos = self.mlp_pos(z).reshape(B, self.n_keypoints, 3)
-        feats = self.mlp_feats(z).reshape(B, self.n_keypoints, self.n_features)
+        zf = z if z_features is None else z_features
+        feats = self.mlp_feats(zf).reshape(B, self.n_keypoints, self.n_features)
+        at = pos.detach()  # the position MLP learns from the keypoint loss alone
         for block in self.blocks:
-            feats = block(pos, feats)
+            feats = block(at, feats)
         return pos, feats

@@ -51,14 +51,28 @@ class GeometryModel(nn.Module):
     def n_keypoints(self) -> int:
         return self.encoder.n_keypoints
 
-    def encode(self, keypoints: Tensor) -> GeometryCode:
-        """World keypoints (B, K, 3) -> :class:`GeometryCode` (z, centre, decoded keypoints, f)."""
-        normalised, centre = normalise_keypoints(keypoints, self.radius)
-        return self.decode(self.encoder(normalised), centre)
+    def encode(self, keypoints: Tensor, features_reach_encoder: bool = True) -> GeometryCode:
+        """World keypoints (B, K, 3) -> :class:`GeometryCode` (z, centre, decoded keypoints, f).
 
-    def decode(self, z: Tensor, centre: Tensor) -> GeometryCode:
-        """Global code (B, d_z) and translation (B, 3) -> :class:`GeometryCode`."""
-        pos, feats = self.decoder(z)
+        Args:
+            keypoints: world keypoints, (B, K, 3).
+            features_reach_encoder: let gradients of the features (hence of the
+                render losses) flow into the encoder. The encoder sees only
+                keypoints, so ``z`` can hold nothing the keypoints do not; with
+                False it is shaped by the keypoint loss alone, a pose code, and
+                the render losses train the feature decoder and the renderer
+                (training default; NePu trains everything jointly).
+        """
+        normalised, centre = normalise_keypoints(keypoints, self.radius)
+        z = self.encoder(normalised)
+        return self.decode(z, centre, None if features_reach_encoder else z.detach())
+
+    def decode(self, z: Tensor, centre: Tensor, z_features: Tensor | None = None) -> GeometryCode:
+        """Global code (B, d_z) and translation (B, 3) -> :class:`GeometryCode`.
+
+        ``z_features``: the code the features are decoded from (default ``z``).
+        """
+        pos, feats = self.decoder(z, z_features)
         return GeometryCode(z, centre, denormalise_keypoints(pos, centre, self.radius), feats)
 
     def prepare(

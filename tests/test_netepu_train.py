@@ -99,10 +99,12 @@ def test_loss_terms_decrease_on_one_batch():
     batch = sample_batch(task.data, rng, 2, 40, 40, 30)
     first = None
     for _ in range(30):
-        task.opt.zero_grad()
+        for o in task.optimizers().values():
+            o.zero_grad()
         terms = task.losses(batch, np.random.default_rng(1))
         terms["loss"].backward()
-        task.opt.step()
+        for o in task.optimizers().values():
+            o.step()
         first = first or {k: float(v.detach()) for k, v in terms.items()}
     assert float(terms["loss"].detach()) < 0.6 * first["loss"]
 
@@ -130,3 +132,22 @@ def test_end_to_end_run_on_the_synthetic_world(tmp_path):
     model, config = load_geometry_model(tmp_path / "run" / "checkpoint.pt")
     assert model.n_keypoints == 25 and config["netepu"]["data"]["n_keypoints"] == 25
     assert list((tmp_path / "cache").glob("geometry-quadruped-*.npz"))
+
+
+@pytest.mark.parametrize("reach", [False, True])
+def test_render_losses_reach_the_encoder_only_when_asked(reach):
+    task = _task()
+    task.cfg.render_grad_to_encoder = reach
+    from netepu.data import sample_batch
+
+    batch = sample_batch(task.data, np.random.default_rng(0), 2, 40, 40, 30)
+    task.weights = GeometryLossWeights(keypoints=0.0, latent=0.0)  # render terms only
+    task.losses(batch, np.random.default_rng(1))["loss"].backward()
+    enc = [p.grad for p in task.model.encoder.parameters()]
+    pos = [p.grad for p in task.model.decoder.mlp_pos.parameters()]
+    assert all(g is None or not g.any() for g in pos)  # positions: keypoint loss only
+    assert any(g is not None and g.any() for g in enc) == reach
+    assert set(task.optimizers()) == {"pose", "render"}
+    n_pose = sum(p.numel() for g in task.optimizers()["pose"].param_groups for p in g["params"])
+    assert n_pose == sum(p.numel() for p in [*task.model.encoder.parameters(),
+                                              *task.model.decoder.mlp_pos.parameters()])

@@ -1,0 +1,319 @@
+"""Benchmark of the NeTePu geometry renderer: accuracy, FLOPs per pixel, render and training speed.
+
+Writes ``docs/benchmarks/netepu_geometry.md`` and ``.json`` (:func:`tools.benchlib.write_report`).
+
+Sections
+    accuracy: silhouette IoU, NNOPCS MSE and depth MAE of trained checkpoints on
+        held-out poses (training cameras) and held-out poses seen by held-out
+        cameras, rendered coarse-to-fine and per pixel (culled), plus the
+        learning curve of each run (its ``metrics.csv``).
+    cost: FLOPs per query pixel (``torch.utils.flop_counter.FlopCounterMode``)
+        and per image pixel of full renders, and milliseconds per 128 x 128 and
+        256 x 256 render, for our model and the NePu-size reference
+        (``conf/netepu/model/reference.yaml``) in the same process.
+    training: step time and peak memory (RSS) per configuration, each in a
+        fresh subprocess.
+
+Usage (on an otherwise idle machine; takes ~10 minutes)::
+
+    flock /tmp/cpu.lock .venv/bin/python tools/bench_netepu_geometry.py \\
+        --run ours=runs/netepu/bench_fast --run reference=runs/netepu/bench_reference
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from netepu.data import build_geometry_data, sample_batch  # noqa: E402
+from netepu.evaluation import evaluate_views  # noqa: E402
+from netepu.maps import MapSettings, render_maps  # noqa: E402
+from netepu.model import build_geometry_model, load_geometry_model  # noqa: E402
+from tools.benchlib import median_time, peak_rss_mb, write_report  # noqa: E402
+
+PAPER = {"nnopcs_mse": 1.6e-4, "depth_mae_mm": 17.8, "body_length_m": 2.2}
+REFERENCE_NOTES = {"mflops_per_pixel": 12.2, "ms_128": 3100.0}
+
+
+def _config(overrides: list[str]):
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    with initialize_config_module("nsd.conf", version_base="1.3"):
+        cfg = compose("netepu_train", overrides=overrides)
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def _body_length(keypoints: torch.Tensor) -> float:
+    """Mean largest horizontal extent of the keypoints (nose to tail for the cow), metres."""
+    xy = keypoints[..., :2]
+    d = (xy[:, :, None] - xy[:, None]).norm(dim=-1)
+    return float(d.flatten(1).max(1).values.mean())
+
+
+# ------------------------------------------------------------------ accuracy
+def accuracy(runs: dict[str, Path], data, slow_views: int) -> tuple[list[dict], dict]:
+    rows, curves = [], {}
+    body = _body_length(data.evaluation["heldout_poses"].keypoints)
+    for name, run in runs.items():
+        model, config = load_geometry_model(run / "checkpoint.pt")
+        state = torch.load(run / "checkpoint.pt", weights_only=True, map_location="cpu")
+        minutes = state["train_seconds"] / 60
+        slow = model.renderer.vca.mode == "reference"  # seconds per render: a subset only
+        for mode in ("coarse_to_fine",) if slow else ("coarse_to_fine", "culled"):
+            settings = MapSettings(**{**config["netepu"]["render"], "mode": mode})
+            for set_name in ("heldout_poses", "heldout_cameras", "train"):
+                views = data.evaluation[set_name]
+                if slow:
+                    n = min(slow_views, len(views))
+                    views = views.subset(np.linspace(0, len(views) - 1, n).round().astype(int))
+                t0 = time.perf_counter()
+                m = evaluate_views(model, views, settings)
+                rows.append({
+                    "model": name, "steps": int(state["step"]), "train_min": round(minutes, 1),
+                    "render": mode, "views": f"{set_name} ({len(views)})",
+                    "IoU": m["iou"], "NNOPCS MSE": m["nnopcs_mse"],
+                    "depth MAE mm": m["depth_mae_mm"],
+                    "depth MAE % body": 100 * m["depth_mae_mm"] / 1000 / body,
+                    "evals/pixel": m["evaluations_per_pixel"], "coverage": m["coverage"],
+                    "eval s": time.perf_counter() - t0,
+                })
+                print(rows[-1], flush=True)
+        csv_path = run / "metrics.csv"
+        if csv_path.is_file():
+            with csv_path.open() as f:
+                curves[name] = [{k: v for k, v in r.items() if v not in ("", None) and (
+                    k in ("step", "minutes") or k.startswith("eval/"))}
+                    for r in csv.DictReader(f) if r.get("eval/heldout_poses/iou")]
+    return rows, {"body_length_m": body, "curves": curves}
+
+
+# ------------------------------------------------------------------ cost
+def _square_rig_views(data, size: int, n: int = 4):
+    """Held-out poses seen by the training rig's cameras at size x size (same field of view)."""
+    from netepu.data import _make_rig  # the data module's rig builder
+
+    views = data.evaluation["heldout_poses"]
+    rig = _make_rig(data.config.rig, (size, size))
+    cams = rig.stacked(torch.float32)
+    idx = torch.arange(n) * 3 % len(rig)
+    return views.keypoints[:n], {k: v[idx] for k, v in cams.items()}
+
+
+def _flops(fn) -> int:
+    with FlopCounterMode(display=False) as fc:
+        fn()
+    return fc.get_total_flops()
+
+
+def _full_render(model, keypoints, camera, size: int, settings: MapSettings):
+    """Everything a full render of one view costs: encode, prepare, render the maps."""
+    code = model.encode(keypoints)
+    ctx = model.prepare(code, camera, keypoints=keypoints)
+    return render_maps(model.query, ctx, (size, size), settings)
+
+
+def _query_flops(model, keypoints, camera, size: int, n: int = 4096) -> float:
+    """FLOPs of one network evaluation at one pixel (per-view precomputation excluded)."""
+    ctx = model.prepare(model.encode(keypoints), camera, keypoints=keypoints)
+    uv = torch.rand(1, n, 2) * size
+    return _flops(partial(model.query, ctx, uv)) / n
+
+
+@torch.no_grad()
+def cost(models: dict[str, torch.nn.Module], data, quick: bool) -> list[dict]:
+    rows = []
+    for name, model in models.items():
+        model.eval()
+        is_ref = model.renderer.vca.mode == "reference"
+        for size in (128, 256):
+            kps, cams = _square_rig_views(data, size, n=1 if is_ref else 4)
+            for mode in (["dense"] if is_ref else ["dense", "culled", "coarse_to_fine"]):
+                settings = MapSettings(mode=mode, margin=0.35)
+                per_view = []
+                for v in range(kps.shape[0]):
+                    cam = {k: c[v:v + 1] for k, c in cams.items()}
+                    render = partial(_full_render, model, kps[v:v + 1], cam, size, settings)
+                    flops = _flops(render)
+                    maps = render()
+                    if is_ref and size == 256 and quick:
+                        t = float("nan")
+                    else:
+                        t = median_time(render, repeats=1 if (is_ref or quick) else 5,
+                                        warmup=0 if is_ref else 1)
+                    per_view.append((flops, t, int(maps.evaluated[0]),
+                                     float(maps.silhouette.float().mean())))
+                f, t, ev, fg = (float(np.mean([p[i] for p in per_view])) for i in range(4))
+                q = _query_flops(model, kps[:1], {k: c[:1] for k, c in cams.items()}, size)
+                rows.append({
+                    "model": name, "size": f"{size}x{size}", "render": mode,
+                    "MFLOPs/query": q / 1e6, "MFLOPs/image pixel": f / size**2,
+                    "evals/pixel": ev / size**2, "fg share": fg,
+                    "ms/render": 1000 * t, "views": len(per_view),
+                })
+                print(rows[-1], flush=True)
+    return rows
+
+
+# ------------------------------------------------------------------ training
+def train_step_child(model_name: str, batch: int, steps: int) -> dict:
+    """Run in a fresh process: median step time and peak RSS of training at ``batch``."""
+    torch.set_num_threads(2)
+    from netepu.geometry_stage import GeometryStageConfig, GeometryTask
+    from netepu.losses import GeometryLossWeights
+
+    cfg = _config([f"netepu/model={model_name}"])
+    net = cfg["netepu"]
+    data = build_geometry_data(net["data"])
+    rss0 = peak_rss_mb()
+    torch.manual_seed(0)
+    model = build_geometry_model(net["model"], data.config.n_keypoints, data.config.radius)
+    stage = GeometryStageConfig.from_mapping({**net["optim"], "batch_size": batch},
+                                             net["points"], net["eval"])
+    task = GeometryTask(model, data, stage, GeometryLossWeights(**net["loss"]), MapSettings())
+    rng = np.random.default_rng(0)
+
+    def step():  # what nsd.trainer.Trainer does per step
+        opts = task.optimizers().values()
+        for o in opts:
+            o.zero_grad()
+        loss = task.losses(sample_batch(data, rng, batch, stage.near, stage.far,
+                                        stage.foreground), rng)["loss"]
+        loss.backward()
+        for o in opts:
+            torch.nn.utils.clip_grad_norm_([p for g in o.param_groups for p in g["params"]],
+                                           1.0)
+            o.step()
+
+    t = median_time(step, repeats=steps, warmup=1)
+    return {"model": model_name, "batch": batch, "step s": t,
+            "views/s": batch / t, "peak RSS MiB": peak_rss_mb(),
+            "RSS over data MiB": peak_rss_mb() - rss0,
+            "params M": sum(p.numel() for p in model.parameters()) / 1e6}
+
+
+def training(configs: list[tuple[str, int, int]]) -> list[dict]:
+    rows = []
+    for model_name, batch, steps in configs:
+        out = subprocess.run(
+            [sys.executable, __file__, "--train-step-child", model_name, str(batch), str(steps)],
+            capture_output=True, text=True, cwd=ROOT)
+        if out.returncode != 0:
+            rows.append({"model": model_name, "batch": batch,
+                         "error": out.stderr.strip().splitlines()[-1][:120]})
+        else:
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        print(rows[-1], flush=True)
+    return rows
+
+
+# ------------------------------------------------------------------ report
+def _table(rows: list[dict]) -> str:
+    from tools.benchlib import _fmt
+
+    cols: list[str] = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", action="append", default=[], help="name=run_dir of a trained model")
+    ap.add_argument("--quick", action="store_true", help="fewer repeats (smoke test)")
+    ap.add_argument("--skip-training", action="store_true")
+    ap.add_argument("--slow-views", type=int, default=24,
+                    help="views per evaluation set for reference-size models")
+    ap.add_argument("--train-step-child", nargs=3, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    if args.train_step_child:
+        name, batch, steps = args.train_step_child
+        print(json.dumps(train_step_child(name, int(batch), int(steps))))
+        return
+    cfg = _config([])
+    data = build_geometry_data(cfg["netepu"]["data"])
+    runs = {n: ROOT / p for n, p in (r.split("=", 1) for r in args.run)}
+    acc_rows, acc_extra = accuracy(runs, data, args.slow_views) if runs else ([], {})
+
+    models = {}
+    if "ours" in runs:
+        models["ours (trained)"] = load_geometry_model(runs["ours"] / "checkpoint.pt")[0]
+    else:
+        torch.manual_seed(0)
+        models["ours (untrained)"] = build_geometry_model(
+            cfg["netepu"]["model"], data.config.n_keypoints, data.config.radius)
+    torch.manual_seed(0)
+    ref_cfg = _config(["netepu/model=reference"])["netepu"]["model"]
+    models["reference size"] = build_geometry_model(ref_cfg, data.config.n_keypoints,
+                                                    data.config.radius)
+    cost_rows = cost(models, data, args.quick)
+    train_rows = [] if args.skip_training else training(
+        [("fast", 16, 10), ("fast", 64, 5), ("reference", 1, 3), ("reference", 4, 2)])
+
+    ours = {(r["size"], r["render"]): r for r in cost_rows if r["model"].startswith("ours")}
+    ref = {r["size"]: r for r in cost_rows if r["model"] == "reference size"}
+    ratios = {}
+    for (size, mode), r in ours.items():
+        if size in ref:
+            ratios[f"{size} {mode}: FLOPs/pixel ratio"] = (
+                ref[size]["MFLOPs/image pixel"] / r["MFLOPs/image pixel"])
+            if np.isfinite(ref[size]["ms/render"]):
+                ratios[f"{size} {mode}: time ratio"] = ref[size]["ms/render"] / r["ms/render"]
+    ratios["FLOPs per query ratio"] = (ref["128x128"]["MFLOPs/query"]
+                                       / ours[("128x128", "dense")]["MFLOPs/query"])
+    notes = "\n\n".join([
+        "## Accuracy\n\nRendered from the ground-truth keypoints of each view. NNOPCS MSE and "
+        "depth MAE over pixels foreground in both ground truth and render. `coarse_to_fine` is "
+        "the default renderer; `culled` evaluates every pixel of the candidate region (what "
+        "coarse-to-fine approximates). Paper (NeTePu table 1, NePuMoo, full training on a GPU): "
+        f"NNOPCS MSE {PAPER['nnopcs_mse']:.1e}, depth MAE {PAPER['depth_mae_mm']} mm on a "
+        f"{PAPER['body_length_m']} m cow ({100 * PAPER['depth_mae_mm'] / 2200:.2f} % of its "
+        f"length). Our cow is {acc_extra.get('body_length_m', float('nan')):.2f} m long "
+        "(keypoint extent).",
+        "## Cost per pixel and render time\n\n" + _table(cost_rows)
+        + "\n\nFLOPs are what `FlopCounterMode` counts (matrix products; element-wise maths "
+        "such as sin/cos/exp is not counted, for both models alike). `MFLOPs/query` is one "
+        "network evaluation at one pixel; `MFLOPs/image pixel` is a whole render (per-view "
+        "precomputation included) divided by the pixels of the image. Reference notes: "
+        f"{REFERENCE_NOTES['mflops_per_pixel']} MFLOPs/pixel, ~{REFERENCE_NOTES['ms_128']:.0f} "
+        "ms per 128x128 render.\n\n" + "\n".join(f"- {k}: {v:.1f}x" for k, v in ratios.items()),
+        "## Training step\n\n" + (_table(train_rows) if train_rows else "(skipped)")
+        + "\n\nOne step = sample the batch, forward 2000 points per view (1500 silhouette, "
+        "500 in-mask), backward, clip, AdamW. Peak RSS of a fresh process holding the cached "
+        "data set; `RSS over data` is the growth after loading the data.",
+    ])
+    if acc_extra.get("curves"):
+        curve_lines = []
+        for name, rows in acc_extra["curves"].items():
+            for r in rows:
+                curve_lines.append({"model": name, "step": r.get("step"),
+                                    "minutes": float(r.get("minutes", "nan")),
+                                    **{k.replace("eval/", ""): float(v) for k, v in r.items()
+                                       if k.startswith("eval/") and (
+                                           "iou" in k or "nnopcs_mse" in k or "depth_mae" in k)
+                                       and "min" not in k and not k.startswith("eval/train")}})
+        notes += "\n\n## Learning curves (evaluation subsets during training)\n\n" + _table(
+            curve_lines)
+    write_report("netepu_geometry", "NeTePu geometry: accuracy and cost", acc_rows, notes,
+                 extra={"cost": cost_rows, "training": train_rows, "ratios": ratios,
+                        **acc_extra, "paper": PAPER, "reference_notes": REFERENCE_NOTES})
+
+
+if __name__ == "__main__":
+    main()
