@@ -457,12 +457,12 @@ def load_texture_model(
     state = load_checkpoint(path)
     config = state.get("config") or {}
     try:
-        geo_cfg = config["netepu"]["geometry"]
+        net = config["netepu"]
         geometry = build_geometry_model(
-            geo_cfg["model"], int(geo_cfg["data"]["n_keypoints"]), float(geo_cfg["data"]["radius"])
+            net["model"], int(net["data"]["n_keypoints"]), float(net["data"]["radius"])
         )
         geometry.load_state_dict(state["modules"]["geometry"])
-        texture = build_texture_model(config["netepu"]["texture"]["model"], geometry)
+        texture = build_texture_model(net["texture"]["model"], geometry)
         texture.load_state_dict(state["modules"]["texture"])
     except (KeyError, RuntimeError, TypeError) as e:
         raise CheckpointError(f"{path} is not a NeTePu texture checkpoint: {e}") from e

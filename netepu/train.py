@@ -4,8 +4,8 @@
 that turns the config into a :class:`nsd.trainer.TrainTask`. The loop,
 checkpoints (exact resume), logs, progress bar and time budgets are
 :class:`nsd.trainer.Trainer`'s, shared with ``nsd-train``. The texture stage
-(next issue) registers its builder here; until then ``stage=texture`` stops
-with a :class:`~nsd.errors.ConfigError`.
+(:mod:`netepu.texture_stage`) trains on a frozen geometry checkpoint given
+by ``init_from``.
 
 Examples::
 
@@ -28,7 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from nsd.errors import ConfigError
 from nsd.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 
-__all__ = ["STAGES", "build_geometry_stage", "main", "run"]
+__all__ = ["STAGES", "build_geometry_stage", "build_texture_stage", "main", "run"]
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +55,16 @@ def build_geometry_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
     return task, {"n_keypoints": data.config.n_keypoints}
 
 
+def build_texture_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
+    """The texture task (:mod:`netepu.texture_stage`; geometry from ``init_from``)."""
+    from netepu.texture_stage import build_texture_stage as build
+
+    return build(cfg)
+
+
 STAGES: dict[str, Callable[[DictConfig], tuple[Any, dict[str, Any]]]] = {
     "geometry": build_geometry_stage,
+    "texture": build_texture_stage,
 }
 
 
@@ -64,9 +72,6 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     """Train ``cfg.stage`` into ``out_dir``; returns the final evaluation metrics."""
     torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
     if cfg.stage not in STAGES:
-        if cfg.stage == "texture":
-            raise ConfigError("stage=texture: the texture stage is not built yet (next issue); "
-                              "train stage=geometry")
         raise ConfigError(f"stage must be one of {sorted(STAGES)}, got {cfg.stage!r}")
     tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
     seed_everything(tcfg.seed)  # model initialisation is part of the seeded run
@@ -77,6 +82,9 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
             if name in state["modules"]:
                 module.load_state_dict(state["modules"][name])
     config = OmegaConf.to_container(cfg, resolve=True)
+    found = dict(found)
+    if "model" in found:  # a stage built on a checkpoint (texture) records its geometry model
+        config["netepu"]["model"] = found.pop("model")
     config["netepu"]["data"].update(found)
     trainer = Trainer(task, tcfg, out_dir, config)
     metrics = trainer.fit()

@@ -41,8 +41,8 @@ def test_configs_compose(model, data):
         assert sum(p.numel() for p in m.parameters()) < 5e6
 
 
-def test_texture_stage_not_built_yet(tmp_path):
-    with pytest.raises(ConfigError, match="texture stage is not built yet"):
+def test_texture_stage_needs_geometry_and_unknown_stage_fails(tmp_path):
+    with pytest.raises(ConfigError, match="init_from"):
         run(_compose("stage=texture"), tmp_path)
     with pytest.raises(ConfigError, match="stage must be"):
         run(_compose("stage=colour"), tmp_path)

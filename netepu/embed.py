@@ -1,0 +1,181 @@
+"""``netepu-embed``: NeTePu texture codes of exported subjects, appended to the export's embeddings.
+
+Reads an ``nsd-export`` folder (``crops/`` and ``embeddings.parquet``/``.npz``,
+datasets/export.md), computes the texture code (:math:`\\mu`) of every crop
+from its visible pixels only (:func:`netepu.texture.texture_codes`) and
+appends it as a vector column (default ``texture``) to the embedding table,
+row by row in the table's own order (rows are matched by annotation ``id``),
+with :func:`nsd.embeddings_io.add_columns` (atomic).
+
+Models that read NNOPCS need each subject's 3D keypoints and the cameras:
+``keypoints`` is an ``.npz`` with ``id`` (n,) annotation ids and
+``keypoints`` (n, K, 3) world keypoints (e.g. from NeTePu inverse rendering of
+the multi-view masks), and ``calibration`` the scene's calibration file or
+folder; the NNOPCS map is rendered at the crop pixels through the crop
+window in native pixels. RGB-only models (``use_nnopcs: false``) need
+neither. Rows without a crop or keypoints get NaN codes and a ``False`` in
+``<column>_valid``.
+
+Examples::
+
+    netepu-embed export=exports/demo checkpoint=runs/netepu/texture/<run>/checkpoint.pt \\
+        keypoints=exports/demo/keypoints3d.npz calibration=scenes/demo
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from nsd.errors import ConfigError, NSDError
+
+__all__ = ["embed_export", "main"]
+
+log = logging.getLogger(__name__)
+
+
+def _keypoints(path: str | os.PathLike) -> dict[int, np.ndarray]:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"keypoints: {path} does not exist")
+    with np.load(path) as z:
+        if "id" not in z.files or "keypoints" not in z.files:
+            raise ConfigError(
+                f"keypoints: {path} must hold arrays 'id' (n,) and "
+                f"'keypoints' (n, K, 3); it holds {z.files}"
+            )
+        ids, kps = z["id"], z["keypoints"]
+    if kps.ndim != 3 or kps.shape[-1] != 3 or len(ids) != len(kps):
+        raise ConfigError(
+            f"keypoints: {path}: 'keypoints' must be (n, K, 3) with n = len(id), "
+            f"got {kps.shape} for {len(ids)} ids"
+        )
+    return {int(i): k for i, k in zip(ids, kps, strict=True)}
+
+
+def embed_export(
+    export: str | os.PathLike,
+    checkpoint: str | os.PathLike,
+    keypoints: str | os.PathLike | None = None,
+    calibration: str | os.PathLike | None = None,
+    column: str = "texture",
+    batch_size: int = 64,
+) -> dict[str, Any]:
+    """Append texture codes to an export's embedding table (see the module docstring).
+
+    Returns:
+        ``rows``, ``encoded`` (rows with a code), ``path`` of the table.
+    """
+    from netepu.texture import load_texture_model, texture_codes
+    from nsd.crops_io import read_crop_index, read_crops
+    from nsd.embeddings_io import add_columns, embeddings_path, read_embeddings
+
+    export = Path(export)
+    table = embeddings_path(export)
+    crops = export / "crops"
+    if not (crops / "index.csv").is_file():
+        raise ConfigError(
+            f"export: {crops / 'index.csv'} does not exist (not an nsd-export folder with crops)"
+        )
+    texture, geometry, _ = load_texture_model(checkpoint)
+    need_geometry = texture.cfg.use_nnopcs
+    kps = rig = None
+    if need_geometry:
+        if keypoints is None or calibration is None:
+            raise ConfigError(
+                "this texture model reads NNOPCS maps: give keypoints=<npz with id, "
+                "keypoints> and calibration=<scene calibration file or folder>"
+            )
+        from nsd.calibration_io import read_calibration
+
+        kps = _keypoints(keypoints)
+        rig = read_calibration(calibration)
+        if kps and next(iter(kps.values())).shape[0] != geometry.n_keypoints:
+            raise ConfigError(
+                f"keypoints: {keypoints} has K = "
+                f"{next(iter(kps.values())).shape[0]}, the model wants "
+                f"{geometry.n_keypoints}"
+            )
+    index = {r["id"]: r for r in read_crop_index(crops)}
+    row_ids = read_embeddings(table, columns=["id"])["id"].astype(np.int64)
+    codes = np.full((len(row_ids), texture.cfg.latent), np.nan, np.float32)
+    todo = [k for k, i in enumerate(row_ids) if int(i) in index and (kps is None or int(i) in kps)]
+    skipped = len(row_ids) - len(todo)
+    if skipped:
+        log.warning(
+            "%d of %d rows have no crop%s; their codes are NaN",
+            skipped,
+            len(row_ids),
+            " or keypoints" if need_geometry else "",
+        )
+    cams = rig.stacked(torch.float32) if rig is not None else None
+    for s in range(0, len(todo), batch_size):
+        rows = todo[s : s + batch_size]
+        ids = [int(row_ids[k]) for k in rows]
+        images, masks = read_crops(crops, ids)
+        keep = masks.reshape(len(ids), -1).any(1)
+        if not keep.any():
+            continue
+        ids = [i for i, k in zip(ids, keep, strict=True) if k]
+        rows = [r for r, k in zip(rows, keep, strict=True) if k]
+        window = torch.tensor(
+            [[index[i]["crop_x"], index[i]["crop_y"], index[i]["crop_side"]] for i in ids],
+            dtype=torch.float64,
+        )
+        kp = cam = None
+        if need_geometry:
+            try:
+                ci = torch.tensor([rig.index(index[i]["camera"]) for i in ids])
+            except (KeyError, ValueError) as e:
+                raise ConfigError(
+                    f"calibration: {calibration} lacks a camera of the export: {e}"
+                ) from e
+            cam = {k: v[ci] for k, v in cams.items()}
+            kp = torch.from_numpy(np.stack([kps[i] for i in ids])).float()
+        mu = texture_codes(
+            texture,
+            geometry,
+            torch.from_numpy(images[keep]),
+            torch.from_numpy(masks[keep] > 0),
+            kp,
+            cam,
+            window=window,
+        )
+        codes[rows] = mu.numpy()
+    valid = ~np.isnan(codes).any(1)
+    path = add_columns(table, {column: codes, f"{column}_valid": valid})
+    return {"rows": len(row_ids), "encoded": int(valid.sum()), "path": str(path)}
+
+
+@hydra.main(config_path="pkg://nsd.conf", config_name="netepu_embed", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    """Entry point of ``netepu-embed``; bad input exits with status 2 and a message."""
+    torch.set_num_threads(int(cfg.threads))
+    try:
+        out = embed_export(
+            cfg.export,
+            cfg.checkpoint,
+            cfg.keypoints,
+            cfg.calibration,
+            cfg.column,
+            int(cfg.batch_size),
+        )
+    except (NSDError, FileNotFoundError, ValueError, KeyError) as e:
+        print(f"netepu-embed: error: {e}", file=sys.stderr)
+        sys.exit(2)
+    print(
+        f"netepu-embed: {out['encoded']} of {out['rows']} rows encoded -> {out['path']} "
+        f"(column '{cfg.column}')"
+    )
+
+
+if __name__ == "__main__":
+    main()

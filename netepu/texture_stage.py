@@ -1,0 +1,270 @@
+"""The texture stage of ``netepu-train``: the texture VAE trained against a frozen geometry model.
+
+``netepu-train stage=texture init_from=<geometry checkpoint>`` builds a
+:class:`TextureTask` (:func:`build_texture_stage`): the geometry model and its
+data config come from the checkpoint (``init_from``), the texture model from
+``netepu.texture.model`` and the multi-texture data from
+``netepu.texture.data`` (:mod:`netepu.texture_data`).
+
+Per step: ``batch_size`` random (view, texture) samples; the encoder reads
+the masked RGB crop, the mask and the NNOPCS crop *predicted* by the frozen
+geometry model (computed once for every view at build time, exactly the
+pixels :func:`netepu.texture.texture_codes` renders at inference), with
+probability ``occlusion`` a random rectangle of the crop is cut from the mask
+(the pipeline encodes occluded subjects from their visible pixels); the code
+is sampled with the reparameterisation trick, decoded to keypoint features
+and rendered at ``points`` in-mask pixels of the full view; the loss is
+``colour_weight`` x colour MSE + ``kld_weight`` x KLD (NeTePu eq. 8). The
+geometry model gets no gradient and no optimiser.
+
+Evaluation: colour PSNR of the held-out sets and re-identification rank-1 /
+mAP of the held-out codes (:mod:`netepu.reid`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import Tensor, nn
+
+from netepu.model import GeometryModel
+from netepu.texture import TextureModel, build_texture_model, reparameterise, texture_loss
+from netepu.texture_data import TextureData, build_texture_data, predicted_nnopcs_crops
+from netepu.texture_evaluation import evaluate_colour, heldout_codes, synthesis_grid
+from nsd.errors import ConfigError
+
+__all__ = ["TextureStageConfig", "TextureTask", "build_texture_stage"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TextureStageConfig:
+    """``netepu.texture.optim`` (every field commented in the YAML file)."""
+
+    batch_size: int = 16
+    points: int = 500
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    lr_decay: float = 0.2
+    lr_decay_every: int = 0
+    colour_weight: float = 5.0
+    kld_weight: float = 1e-8
+    occlusion: float = 0.25
+    eval_views: int = 8
+
+    @classmethod
+    def from_mapping(cls, cfg: Mapping[str, Any]) -> TextureStageConfig:
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(cfg) - names)
+        if unknown:
+            raise ConfigError(
+                f"netepu.texture.optim: unknown keys {unknown}; known {sorted(names)}"
+            )
+        c = cls(**dict(cfg))
+        if c.batch_size < 1 or c.points < 1 or not 0 <= c.occlusion <= 1:
+            raise ConfigError("netepu.texture.optim: batch_size, points >= 1; occlusion in [0, 1]")
+        return c
+
+
+def occlude(inside: Tensor, rng: np.random.Generator, prob: float) -> Tensor:
+    """Cut a random axis-aligned rectangle (20-60 % of the side) from some crop masks.
+
+    Args:
+        inside: (B, S, S) bool.
+        prob: probability per crop.
+
+    Returns:
+        (B, S, S) bool; a crop keeps at least a quarter of its pixels.
+    """
+    B, S, _ = inside.shape
+    out = inside.clone()
+    hit = rng.random(B) < prob
+    for b in np.nonzero(hit)[0]:
+        w, h = (rng.uniform(0.2, 0.6, 2) * S).astype(int)
+        x, y = rng.integers(0, S - w + 1), rng.integers(0, S - h + 1)
+        cut = out[b].clone()
+        cut[y : y + h, x : x + w] = False
+        if cut.sum() >= inside[b].sum() // 4:
+            out[b] = cut
+    return out
+
+
+class TextureTask:
+    """Texture model + frozen geometry + multi-texture data (see the module docstring)."""
+
+    def __init__(
+        self,
+        texture: TextureModel,
+        geometry: GeometryModel,
+        data: TextureData,
+        cfg: TextureStageConfig,
+        nnopcs_train: np.ndarray,
+        nnopcs_heldout: np.ndarray,
+    ) -> None:
+        self.texture, self.geometry, self.data, self.cfg = texture, geometry, data, cfg
+        for p in geometry.parameters():
+            p.requires_grad_(False)
+        self.nnopcs_train, self.nnopcs_heldout = nnopcs_train, nnopcs_heldout
+        tr = data.train
+        with torch.no_grad():  # the frozen geometry code of every training view
+            geometry.eval()
+            zs, fs = [], []
+            kps = torch.from_numpy(tr["keypoints"])
+            for s in range(0, len(kps), 256):
+                code = geometry.encode(kps[s : s + 256])
+                zs.append(code.z)
+                fs.append(code.features)
+            self.geo_z, self.geo_f = torch.cat(zs), torch.cat(fs)
+        self.opt = torch.optim.AdamW(texture.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.sched = (
+            {"texture": torch.optim.lr_scheduler.StepLR(self.opt, cfg.lr_decay_every, cfg.lr_decay)}
+            if cfg.lr_decay_every > 0
+            else {}
+        )
+
+    def modules(self) -> dict[str, nn.Module]:
+        return {"texture": self.texture, "geometry": self.geometry}
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"texture": self.opt}
+
+    def schedulers(self) -> dict[str, Any]:
+        return self.sched
+
+    def batch(self, rng: np.random.Generator) -> dict[str, Any]:
+        """Random samples: encoder input, render inputs and colour targets."""
+        c, tr = self.cfg, self.data.train
+        idx = rng.integers(0, len(tr["sample_view"]), c.batch_size)
+        v = tr["sample_view"][idx]
+        inside = occlude(torch.from_numpy(tr["inside"][v]), rng, c.occlusion)
+        rgb = torch.from_numpy(tr["rgb"][idx]).float() / 255 * inside[..., None]
+        nn_ = torch.from_numpy(self.nnopcs_train[v].astype(np.float32))
+        pts = rng.integers(0, tr["pool_uv"].shape[1], (c.batch_size, c.points))
+        vv = torch.from_numpy(v)
+        cam = {k: t[torch.from_numpy(tr["camera"][v])] for k, t in self.data.train_camera.items()}
+        return {
+            "x": self.texture.encoder_input(rgb, inside, nn_),
+            "view": vv,
+            "keypoints": torch.from_numpy(tr["keypoints"][v]),
+            "camera": cam,
+            "uv": torch.from_numpy(tr["pool_uv"][v[:, None], pts].astype(np.float32)),
+            "target": torch.from_numpy(tr["pool_colour"][idx[:, None], pts]).float() / 255,
+        }
+
+    def training_step(self, step: int, rng: np.random.Generator) -> dict[str, Tensor]:
+        b = self.batch(rng)
+        mu, logvar = self.texture.encode(b["x"])
+        noise = torch.from_numpy(rng.standard_normal(mu.shape).astype(np.float32))
+        z = reparameterise(mu, logvar, noise)
+        v = b["view"]
+        ctx = self.texture.prepare(z, self.geo_z[v], self.geo_f[v], b["keypoints"], b["camera"])
+        colour = self.texture.query(ctx, b["uv"])
+        return texture_loss(
+            colour, b["target"], mu, logvar, self.cfg.colour_weight, self.cfg.kld_weight
+        )
+
+    def codes(self) -> np.ndarray:
+        return heldout_codes(self.texture, self.data, self.nnopcs_heldout)
+
+    def evaluate(self, step: int) -> dict[str, float]:
+        from netepu.reid import reid_metrics
+
+        codes = self.codes()
+        out = evaluate_colour(
+            self.texture, self.geometry, self.data, codes, max_views=self.cfg.eval_views
+        )
+        h = self.data.heldout
+        E, T = codes.shape[:2]
+        ids = np.tile(np.arange(T), E)
+        cams = np.repeat(h["camera"], T)
+        out.update(
+            {f"reid/{k}": v for k, v in reid_metrics(codes.reshape(E * T, -1), ids, cams).items()}
+        )
+        return out
+
+    def image_grids(self, step: int) -> dict[str, np.ndarray]:
+        codes = self.codes()
+        return {
+            f"texture_{'heldout_cameras' if held else 'heldout_poses'}": synthesis_grid(
+                self.texture,
+                self.geometry,
+                self.data,
+                codes,
+                held,
+                textures=list(range(min(6, codes.shape[1]))),
+            )
+            for held in (False, True)
+        }
+
+
+def _weights_key(path: str | Path) -> str:
+    p = Path(path)
+    st = p.stat()
+    return hashlib.sha1(f"{p.resolve()}:{st.st_size}:{st.st_mtime_ns}".encode()).hexdigest()[:12]
+
+
+def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
+    """The texture task of ``cfg`` (``init_from`` must name the geometry checkpoint)."""
+    from netepu.model import load_geometry_model
+    from nsd.atomic import atomic_save_npz
+
+    if not cfg.get("init_from"):
+        raise ConfigError(
+            "stage=texture needs init_from=<geometry checkpoint> (the frozen "
+            "geometry model and its data)"
+        )
+    path = Path(cfg.init_from)
+    if not path.is_file():
+        raise ConfigError(f"init_from: geometry checkpoint {path} does not exist")
+    geometry, geo_config = load_geometry_model(path)
+    tex = OmegaConf.to_container(cfg.netepu.texture, resolve=True)
+    try:
+        model_cfg, data_cfg, optim = tex["model"], tex["data"], tex["optim"]
+    except KeyError as e:
+        raise ConfigError(f"netepu.texture lacks the section {e} (model, data, optim)") from e
+    texture = build_texture_model(model_cfg, geometry)
+    geo_data = dict(geo_config["netepu"]["data"])
+    data = build_texture_data(
+        data_cfg, geo_data, texture.cfg.crop_size, texture.cfg.crop_margin, progress=log.info
+    )
+    cache = Path(data.config.cache_dir or "") if data.config.cache_dir else None
+    from netepu.texture_data import _cache_root
+
+    root = cache or _cache_root(data.config)
+    key = hashlib.sha1(
+        f"{_weights_key(path)}:{data.train['window'].sum():.6f}:"
+        f"{len(data.train['window'])}:{len(data.heldout['window'])}".encode()
+    ).hexdigest()[:12]
+    nn_path = root / f"texture-nnopcs-{key}.npz"
+    if nn_path.is_file():
+        with np.load(nn_path) as z:
+            nn_train, nn_held = z["train"], z["heldout"]
+    else:
+        tr, h = data.train, data.heldout
+        cams = {k: v[torch.from_numpy(tr["camera"])] for k, v in data.train_camera.items()}
+        nn_train = predicted_nnopcs_crops(
+            geometry, tr["keypoints"], cams, tr["window"], tr["inside"], progress=log.info
+        )
+        nn_held = predicted_nnopcs_crops(
+            geometry,
+            h["keypoints"],
+            data.heldout_camera_tensors(np.arange(len(h["pose"]))),
+            h["window"],
+            h["inside"],
+        )
+        atomic_save_npz(nn_path, train=nn_train, heldout=nn_held)
+    task = TextureTask(
+        texture, geometry, data, TextureStageConfig.from_mapping(optim), nn_train, nn_held
+    )
+    # the run's netepu.model / netepu.data become the geometry checkpoint's (netepu.train.run)
+    found = {"model": geo_config["netepu"]["model"], **geo_data}
+    return task, found
