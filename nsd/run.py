@@ -1,0 +1,345 @@
+"""``nsd-run``: one command from a scene folder to per-subject results, stage by stage.
+
+Stages (each writes ``<out>/<stage>/``; see :mod:`nsd.stages`: a finished stage
+is never recomputed, a changed setting re-runs it and everything downstream)::
+
+    scene     the scene folder (default: the built-in synthetic scene, written once)
+    train     NSD / Bi-NVS decomposition (nsd.train.run; an interrupted training
+              resumes from its work folder <out>/.train-work-<hash>/)
+    evaluate  metrics against ground truth (nsd.evaluate; only scenes with gt/)
+    export    COCO masks and boxes, crops, embeddings, MOT tracks, manifest (nsd.export)
+    grids     image grids a person can look at: per frame, every camera's input,
+              boxes, visible masks and depth order (coloured by subject id)
+
+Usage::
+
+    nsd-run                                   # default scene -> runs/nsd-run/default/
+    nsd-run scene=my_scene out=runs/my_scene  # any scene folder
+    nsd-run train.trainer.max_minutes=3       # shorter training (train.* is nsd-train's config)
+    nsd-run +export.crop.size=96 grids.frames=8  # export.* overrides conf/export.yaml
+
+``<out>/pipeline.json`` records every stage's status, wall time and summary.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from nsd.atomic import atomic_write_text
+from nsd.errors import ConfigError, NSDError
+from nsd.stages import Stage, StageResult, StageRunner, config_hash
+
+__all__ = ["build_stages", "load_run_config", "main", "run_pipeline"]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SCENE = "default"
+
+
+def load_run_config(*overrides: str) -> DictConfig:
+    """The shipped ``conf/run.yaml`` composed with command-line style overrides.
+
+    Example:
+        >>> cfg = load_run_config("grids.frames=2")
+        >>> cfg.grids.frames, cfg.train.trainer.max_steps
+        (2, 0)
+    """
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        return compose("run", overrides=list(overrides))
+    with initialize_config_module("nsd.conf", version_base="1.3"):
+        return compose("run", overrides=list(overrides))
+
+
+def _container(node: Any) -> Any:
+    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+
+
+def _out_folder(cfg: DictConfig) -> Path:
+    if cfg.out:
+        return Path(cfg.out).expanduser()
+    name = Path(cfg.scene).expanduser().resolve().name if cfg.scene else DEFAULT_SCENE
+    return Path("runs") / "nsd-run" / name
+
+
+# ------------------------------------------------------------------ stages
+def _scene_stage(cfg: DictConfig) -> Stage:
+    spec = str(Path(cfg.scene).expanduser().resolve()) if cfg.scene else DEFAULT_SCENE
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        from nsd.calibration_io import read_calibration
+        from nsd.footage import MultiViewFootage
+        from nsd.ground_truth import GroundTruth
+        from nsd.train import resolve_scene
+
+        path = resolve_scene(None if spec == DEFAULT_SCENE else spec)
+        if not path.is_dir():
+            raise ConfigError(f"scene: {path} is not a folder (give scene=<scene folder>)")
+        rig = read_calibration(path)
+        footage = MultiViewFootage(path)
+        summary = {
+            "path": str(path.resolve()),
+            "cameras": list(rig.names),
+            "frames": int(footage.num_frames),
+            "ground_truth": GroundTruth.exists(path),
+        }
+        atomic_write_text(out / "scene.json", json.dumps(summary, indent=2))
+        return summary
+
+    return Stage("scene", run, {"scene": spec})
+
+
+def _train_stage(cfg: DictConfig) -> Stage:
+    # nsd-train's own run-folder settings (train.hydra) do not apply here
+    tcfg = OmegaConf.create({k: _container(v) for k, v in cfg.train.items() if k != "hydra"})
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        from nsd.train import run as train
+
+        c = tcfg.copy()
+        c.data.scene = up["scene"].summary["path"]
+        # trained in a work folder that survives an interruption (exact resume), moved at the end
+        work = out.parent / f".train-work-{config_hash(_container(c))}"
+        metrics = train(c, work)
+        for item in work.iterdir():
+            shutil.move(str(item), out / item.name)
+        work.rmdir()
+        return {
+            "checkpoint": "checkpoint.pt",
+            "metrics": {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)},
+        }
+
+    return Stage("train", run, _container(tcfg), needs=("scene",))
+
+
+def _checkpoint(up: dict[str, StageResult]) -> Path:
+    train = up["train"]
+    return train.folder / train.summary["checkpoint"]
+
+
+def _evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
+    e = cfg.evaluate
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        from nsd.evaluate import evaluate_checkpoint, markdown_table
+
+        frames = e.frames if isinstance(e.frames, str) else list(e.frames)
+        metrics = evaluate_checkpoint(
+            _checkpoint(up), up["scene"].summary["path"], frames, int(e.max_frames), str(e.refine)
+        )
+        atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
+        atomic_write_text(out / "eval.md", markdown_table(metrics))
+        return {"metrics": metrics}
+
+    why = (
+        ""
+        if e.enabled and ground_truth
+        else ("evaluate.enabled=false" if not e.enabled else "the scene has no ground truth (gt/)")
+    )
+    return Stage(
+        "evaluate", run, _container(e), needs=("scene", "train"), enabled=not why, why_disabled=why
+    )
+
+
+def _export_stage(cfg: DictConfig) -> Stage:
+    overrides = _container(cfg.export)
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        from nsd.export import export_subjects, load_export_config
+
+        ecfg = OmegaConf.merge(load_export_config(), overrides)
+        ecfg.checkpoint = str(_checkpoint(up))
+        ecfg.scene = up["scene"].summary["path"]
+        ecfg.out = str(out)  # the export is built atomically and replaces the stage's folder
+        ecfg.overwrite = True
+        s = export_subjects(ecfg)
+        return {
+            "frames": s.frames,
+            "camera_frames": s.camera_frames,
+            "subjects": s.subjects,
+            "tracks": s.tracks,
+            "seconds": round(s.seconds, 3),
+        }
+
+    return Stage("export", run, overrides, needs=("scene", "train"))
+
+
+def _grids_stage(cfg: DictConfig) -> Stage:
+    g = cfg.grids
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        files = write_grids(
+            up["export"].folder, up["scene"].summary["path"], out, int(g.frames), int(g.size)
+        )
+        return {"files": [f.name for f in files]}
+
+    return Stage(
+        "grids",
+        run,
+        _container(g),
+        needs=("scene", "export"),
+        enabled=g.frames > 0,
+        why_disabled="grids.frames=0",
+    )
+
+
+def write_grids(
+    export: str | Path, scene: str | Path, out: str | Path, frames: int, size: int
+) -> list[Path]:
+    """One PNG per frame (``frames`` spread over the export): a row per camera with the input,
+    boxes, visible masks and depth order (nearest brightest), coloured by subject id.
+
+    Args:
+        export: an ``nsd-export`` folder.
+        scene: its scene folder (for the input frames).
+        out: folder for ``frame_<t>.png``.
+        frames: how many frames.
+        size: each panel's longer side in pixels.
+    """
+    from pycocotools import mask as mask_utils
+
+    from nsd.footage import MultiViewFootage
+    from nsd.visualise import decomposition_panels, grid
+
+    coco = json.loads((Path(export) / "subjects.coco.json").read_text())
+    by_image: dict[int, list[dict]] = {}
+    for a in coco["annotations"]:
+        by_image.setdefault(int(a["image_id"]), []).append(a)
+    images = {(im["camera"], int(im["frame"])): im for im in coco["images"]}
+    all_frames = sorted({t for _, t in images})
+    if not all_frames:
+        return []
+    pick = np.asarray(all_frames)[
+        np.unique(np.linspace(0, len(all_frames) - 1, min(frames, len(all_frames))).round()).astype(
+            int
+        )
+    ]
+    footage = MultiViewFootage(scene)
+    out = Path(out)
+    written = []
+    for t in pick.tolist():
+        rows = []
+        for v, cam in enumerate(footage.camera_names):
+            if (cam, t) not in images:
+                continue
+            img = footage.sources[v].read(t)
+            im = images[(cam, t)]
+            anns = by_image.get(int(im["id"]), [])
+            h, w = img.shape[:2]
+            masks = (
+                np.stack([mask_utils.decode(a["segmentation"]) for a in anns]).astype(np.float32)
+                if anns
+                else np.zeros((0, h, w), np.float32)
+            )
+            dec = _OneFrame(anns, masks)
+            panels = [img, *decomposition_panels(img, dec, 0, [a["subject_id"] for a in anns])]
+            s = size / max(h, w)
+            panels = [
+                cv2.resize(p, (round(w * s), round(h * s)), interpolation=cv2.INTER_NEAREST)
+                for p in panels
+            ]
+            rows.append(panels)
+        if rows:
+            path = out / f"frame_{t:06d}.png"
+            cv2.imwrite(str(path), cv2.cvtColor(grid(rows), cv2.COLOR_RGB2BGR))
+            written.append(path)
+    return written
+
+
+class _OneFrame:
+    """The fields of :class:`nsd.inference.Decomposition` that the panels read, from COCO."""
+
+    def __init__(self, anns: list[dict], masks: np.ndarray) -> None:
+        n = len(anns)
+        self.active = torch.ones(1, n, dtype=torch.bool)
+        self.masks = torch.from_numpy(masks)[None]
+        self.boxes = torch.tensor([a["bbox"] for a in anns], dtype=torch.float32).reshape(1, n, 4)
+        self.depths = torch.tensor([a["depth"] for a in anns], dtype=torch.float32).reshape(1, n)
+
+
+# ------------------------------------------------------------------ pipeline
+def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stage]]:
+    """Stage factories in order (a factory may read the results of earlier stages)."""
+    return [
+        lambda: _scene_stage(cfg),
+        lambda: _train_stage(cfg),
+        lambda: _evaluate_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
+        lambda: _export_stage(cfg),
+        lambda: _grids_stage(cfg),
+    ]
+
+
+def run_pipeline(cfg: DictConfig) -> dict[str, StageResult]:
+    """Run (or resume) every stage into ``cfg.out``; returns the stage results by name."""
+    out = _out_folder(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    runner = StageRunner(out)
+    for make in build_stages(cfg, runner):
+        runner.run(make())
+    record = {
+        name: {
+            "status": "disabled"
+            if "disabled" in r.summary
+            else ("done earlier" if r.skipped else "ran"),
+            "seconds": round(r.seconds, 3),
+            "summary": r.summary,
+        }
+        for name, r in runner.results.items()
+    }
+    atomic_write_text(out / "pipeline.json", json.dumps(record, indent=2, default=str))
+    return runner.results
+
+
+def _report(out: Path, results: dict[str, StageResult]) -> str:
+    lines = [f"nsd-run: results in {out}/"]
+    for name, r in results.items():
+        status = (
+            f"skipped ({r.summary['disabled']})"
+            if "disabled" in r.summary
+            else "done earlier, reused"
+            if r.skipped
+            else f"ran in {r.seconds:.1f} s"
+        )
+        lines.append(f"  {name:<10} {status}")
+    return "\n".join(lines)
+
+
+@hydra.main(config_path="pkg://nsd.conf", config_name="run", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    out = _out_folder(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(
+        level=logging.INFO,
+        format="%(asctime)s %(name)s: %(message)s",
+        handlers=[logging.StreamHandler(), logging.FileHandler(out / "run.log")],
+    )
+    torch.set_num_threads(max(1, min(torch.get_num_threads(), int(cfg.threads))))
+    try:
+        results = run_pipeline(cfg)
+    except (NSDError, FileExistsError) as e:
+        print(f"nsd-run: error: {e}", file=sys.stderr)
+        sys.exit(2)
+    print(_report(out, results))
+
+
+def main() -> None:
+    """Entry point of ``nsd-run``."""
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,90 @@
+"""nsd-run: a tiny end-to-end run produces an export and grids; re-running does no work."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import pytest
+from pycocotools.coco import COCO
+
+import nsd.export
+import nsd.train
+from nsd.run import load_run_config, run_pipeline
+from tests.conftest import FIXTURES
+from tests.test_nsd_train import TINY
+
+NO_VIEWS = ["+export.views.tensorboard=false", "+export.views.tsne=false", "+export.progress=false"]
+
+
+def _cfg(scene, out, *extra):
+    return load_run_config(
+        f"scene={scene}",
+        f"out={out}",
+        *[f"train.{o}" for o in TINY],
+        "train.trainer.max_steps=4",
+        "train.trainer.max_minutes=0",
+        "train.trainer.progress=false",
+        "train.trainer.checkpoint_every=0",
+        "grids.frames=2",
+        "grids.size=48",
+        *NO_VIEWS,
+        *extra,
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """(scene, run folder, results) of one tiny pipeline run on a copy of the tiny scene."""
+    root = tmp_path_factory.mktemp("nsd_run")
+    scene = shutil.copytree(FIXTURES / "tiny_scene", root / "tiny_scene")
+    return scene, root / "run", run_pipeline(_cfg(scene, root / "run"))
+
+
+def test_tiny_run_then_rerun_does_no_work(tiny_run, monkeypatch):
+    tiny_scene, out, res = tiny_run
+    assert [r.skipped for r in res.values()] == [False, False, True, False, False]
+    assert res["evaluate"].summary == {"disabled": "the scene has no ground truth (gt/)"}
+    assert (out / "train" / "checkpoint.pt").is_file()
+    assert not list(out.glob(".train-work-*"))  # the work folder was moved into place
+    coco = COCO(str(out / "export" / "subjects.coco.json"))
+    assert len(coco.dataset["images"]) == 2 * 4  # 2 cameras x 4 frames
+    assert res["export"].summary["subjects"] == len(coco.dataset["annotations"])
+    assert json.loads((out / "export" / "manifest.json").read_text())["counts"]["frames"] == 4
+    grids = sorted((out / "grids").glob("frame_*.png"))
+    assert [g.name for g in grids] == ["frame_000000.png", "frame_000003.png"]
+    img = cv2.imread(str(grids[0]))
+    # 2 rows (cameras) x 4 panels (input, boxes, masks, depth) of 48 x 36 with 2-pixel gaps
+    assert img.shape == (2 + 2 * 38, 2 + 4 * 50, 3)
+    record = json.loads((out / "pipeline.json").read_text())
+    assert record["train"]["status"] == "ran" and record["evaluate"]["status"] == "disabled"
+
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("a finished stage was recomputed")
+
+    monkeypatch.setattr(nsd.train, "run", no_work)
+    monkeypatch.setattr(nsd.export, "export_subjects", no_work)
+    again = run_pipeline(_cfg(tiny_scene, out))
+    assert all(r.skipped for r in again.values())
+    assert again["export"].summary == res["export"].summary
+    changed = [p for p, t in stamps.items() if p.stat().st_mtime_ns != t]
+    assert changed == [out / "pipeline.json"]
+
+
+def test_changed_grid_setting_reruns_only_grids(tiny_run, tmp_path, monkeypatch):
+    tiny_scene, first, _ = tiny_run
+    out = shutil.copytree(first, tmp_path / "run")
+    monkeypatch.setattr(nsd.train, "run", lambda *a, **k: pytest.fail("train re-ran"))
+    res = run_pipeline(_cfg(tiny_scene, out, "grids.frames=1"))
+    assert res["train"].skipped and res["export"].skipped and not res["grids"].skipped
+    assert [g.name for g in (out / "grids").glob("*.png")] == ["frame_000000.png"]
+
+
+def test_missing_scene_is_a_clear_error(tmp_path):
+    from nsd.errors import NSDError
+
+    with pytest.raises(NSDError, match="nope"):
+        run_pipeline(_cfg(tmp_path / "nope", tmp_path / "run"))
