@@ -326,4 +326,8 @@ def train_reid_baseline(
         if log and step % 100 == 0:
             log(f"baseline step {step}: loss {loss.item():.4f}")
     model.eval()
-    return {"steps": float(step), "minutes": (time.perf_counter() - t0) / 60, "loss": float(loss)}
+    return {
+        "steps": float(step),
+        "minutes": (time.perf_counter() - t0) / 60,
+        "loss": float(loss.detach()),
+    }

@@ -1,0 +1,256 @@
+"""Re-identification: cross-camera rank-1 / mAP, triplet loss, figures, embeddings, netepu-embed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from netepu.reid import (
+    ReidCNN,
+    batch_hard_triplet_loss,
+    pairwise_distances,
+    reid_metrics,
+    separation_figure,
+    tsne_kde_figure,
+)
+
+
+def _reference(emb, ids, cams):
+    """Slow reference: per query, sklearn's average precision over the cross-camera gallery."""
+    from sklearn.metrics import average_precision_score
+
+    hits, aps = [], []
+    for q in range(len(ids)):
+        g = [i for i in range(len(ids)) if cams[i] != cams[q]]
+        d = np.array([1 - emb[q] @ emb[i] / np.linalg.norm(emb[q]) / np.linalg.norm(emb[i])
+                      for i in g])  # fmt: skip
+        y = np.array([ids[i] == ids[q] for i in g])
+        if not y.any():
+            continue
+        hits.append(y[np.argmin(d)])
+        aps.append(average_precision_score(y, -d))
+    return float(np.mean(hits)), float(np.mean(aps))
+
+
+def test_reid_metrics_match_a_slow_reference():
+    rng = np.random.default_rng(0)
+    ids = rng.integers(0, 5, 80)
+    cams = rng.integers(0, 4, 80)
+    emb = rng.normal(size=(80, 6)) + 1.5 * np.eye(6)[ids]
+    got = reid_metrics(emb, ids, cams, chunk=17)
+    r1, mAP = _reference(emb, ids, cams)
+    assert got["rank1"] == pytest.approx(r1)
+    assert got["map"] == pytest.approx(mAP)
+    assert 0.2 < got["rank1"] < 1.0  # the case is neither trivial nor hopeless
+
+
+def test_reid_metrics_known_values_and_same_camera_exclusion():
+    # 1-D embeddings on a circle's arc: cosine distance orders by angle
+    ang = np.array([0.0, 0.1, 0.2, 1.0, 1.05])
+    emb = np.stack([np.cos(ang), np.sin(ang)], 1)
+    ids = np.array([0, 1, 0, 1, 1])
+    cams = np.array([0, 0, 1, 1, 0])
+    m = reid_metrics(emb, ids, cams)
+    # q0 (cam 0): gallery 2 (id 0), 3 (id 1) -> hit, AP 1
+    # q1 (cam 0, id 1): gallery 2 (id 0, d .1), 3 (id 1, d .9) -> miss, AP 1/2
+    # q2 (cam 1, id 0): gallery 1, 0, 4 -> nearest 1 (id 1) miss; match 0 at rank 2 -> AP 1/2
+    # q3 (cam 1, id 1): gallery 4 (.05), 1, 0 -> hit; matches at ranks 1, 2 -> AP 1
+    # q4 (cam 0, id 1): gallery 3 (.05), 2 -> hit; AP 1
+    assert m["rank1"] == pytest.approx(3 / 5)
+    assert m["map"] == pytest.approx((1 + 0.5 + 0.5 + 1 + 1) / 5)
+    # a same-camera copy of the query never counts
+    m2 = reid_metrics(np.concatenate([emb, emb[:1]]), np.r_[ids, 1], np.r_[cams, 0])
+    assert m2["rank1"] == pytest.approx(3 / 5, abs=0.2) and m2["queries"] == 6
+
+
+def test_queries_without_cross_camera_match_are_skipped():
+    m = reid_metrics(np.eye(3), np.array([0, 1, 1]), np.array([0, 1, 2]))
+    assert m["queries_without_match"] == 1 and m["queries"] == 2
+
+
+def test_pairwise_distances():
+    a = np.array([[1.0, 0.0], [0.0, 2.0]])
+    np.testing.assert_allclose(pairwise_distances(a, a), [[0, 1], [1, 0]], atol=1e-12)
+    np.testing.assert_allclose(
+        pairwise_distances(a, a, "euclidean"), [[0, np.sqrt(5)], [np.sqrt(5), 0]], atol=1e-7
+    )
+    with pytest.raises(ValueError, match="metric"):
+        pairwise_distances(a, a, "manhattan")
+
+
+def test_batch_hard_triplet_loss_matches_loops():
+    g = torch.Generator().manual_seed(0)
+    emb = torch.randn(12, 5, generator=g, dtype=torch.float64)
+    ids = torch.tensor([0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3])
+    ref = []
+    for a in range(12):
+        pos = max(float((emb[a] - emb[p]).norm()) for p in range(12) if ids[p] == ids[a])
+        neg = min(float((emb[a] - emb[n]).norm()) for n in range(12) if ids[n] != ids[a])
+        ref.append(max(0.0, pos - neg + 0.3))
+    assert float(batch_hard_triplet_loss(emb, ids, 0.3)) == pytest.approx(np.mean(ref))
+
+
+def test_baseline_cnn_shapes_and_training_lowers_loss():
+    from netepu.reid import train_reid_baseline
+
+    torch.manual_seed(0)
+    model = ReidCNN(3, [8, 16], 1, dims=16)
+    x = torch.zeros(30, 4, 16, 16)
+    ids = np.repeat(np.arange(3), 10)
+    for i in range(3):  # identity = colour of a blob
+        x[ids == i, i % 3, 4:12, 4:12] = 1.0
+        x[ids == i, 3, 4:12, 4:12] = 1.0
+    x += 0.05 * torch.randn_like(x)
+    emb, logits = model(x[:4])
+    assert emb.shape == (4, 16) and logits.shape == (4, 3)
+    out = train_reid_baseline(
+        model, lambda idx: x[torch.from_numpy(idx)], ids, steps=60, p_ids=3, k_per_id=4, lr=3e-3
+    )
+    assert out["steps"] == 60 and out["loss"] < 0.3
+    with torch.no_grad():
+        e = model(x)[0].numpy()
+    assert reid_metrics(e, ids, np.arange(30) % 5)["rank1"] == 1.0
+
+
+def test_figures_are_written_and_separation_summary(tmp_path):
+    rng = np.random.default_rng(0)
+    ids = np.repeat(np.arange(4), 30)
+    cams = np.tile(np.arange(6), 20)
+    emb = rng.normal(size=(120, 8)) * 0.05 + 3 * np.eye(8)[ids]
+    tsne_kde_figure(emb, ids, cams >= 4, tmp_path / "tsne.png", "test")
+    summary = separation_figure({"a": (emb, ids, cams)}, tmp_path / "sep.png")
+    assert (tmp_path / "tsne.png").stat().st_size > 1000
+    assert (tmp_path / "sep.png").stat().st_size > 1000
+    assert summary["a"]["overlap"] == 0.0 and summary["a"]["margin_min"] > 1.0
+    mixed = separation_figure({"b": (rng.normal(size=(120, 8)), ids, cams)}, tmp_path / "s2.png")
+    assert mixed["b"]["overlap"] > 0.2
+
+
+# ----------------------------------------------------------------------------- embeddings
+def test_embedding_file_round_trip_with_texture_columns(tmp_path):
+    from nsd.embeddings_io import EmbeddingWriter, add_columns, read_embeddings
+
+    rng = np.random.default_rng(0)
+    for fmt in ("parquet", "npz"):
+        w = EmbeddingWriter(tmp_path / f"emb_{fmt}", format=fmt, row_group_size=7)
+        ids = np.arange(20, dtype=np.int64)
+        app = rng.normal(size=(20, 5)).astype(np.float32)
+        w.write({"id": ids[:12], "app": app[:12]})
+        w.write({"id": ids[12:], "app": app[12:]})
+        path = w.close()
+        tex = rng.normal(size=(20, 8)).astype(np.float32)
+        add_columns(path, {"texture": tex, "texture_valid": np.ones(20, bool)})
+        back = read_embeddings(path)
+        np.testing.assert_array_equal(back["id"], ids)
+        np.testing.assert_array_equal(back["app"], app)
+        np.testing.assert_array_equal(back["texture"], tex)
+        assert back["texture_valid"].all()
+        with pytest.raises(ValueError, match="exists already"):
+            add_columns(path, {"texture": tex})
+
+
+def _texture_checkpoint(path, use_nnopcs: bool):
+    from nsd.atomic import atomic_save_torch
+    from tests.netepu_world import TINY_MODEL
+    from tests.test_netepu_texture import K_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE, _models
+
+    tex, geo = _models(use_nnopcs=use_nnopcs)
+    atomic_save_torch({
+        "format": "nsd-netepu-checkpoint-v1",
+        "modules": {"geometry": geo.state_dict(), "texture": tex.state_dict()},
+        "config": {"netepu": {"model": TINY_MODEL,
+                              "data": {**TINY_GEOMETRY_DATA, "n_keypoints": K_BIPED},
+                              "texture": {"model": {**TINY_TEXTURE, "use_nnopcs": use_nnopcs}}}},
+    }, path)  # fmt: skip
+    return tex, geo
+
+
+def _fake_export(folder):
+    """An export folder with crops of held-out frames (training-rig cameras) and a table.
+
+    The table's rows are in the reverse order of the crops, and one crop has no keypoints.
+    """
+    from netepu.texture_data import _rig
+    from nsd.calibration_io import write_toml
+    from nsd.crops_io import CropWriter
+    from nsd.embeddings_io import EmbeddingWriter
+    from nsd.synth.render import mask_boxes
+    from tests.test_netepu_texture import TINY_GEOMETRY_DATA, _tiny_data
+
+    data = _tiny_data()
+    h = data.heldout
+    rig = _rig(TINY_GEOMETRY_DATA["rig"], tuple(TINY_GEOMETRY_DATA["image_size"]))
+    write_toml(rig, folder / "calibration.toml")
+    rows = [r for r in range(len(h["psnr_view"])) if h["camera"][h["psnr_view"][r]] < len(rig)]
+    assert len(rows) >= 2
+    writer = CropWriter(folder / "crops", 24)
+    ids, kps = [], []
+    for n, r in enumerate(rows):
+        v = int(h["psnr_view"][r])
+        mask = h["mask"][r]
+        b = mask_boxes(torch.from_numpy(mask)).tolist()
+        writer.add(
+            n + 1,
+            1,
+            rig.names[int(h["camera"][v])],
+            0,
+            h["colour"][r, 0],
+            mask,
+            [b[0], b[1], b[2] - b[0], b[3] - b[1]],
+            0.1,
+        )
+        ids.append(n + 1)
+        kps.append(h["keypoints"][v])
+    writer.close()
+    np.savez(folder / "keypoints.npz", id=np.array(ids[:-1]), keypoints=np.stack(kps[:-1]))
+    w = EmbeddingWriter(folder / "embeddings")
+    order = np.array(ids[::-1], np.int64)
+    w.write({"id": order, "app": np.zeros((len(order), 3), np.float32)})
+    w.close()
+    return rig, ids, kps
+
+
+@pytest.mark.parametrize("use_nnopcs", [True, False])
+def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs):
+    from netepu.embed import embed_export
+    from netepu.texture import texture_codes
+    from nsd.crops_io import read_crop_index, read_crops
+    from nsd.embeddings_io import read_embeddings
+    from nsd.errors import ConfigError
+
+    tex, geo = _texture_checkpoint(tmp_path / "tex.pt", use_nnopcs)
+    rig, ids, kps = _fake_export(tmp_path)
+    kw = {"keypoints": tmp_path / "keypoints.npz", "calibration": tmp_path} if use_nnopcs else {}
+    out = embed_export(tmp_path, tmp_path / "tex.pt", **kw)
+    table = read_embeddings(tmp_path)
+    assert out["rows"] == len(ids) and set(table) == {"id", "app", "texture", "texture_valid"}
+    index = {r["id"]: r for r in read_crop_index(tmp_path / "crops")}
+    enc = ids[:-1] if use_nnopcs else ids  # the last crop has no keypoints
+    assert out["encoded"] == len(enc)
+    images, masks = read_crops(tmp_path / "crops", enc)
+    window = torch.tensor([[index[i]["crop_x"], index[i]["crop_y"], index[i]["crop_side"]]
+                           for i in enc], dtype=torch.float64)  # fmt: skip
+    cams = rig.stacked(torch.float32)
+    ci = torch.tensor([rig.index(index[i]["camera"]) for i in enc])
+    expected = texture_codes(
+        tex,
+        geo,
+        torch.from_numpy(images),
+        torch.from_numpy(masks > 0),
+        torch.from_numpy(np.stack(kps[: len(enc)])),
+        {k: v[ci] for k, v in cams.items()},
+        window=window,
+    ).numpy()
+    for k, i in enumerate(table["id"]):
+        if i in enc:
+            np.testing.assert_allclose(table["texture"][k], expected[enc.index(i)], rtol=1e-5,
+                                       atol=1e-6)  # fmt: skip
+            assert table["texture_valid"][k]
+        else:
+            assert np.isnan(table["texture"][k]).all() and not table["texture_valid"][k]
+    with pytest.raises(ValueError, match="exists already"):
+        embed_export(tmp_path, tmp_path / "tex.pt", **kw)
+    if use_nnopcs:
+        with pytest.raises(ConfigError, match="keypoints"):
+            embed_export(tmp_path, tmp_path / "tex.pt", column="t2")
