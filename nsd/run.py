@@ -141,6 +141,7 @@ def _evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
         metrics = evaluate_checkpoint(
             _checkpoint(up), up["scene"].summary["path"], frames, int(e.max_frames), str(e.refine)
         )
+        metrics = {k: float(v) for k, v in metrics.items()}
         atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
         atomic_write_text(out / "eval.md", markdown_table(metrics))
         return {"metrics": metrics}

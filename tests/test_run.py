@@ -6,7 +6,9 @@ import json
 import shutil
 
 import cv2
+import numpy as np
 import pytest
+import torch
 from pycocotools.coco import COCO
 
 import nsd.export
@@ -88,3 +90,58 @@ def test_missing_scene_is_a_clear_error(tmp_path):
 
     with pytest.raises(NSDError, match="nope"):
         run_pipeline(_cfg(tmp_path / "nope", tmp_path / "run"))
+
+
+def test_switched_off_windows_get_no_export_rows(tmp_path):
+    """Upper bound 3 windows, 1 individual: windows whose presence is off are not exported.
+
+    The presence of windows 1 and 2 is switched off in the trained checkpoint (head rows
+    zeroed, bias -20: presence ~2e-9 for every input), as a trained model does for windows
+    it does not need (docs/benchmarks/count.md measures whether training gets there).
+    """
+    from nsd.embeddings_io import read_embeddings
+    from nsd.export import export_subjects, load_export_config
+    from nsd.inference import decompose
+    from nsd.model_io import load_decomposition
+    from nsd.synth import tiny_config, write_scene
+
+    scene = write_scene(tiny_config(num_individuals=1), tmp_path / "scene")
+    out = tmp_path / "run"
+    cfg = _cfg(
+        scene,
+        out,
+        "train.data.image_size=[48,48]",
+        "train.model.num_windows=3",
+        "train.model.detector.presence=true",
+        "prior_presence@train.prior_presence=sparse",
+        "evaluate.max_frames=2",
+    )
+    res = run_pipeline(cfg)
+    assert res["evaluate"].summary["metrics"]["frames"] == 2.0  # the scene has ground truth
+    state = torch.load(out / "train" / "checkpoint.pt", weights_only=True)
+    head = state["modules"]["model"]
+    w, b = head["detector.head.weight"], head["detector.head.bias"]
+    for k in (1, 2):  # the 6 outputs per window: scale (2), position (2), depth, presence
+        w[6 * k + 5] = 0.0
+        b[6 * k + 5] = -20.0
+    ckpt = tmp_path / "off.pt"
+    torch.save(state, ckpt)
+    trained = load_decomposition(ckpt)
+    from nsd.data import SceneData
+
+    data = SceneData(scene, (48, 48), val_fraction=0.0)
+    dec = decompose(trained.model, *data.views(0))
+    assert not dec.active[:, 1:].any()
+    assert dec.crops[:, 1:].abs().sum() == 0  # switched-off windows are not even cropped
+    ecfg = load_export_config(
+        checkpoint=str(ckpt),
+        scene=str(scene),
+        out=str(tmp_path / "exp"),
+        **{"views.tensorboard": False, "views.tsne": False, "progress": False},
+    )
+    s = export_subjects(ecfg)
+    table = read_embeddings(tmp_path / "exp" / "embeddings.parquet")
+    slots = set(np.asarray(table["slot"]).tolist())
+    assert 0 < s.subjects == len(table["slot"]) and slots == {0}
+    anns = json.loads((tmp_path / "exp" / "subjects.coco.json").read_text())["annotations"]
+    assert {a["slot"] for a in anns} <= {0} and len(anns) == s.subjects

@@ -1,0 +1,198 @@
+"""Count accuracy: does NSD with an upper bound of 4 windows find how many individuals a scene holds?
+
+    python tools/bench_count.py one --n 2 --minutes 5     # scene + training + count metrics
+    python tools/bench_count.py report                     # docs/benchmarks/count.{md,json}
+
+For N = 1..4 individuals, a synthetic scene (4 studio cameras, 96 x 96, 150
+frames, close interaction) is written with nsd-synth and nsd-train trains on it
+with ``model.num_windows=4``, the learned window presence on
+(``model.detector.presence=true``) and the presence prior that prefers fewer
+active windows (``prior_presence=sparse``), everything else at the defaults.
+Counts are measured on 30 frames spread over the sequence (the transductive
+use; no labels are used in training):
+
+* ``frame_count_accuracy``: the number of distinct cross-view subject ids of the
+  active windows of a frame (all 4 views; ids from the model's association, as
+  nsd-export assigns them) equals N;
+* ``view_count_accuracy``: the active windows of one camera-frame equal the
+  individuals visible in it (ground-truth visible area >= 4 pixels);
+* ``mean_active_windows`` per camera-frame, ``scene_count`` (median frame count),
+  the mean presence of the windows sorted from most to least present;
+* ``detection_rate`` and ``mask_miou`` (nsd-eval's definitions) on the same frames.
+
+Run ``one`` for each N under ``/tmp/slot.sh`` (one core each), then ``report``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tools.benchlib import write_report
+
+WORK = Path("/tmp/nsd-bench-count")
+SCENE = ["image_size=[96,96]", "num_frames=150"]
+TRAIN = [
+    "data.image_size=[96,96]",
+    "model.num_windows=4",
+    "model.detector.presence=true",
+    "prior_presence=sparse",
+    "trainer.max_steps=0",
+    "trainer.checkpoint_every=0",
+    "trainer.progress=false",
+    "eval_frames=10",
+]
+FRAMES = 30
+
+
+def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -> dict:
+    """Count figures of a trained decomposition on ``frames`` frames spread over ``scene``."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from nsd.data import SceneData
+    from nsd.evaluation import association_scores, evaluate_model
+    from nsd.ground_truth import GroundTruth
+    from nsd.inference import associate_views, decompose
+    from nsd.model_io import load_decomposition
+
+    trained = load_decomposition(checkpoint)
+    H, W = trained.image_size
+    data = SceneData(scene, (W, H), val_fraction=0.0)
+    gt = GroundTruth.load(scene)
+    model = trained.model
+    dims = int(model.cfg.association_dims)
+    idx = np.linspace(0, len(data.frames) - 1, frames).round().astype(int)
+    frame_counts, view_ok, active_n, presence = [], [], [], []
+    for t in idx.tolist():
+        views, bgs = data.views(t)
+        dec = decompose(model, views, bgs)
+        one = SimpleNamespace(windows=dec.windows, app=dec.app)
+
+        def score(v: int, r: int, one=one) -> torch.Tensor:
+            return association_scores(model, one, data.cameras, (H, W), v, r)
+
+        ids = associate_views(dec.app, dec.active, dims, score)
+        frame_counts.append(len(set(ids[ids >= 0].tolist())))
+        for v, cam in enumerate(data.rig.names):
+            g = gt.frame(cam, t, (H, W))
+            visible = int((g.visible.reshape(len(g.visible), -1).sum(1) >= 4).sum())
+            act = int(dec.active[v].sum())
+            view_ok.append(act == visible)
+            active_n.append(act)
+        presence.append(dec.presence.sort(-1, descending=True).values.mean(0).numpy())
+    ev = evaluate_model(model, data, idx, gt)
+    fc = np.asarray(frame_counts)
+    return {
+        "individuals": n,
+        "steps": int(trained.step),
+        "frame_count_accuracy": float((fc == n).mean()),
+        "frame_count_mae": float(np.abs(fc - n).mean()),
+        "scene_count": float(np.median(fc)),
+        "view_count_accuracy": float(np.mean(view_ok)),
+        "mean_active_windows": float(np.mean(active_n)),
+        "presence_sorted": [round(float(p), 3) for p in np.mean(presence, 0)],
+        "detection_rate": float(ev["detection_rate"]),
+        "mask_miou": float(ev["mask_miou"]),
+    }
+
+
+def one(n: int, minutes: float, extra: list[str]) -> dict:
+    """Write the N-individual scene (once), train on it, measure counts; saves result.json."""
+    import torch
+    from hydra import compose, initialize_config_module
+
+    from nsd.synth.cli import run as synth
+    from nsd.train import run as train
+
+    torch.set_num_threads(1)
+    scene = WORK / f"scene{n}"
+    if not (scene / "gt" / "scene.json").is_file():
+        synth(
+            {
+                "out": str(scene),
+                "overwrite": True,
+                "num_individuals": n,
+                **{k: json.loads(v) for k, v in (s.split("=", 1) for s in SCENE)},
+            }
+        )
+    tag = f"n{n}" + ("-" + "-".join(e.replace("=", "_") for e in extra) if extra else "")
+    run_dir = WORK / tag
+    with initialize_config_module("nsd.conf", version_base="1.3"):
+        cfg = compose(
+            "train",
+            overrides=[f"data.scene={scene}", f"trainer.max_minutes={minutes}", *TRAIN, *extra],
+        )
+    t0 = time.perf_counter()
+    train(cfg, run_dir)
+    res = count_metrics(run_dir / "checkpoint.pt", scene, n)
+    res.update({"minutes": minutes, "overrides": extra, "wall_seconds": time.perf_counter() - t0})
+    (run_dir / "result.json").write_text(json.dumps(res, indent=2))
+    print(json.dumps(res))
+    return res
+
+
+def report() -> None:
+    rows = []
+    for f in sorted(WORK.glob("n*/result.json")):
+        r = json.loads(f.read_text())
+        rows.append(
+            {
+                "individuals": r["individuals"],
+                "variant": " ".join(r["overrides"]) or "default + presence",
+                "minutes": r["minutes"],
+                "steps": r["steps"],
+                "frame_count_accuracy": round(r["frame_count_accuracy"], 3),
+                "frame_count_mae": round(r["frame_count_mae"], 3),
+                "scene_count": r["scene_count"],
+                "view_count_accuracy": round(r["view_count_accuracy"], 3),
+                "mean_active_windows": round(r["mean_active_windows"], 2),
+                "presence_sorted": " / ".join(f"{p:.2f}" for p in r["presence_sorted"]),
+                "detection_rate": round(r["detection_rate"], 3),
+                "mask_miou": round(r["mask_miou"], 3),
+            }
+        )
+    notes = Path(__file__).with_suffix(".notes.md")
+    write_report(
+        "count",
+        "Count accuracy with an upper bound of 4 windows (synthetic scenes, 1-4 individuals)",
+        rows,
+        notes=(
+            __doc__.split("Run ``one``")[0].split("\n\n", 1)[1]
+            + (notes.read_text() if notes.is_file() else "")
+        ),
+        extra={"scene_settings": SCENE, "train_overrides": TRAIN, "frames": FRAMES},
+    )
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("what", choices=["one", "report", "all"])
+    p.add_argument("--n", type=int, default=2)
+    p.add_argument("--minutes", type=float, default=5.0)
+    p.add_argument("--extra", nargs="*", default=[])
+    a = p.parse_args()
+    if a.what == "one":
+        one(a.n, a.minutes, a.extra)
+    elif a.what == "all":
+        for n in (1, 2, 3, 4):
+            subprocess.run(
+                [sys.executable, __file__, "one", "--n", str(n), "--minutes", str(a.minutes)],
+                check=True,
+            )
+        report()
+    else:
+        report()
+
+
+if __name__ == "__main__":
+    main()
