@@ -1,0 +1,380 @@
+"""Benchmark of the NeTePu texture stage: colour PSNR and ablations, re-identification, speed.
+
+Writes ``docs/benchmarks/netepu_texture.md`` and ``.json`` (:func:`tools.benchlib.write_report`)
+and figures under ``docs/images/``.
+
+Steps (each its own process, so that each can run under the machine's CPU protocol)::
+
+    # texture models on the frozen biped geometry (netepu-train stage=texture)
+    /tmp/slot.sh .venv/bin/netepu-train stage=texture \\
+        init_from=runs/netepu/geometry_biped/checkpoint.pt \\
+        trainer.max_minutes=10 trainer.max_steps=0 hydra.run.dir=runs/netepu/texture_full
+    ... netepu.texture.model.use_nnopcs=false      hydra.run.dir=runs/netepu/texture_no_nnopcs
+    ... netepu.texture.model.local_features=false  hydra.run.dir=runs/netepu/texture_no_local
+
+    /tmp/slot.sh .venv/bin/python tools/bench_netepu_texture.py evaluate --baseline-minutes 5
+    /tmp/both.sh .venv/bin/python tools/bench_netepu_texture.py speed
+    .venv/bin/python tools/bench_netepu_texture.py report
+
+``evaluate``: for every run, the colour PSNR over all held-out full-map views
+(reconstruction and novel pose/view), re-identification rank-1 / mAP of the
+held-out codes computed from predicted NNOPCS (and, for comparison, from
+ground-truth NNOPCS), then the CNN baseline trained in the same process on the
+same training crops (identity + triplet loss) and evaluated on the same
+held-out crops; t-SNE + KDE and cluster-separation figures; novel pose/view
+synthesis grids. ``speed``: texture-code encodings per second, including
+the geometry render, at 128 x 128 and 256 x 256 frames, in two modes:
+``frame`` (NeTePu's inference: render the silhouette and NNOPCS of the whole
+frame coarse-to-fine, mask the image with the predicted silhouette, encode)
+and ``visible mask`` (the pipeline's: the subject's visible mask is given;
+NNOPCS is rendered only at the encoder's in-mask crop pixels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tools.benchlib import median_time, peak_rss_mb, write_report  # noqa: E402
+
+RUNS = {
+    "full": "runs/netepu/texture_full",
+    "no_nnopcs": "runs/netepu/texture_no_nnopcs",
+    "no_local": "runs/netepu/texture_no_local",
+}
+WORK = ROOT / "runs" / "netepu" / "texture_bench"
+IMAGES = ROOT / "docs" / "images"
+PAPER = {"full": 19.35, "no_nnopcs": 13.63, "no_local": 14.74}
+LOOK_ALIKES = (1, 11, 9, 10, 4, 13)
+TITLES = {
+    "texture": "NeTePu texture code (mu, predicted NNOPCS): contours = training cameras, "
+    "dots = held-out cameras",
+    "baseline": "CNN baseline (identity + triplet): contours = training cameras, "
+    "dots = held-out cameras",
+}
+
+
+def _load(run: str):
+    from netepu.texture import load_texture_model
+
+    return load_texture_model(ROOT / run / "checkpoint.pt")
+
+
+def _task_for(run: str):
+    """Rebuild the run's data and predicted NNOPCS crops (cached) from its config."""
+    from omegaconf import OmegaConf
+
+    from netepu.texture_stage import build_texture_stage
+
+    state = torch.load(ROOT / run / "checkpoint.pt", map_location="cpu", weights_only=True)
+    cfg = OmegaConf.create(state["config"])
+    task, _ = build_texture_stage(cfg)
+    task.texture.load_state_dict(state["modules"]["texture"])
+    task.texture.eval()
+    return task, state
+
+
+def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[str, float]:
+    from netepu.reid import reid_metrics
+
+    E, T = codes.shape[:2]
+    ids = np.tile(np.arange(T), E)
+    cams = np.repeat(cameras, T)
+    emb = codes.reshape(E * T, -1)
+    out = reid_metrics(emb, ids, cams)
+    look = np.isin(textures[ids], LOOK_ALIKES)
+    sub = _subset_rank1(emb, ids, cams, look)
+    return {**out, "rank1_look_alikes": sub}
+
+
+def _subset_rank1(emb, ids, cams, queries) -> float:
+    from netepu.reid import pairwise_distances
+
+    q = np.nonzero(queries)[0]
+    d = pairwise_distances(emb[q], emb)
+    d[cams[q][:, None] == cams[None]] = np.inf
+    return float((ids[d.argmin(1)] == ids[q]).mean())
+
+
+def evaluate(baseline_minutes: float) -> None:
+    from netepu.reid import (
+        ReidCNN,
+        separation_figure,
+        train_reid_baseline,
+        tsne_kde_figure,
+    )
+    from netepu.texture_evaluation import evaluate_colour, heldout_codes, synthesis_grid
+
+    torch.set_num_threads(1)
+    WORK.mkdir(parents=True, exist_ok=True)
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    results: dict = {"runs": {}}
+    keep = {}
+    for name, run in RUNS.items():
+        if not (ROOT / run / "checkpoint.pt").is_file():
+            print(f"skip {name}: no checkpoint")
+            continue
+        t0 = time.time()
+        task, state = _task_for(run)
+        codes = task.codes()
+        colour = evaluate_colour(task.texture, task.geometry, task.data, codes)
+        h = task.data.heldout
+        reid = _reid(codes, h["camera"], task.data.textures)
+        row = {
+            "steps": int(state["step"]),
+            "train_minutes": state["train_seconds"] / 60,
+            **colour,
+            **{f"reid_{k}": v for k, v in reid.items()},
+        }
+        if task.texture.cfg.use_nnopcs:
+            gt = heldout_codes(task.texture, task.data, h["nnopcs"].astype(np.float32))
+            row |= {
+                f"reid_gt_nnopcs_{k}": v
+                for k, v in _reid(gt, h["camera"], task.data.textures).items()
+                if k in ("rank1", "map")
+            }
+        results["runs"][name] = row
+        print(name, json.dumps(row), f"{time.time() - t0:.0f}s", flush=True)
+        keep[name] = (task, codes)
+    if "full" not in keep:
+        raise SystemExit("no full texture run to evaluate")
+    task, codes = keep["full"]
+    data, h = task.data, task.data.heldout
+    import cv2
+
+    for held in (False, True):
+        grid = synthesis_grid(task.texture, task.geometry, data, codes, held, n_targets=3)
+        name = "netepu_texture_novel_cameras" if held else "netepu_texture_novel_poses"
+        cv2.imwrite(
+            str(IMAGES / f"{name}.jpg"),
+            cv2.cvtColor(grid, cv2.COLOR_RGB2BGR),
+            [cv2.IMWRITE_JPEG_QUALITY, 92],
+        )
+    # baseline: CNN of the texture encoder's size on the masked RGB crops
+    tr = data.train
+    torch.manual_seed(0)
+    enc = task.texture.cfg
+    base = ReidCNN(len(data.textures), list(enc.widths), enc.blocks_per_stage, dims=enc.latent)
+
+    def sample(idx: np.ndarray) -> torch.Tensor:
+        inside = torch.from_numpy(tr["inside"][tr["sample_view"][idx]])
+        rgb = torch.from_numpy(tr["rgb"][idx]).float() / 255
+        return torch.cat([rgb, inside[..., None].float()], -1).permute(0, 3, 1, 2)
+
+    fit = train_reid_baseline(
+        base, sample, tr["sample_texture"], minutes=baseline_minutes, log=print
+    )
+    E, T = h["rgb"].shape[:2]
+    with torch.no_grad():
+        embs = []
+        for s in range(0, E * T, 512):
+            v, t = np.divmod(np.arange(s, min(E * T, s + 512)), T)
+            inside = torch.from_numpy(h["inside"][v])
+            rgb = torch.from_numpy(h["rgb"][v, t]).float() / 255
+            x = torch.cat([rgb, inside[..., None].float()], -1).permute(0, 3, 1, 2)
+            embs.append(base(x)[0])
+        base_codes = torch.cat(embs).reshape(E, T, -1).numpy()
+    results["baseline"] = {
+        **{f"reid_{k}": v for k, v in _reid(base_codes, h["camera"], data.textures).items()},
+        "steps": fit["steps"],
+        "train_minutes": fit["minutes"],
+        "parameters": sum(p.numel() for p in base.parameters()),
+        "texture_encoder_parameters": sum(p.numel() for p in task.texture.encoder.parameters()),
+    }
+    print("baseline", json.dumps(results["baseline"]), flush=True)
+    # figures: t-SNE + KDE (contours: training cameras, dots: held-out cameras), separation
+    ids = np.tile(np.arange(T), E)
+    cams = np.repeat(h["camera"], T)
+    dots = np.repeat(h["heldout_camera"], T)
+    names = {i: str(int(t)) for i, t in enumerate(data.textures)}
+    for label, emb in (("texture", codes), ("baseline", base_codes)):
+        tsne_kde_figure(
+            emb.reshape(E * T, -1),
+            ids,
+            dots,
+            IMAGES / f"netepu_reid_tsne_{label}.png",
+            TITLES[label],
+            names,
+        )
+    results["separation"] = separation_figure(
+        {
+            "texture code": (codes.reshape(E * T, -1), ids, cams),
+            "CNN baseline": (base_codes.reshape(E * T, -1), ids, cams),
+        },
+        IMAGES / "netepu_reid_separation.png",
+    )
+    results["peak_rss_mb"] = peak_rss_mb()
+    results["heldout"] = {
+        "poses": int(h["pose"].max() + 1),
+        "views": int(E),
+        "textures": int(T),
+        "training_samples": len(tr["sample_view"]),
+        "training_views": len(tr["camera"]),
+    }
+    (WORK / "evaluate.json").write_text(json.dumps(results, indent=1))
+
+
+def _speed_fns(texture, geometry, image, mask, kps, cam, size: int) -> dict:
+    """The two ways of encoding a batch of frames, as callables (see the module docstring)."""
+    from netepu.maps import MapSettings, render_maps
+    from netepu.texture import encode_texture, texture_codes
+
+    def visible_mode():
+        texture_codes(texture, geometry, image, mask, kps, cam)
+
+    def frame_mode():
+        with torch.no_grad():
+            code = geometry.encode(kps)
+            ctx = geometry.prepare(code, cam, keypoints=kps)
+            maps = render_maps(geometry.query, ctx, (size, size), MapSettings())
+        encode_texture(texture, image, maps.silhouette, maps.nnopcs)
+
+    return {"visible mask (pipeline)": visible_mode, "full frame render (NeTePu)": frame_mode}
+
+
+def speed(repeats: int) -> None:
+    from nsd.synth import make_individual, make_rig, render_views, sample_pose
+
+    torch.set_num_threads(2)
+    texture, geometry, config = _load(RUNS["full"])
+    geo = config["netepu"]["data"]
+    ind = make_individual(
+        geo["species"],
+        identity=geo["identity"],
+        seed=geo["seed"],
+        proportion_variation=geo["proportion_variation"],
+    )
+    rng = np.random.default_rng(5)
+    rows = []
+    for size in (128, 256):
+        rig = make_rig("nepumoo", (size, size))
+        cams = rig.stacked(torch.float32)
+        pose = sample_pose(ind, rng, 1.0)
+        r = render_views([ind], [pose], rig, background=True)
+        keep = r["visible"][:, 0].flatten(1).any(1)
+        views = torch.nonzero(keep).flatten()[:8]
+        image = r["rgb"][views]
+        mask = r["visible"][views, 0]
+        kps = r["keypoints3d"][0].float()[None].expand(len(views), -1, -1)
+        cam = {k: v[views] for k, v in cams.items()}
+        for batch in (1, 8):
+            sl = slice(0, batch)
+            c = {k: v[sl] for k, v in cam.items()}
+            fns = _speed_fns(texture, geometry, image[sl], mask[sl], kps[sl], c, size)
+            for mode, fn in fns.items():
+                t = median_time(fn, repeats=repeats, warmup=1)
+                rows.append(
+                    {
+                        "frame": f"{size}x{size}",
+                        "mode": mode,
+                        "batch": batch,
+                        "ms_per_call": 1000 * t,
+                        "encodings_per_s": batch / t,
+                    }
+                )
+                print(rows[-1], flush=True)
+    WORK.mkdir(parents=True, exist_ok=True)
+    (WORK / "speed.json").write_text(json.dumps({"rows": rows, "threads": 2}, indent=1))
+
+
+def _fmt_db(x):
+    return round(float(x), 2)
+
+
+def report() -> None:
+    ev = json.loads((WORK / "evaluate.json").read_text())
+    sp = json.loads((WORK / "speed.json").read_text()) if (WORK / "speed.json").is_file() else None
+    rows = []
+    for name, r in ev["runs"].items():
+        rows.append(
+            {
+                "model": name,
+                "PSNR held-out poses (dB)": _fmt_db(r["heldout_poses/psnr_reconstruction"]),
+                "PSNR held-out cameras (dB)": _fmt_db(r["heldout_cameras/psnr_reconstruction"]),
+                "PSNR novel pose+view, held-out poses": _fmt_db(r["heldout_poses/psnr_novel"]),
+                "PSNR novel pose+view, held-out cameras": _fmt_db(r["heldout_cameras/psnr_novel"]),
+                "paper PSNR (dB)": PAPER.get(name),
+                "re-id rank-1": round(r["reid_rank1"], 4),
+                "re-id mAP": round(r["reid_map"], 4),
+                "rank-1 look-alike queries": round(r["reid_rank1_look_alikes"], 4),
+                "steps": r["steps"],
+                "train min": round(r["train_minutes"], 1),
+            }
+        )
+    b = ev["baseline"]
+    rows.append(
+        {
+            "model": "CNN baseline (identity + triplet)",
+            "re-id rank-1": round(b["reid_rank1"], 4),
+            "re-id mAP": round(b["reid_map"], 4),
+            "rank-1 look-alike queries": round(b["reid_rank1_look_alikes"], 4),
+            "steps": int(b["steps"]),
+            "train min": round(b["train_minutes"], 1),
+        }
+    )
+    notes = []
+    if sp:
+        notes.append("Texture-code encodings per second, geometry render included, 2 threads:\n")
+        notes.append("| frame | mode | batch | ms per call | encodings/s |\n|---|---|---|---|---|")
+        for r in sp["rows"]:
+            notes.append(
+                f"| {r['frame']} | {r['mode']} | {r['batch']} | {r['ms_per_call']:.1f} "
+                f"| {r['encodings_per_s']:.1f} |"
+            )
+        notes.append("")
+    full = ev["runs"].get("full", {})
+    if "reid_gt_nnopcs_rank1" in full:
+        notes.append(
+            f"Re-id of the full model with ground-truth instead of predicted NNOPCS "
+            f"crops: rank-1 {full['reid_gt_nnopcs_rank1']:.4f}, mAP "
+            f"{full['reid_gt_nnopcs_map']:.4f}.\n"
+        )
+    notes.append(f"Cluster separation: {json.dumps(ev['separation'])}.\n")
+    notes.append(
+        f"Held-out set: {json.dumps(ev['heldout'])}; baseline parameters "
+        f"{b['parameters']}, texture encoder parameters "
+        f"{b['texture_encoder_parameters']}."
+    )
+    write_report(
+        "netepu_texture",
+        "NeTePu texture stage: colour PSNR, ablations, re-id, speed",
+        rows,
+        notes="\n".join(notes),
+        extra={"evaluate": ev, "speed": sp},
+    )
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("what", choices=["evaluate", "speed", "report"])
+    p.add_argument("--baseline-minutes", type=float, default=5.0)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--run", action="append", default=[], help="name=run folder (replaces RUNS)")
+    p.add_argument("--work", default=None, help="folder of the intermediate JSON files")
+    p.add_argument("--images", default=None, help="figure folder (default docs/images)")
+    a = p.parse_args()
+    global WORK, IMAGES
+    if a.run:
+        RUNS.clear()
+        RUNS.update(dict(r.split("=", 1) for r in a.run))
+    WORK = Path(a.work) if a.work else WORK
+    IMAGES = Path(a.images) if a.images else IMAGES
+    if a.what == "evaluate":
+        evaluate(a.baseline_minutes)
+    elif a.what == "speed":
+        speed(a.repeats)
+    else:
+        report()
+
+
+if __name__ == "__main__":
+    main()
