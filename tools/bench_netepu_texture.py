@@ -108,6 +108,7 @@ def _subset_rank1(emb, ids, cams, queries) -> float:
 def evaluate(baseline_minutes: float) -> None:
     from netepu.reid import (
         ReidCNN,
+        reid_metrics,
         separation_figure,
         train_reid_baseline,
         tsne_kde_figure,
@@ -129,6 +130,14 @@ def evaluate(baseline_minutes: float) -> None:
         colour = evaluate_colour(task.texture, task.geometry, task.data, codes)
         h = task.data.heldout
         reid = _reid(codes, h["camera"], task.data.textures)
+        E, T = codes.shape[:2]
+        euclid = reid_metrics(
+            codes.reshape(E * T, -1),
+            np.tile(np.arange(T), E),
+            np.repeat(h["camera"], T),
+            metric="euclidean",
+        )
+        reid |= {"euclidean_rank1": euclid["rank1"], "euclidean_map": euclid["map"]}
         row = {
             "steps": int(state["step"]),
             "train_minutes": state["train_seconds"] / 60,
