@@ -179,6 +179,92 @@ def _export_stage(cfg: DictConfig) -> Stage:
     return Stage("export", run, overrides, needs=("scene", "train"))
 
 
+def _keypoints_stage(cfg: DictConfig) -> Stage:
+    n = cfg.netepu
+    settings = {"geometry": n.geometry, **_container(n.keypoints)}
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        from netepu.subject_keypoints import invert_export
+
+        return invert_export(
+            up["export"].folder,
+            up["scene"].summary["path"],
+            n.geometry,
+            out,
+            **_container(n.keypoints),
+        )
+
+    return Stage(
+        "keypoints",
+        run,
+        settings,
+        needs=("scene", "export"),
+        enabled=n.geometry is not None,
+        why_disabled="no geometry model (netepu.geometry=null)",
+    )
+
+
+def _texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
+    n = cfg.netepu
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        from netepu.embed import embed_export
+        from nsd.embeddings_io import embeddings_path
+
+        table = embeddings_path(up["export"].folder)
+        shutil.copyfile(table, out / table.name)
+        (out / "crops").symlink_to((up["export"].folder / "crops").resolve())
+        kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
+        try:
+            res = embed_export(out, n.texture, kp, up["scene"].summary["path"])
+        finally:
+            (out / "crops").unlink()
+        return {"table": table.name, "rows": res["rows"], "encoded": res["encoded"]}
+
+    return Stage(
+        "texture",
+        run,
+        {"texture": n.texture},
+        needs=("scene", "export", "keypoints"),
+        enabled=n.texture is not None,
+        why_disabled="no texture model (netepu.texture=null)",
+    )
+
+
+def _identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) -> Stage:
+    i = cfg.netepu.identities
+    column = str(i.column) if have_texture else "app"
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        from netepu.identities import assign_identities, identity_accuracy
+        from nsd.embeddings_io import read_embeddings
+
+        if not have_texture:
+            log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
+        source = up["texture"].folder if have_texture else up["export"].folder
+        table = read_embeddings(
+            source, ["subject_id", "frame", column] + ([f"{column}_valid"] if have_texture else [])
+        )
+        ids, summary = assign_identities(table, column, int(i.k))
+        lines = ["subject_id,identity"] + [f"{s},{d}" for s, d in sorted(ids.items())]
+        atomic_write_text(out / "identities.csv", "\n".join(lines) + "\n")
+        summary["column"] = column
+        if ground_truth:
+            summary["accuracy"] = identity_accuracy(
+                up["export"].folder, up["scene"].summary["path"], ids
+            )
+        return summary
+
+    return Stage(
+        "identities",
+        run,
+        {**_container(i), "column": column},
+        needs=("scene", "export", "texture"),
+        enabled=bool(i.enabled),
+        why_disabled="netepu.identities.enabled=false",
+    )
+
+
 def _grids_stage(cfg: DictConfig) -> Stage:
     g = cfg.grids
 
@@ -273,6 +359,11 @@ class _OneFrame:
 
 
 # ------------------------------------------------------------------ pipeline
+def _ran(runner: StageRunner, name: str) -> bool:
+    """The stage produced outputs (now or earlier), i.e. it was not disabled."""
+    return "disabled" not in runner.results[name].summary
+
+
 def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stage]]:
     """Stage factories in order (a factory may read the results of earlier stages)."""
     return [
@@ -280,6 +371,11 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
         lambda: _train_stage(cfg),
         lambda: _evaluate_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
         lambda: _export_stage(cfg),
+        lambda: _keypoints_stage(cfg),
+        lambda: _texture_stage(cfg, _ran(runner, "keypoints")),
+        lambda: _identities_stage(
+            cfg, _ran(runner, "texture"), bool(runner.results["scene"].summary["ground_truth"])
+        ),
         lambda: _grids_stage(cfg),
     ]
 

@@ -46,7 +46,7 @@ def tiny_run(tmp_path_factory):
 
 def test_tiny_run_then_rerun_does_no_work(tiny_run, monkeypatch):
     tiny_scene, out, res = tiny_run
-    assert [r.skipped for r in res.values()] == [False, False, True, False, False]
+    assert [n for n, r in res.items() if r.skipped] == ["evaluate", "keypoints", "texture"]
     assert res["evaluate"].summary == {"disabled": "the scene has no ground truth (gt/)"}
     assert (out / "train" / "checkpoint.pt").is_file()
     assert not list(out.glob(".train-work-*"))  # the work folder was moved into place
@@ -145,3 +145,87 @@ def test_switched_off_windows_get_no_export_rows(tmp_path):
     assert 0 < s.subjects == len(table["slot"]) and slots == {0}
     anns = json.loads((tmp_path / "exp" / "subjects.coco.json").read_text())["annotations"]
     assert {a["slot"] for a in anns} <= {0} and len(anns) == s.subjects
+
+
+def test_netepu_stages_with_tiny_models(tmp_path):
+    """Keypoints, texture codes and identities with tiny (untrained) NeTePu models: the files
+    hold one keypoint set and one code per inverted exported row, identities cover every track."""
+    from netepu.model import build_geometry_model
+    from netepu.texture import build_texture_model
+    from nsd.atomic import atomic_save_torch
+    from nsd.embeddings_io import read_embeddings
+    from nsd.synth import tiny_config, write_scene
+    from tests.netepu_world import TINY_MODEL
+    from tests.test_netepu_texture import K_BIPED, R_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE
+
+    torch.manual_seed(0)
+    geo = build_geometry_model(TINY_MODEL, K_BIPED, R_BIPED)
+    tex = build_texture_model(TINY_TEXTURE, geo)
+    data = {**TINY_GEOMETRY_DATA, "n_keypoints": K_BIPED}
+    netepu = {"model": TINY_MODEL, "data": data, "texture": {"model": TINY_TEXTURE}}
+    for name, modules in (
+        ("geo.pt", {"geometry": geo}),
+        ("tex.pt", {"geometry": geo, "texture": tex}),
+    ):
+        atomic_save_torch(
+            {"format": "nsd-netepu-checkpoint-v1",
+             "modules": {k: m.state_dict() for k, m in modules.items()},
+             "config": {"netepu": netepu}},
+            tmp_path / name,
+        )  # fmt: skip
+    scene = write_scene(tiny_config(), tmp_path / "scene")
+    out = tmp_path / "run"
+    res = run_pipeline(
+        _cfg(scene, out, "train.data.image_size=[48,48]", "evaluate.max_frames=2",
+             f"netepu.geometry={tmp_path / 'geo.pt'}", f"netepu.texture={tmp_path / 'tex.pt'}",
+             "netepu.keypoints.frame_step=3", "netepu.keypoints.steps=4",
+             "netepu.keypoints.templates=1", "netepu.keypoints.min_area=1")
+    )  # fmt: skip
+    assert not any(r.skipped for n, r in res.items() if n != "scene")
+    export = read_embeddings(out / "export")
+    kp = np.load(out / "keypoints" / "keypoints3d.npz")
+    assert kp["keypoints"].shape == (len(kp["id"]), K_BIPED, 3) and len(kp["id"]) > 0
+    assert set(kp["id"].tolist()) <= set(export["id"].tolist())
+    inverted_frames = set(np.asarray(export["frame"])[np.isin(export["id"], kp["id"])].tolist())
+    assert inverted_frames <= {0, 3}  # frame_step=3 over 6 frames
+    table = read_embeddings(out / "texture")
+    assert np.array_equal(table["id"], export["id"])
+    valid = table["texture_valid"]
+    assert valid.sum() == res["texture"].summary["encoded"] > 0
+    assert np.array_equal(valid, np.isin(table["id"], kp["id"]))  # codes need keypoints
+    assert table["texture"].shape == (len(table["id"]), TINY_TEXTURE["latent"])
+    assert not (out / "texture" / "crops").exists()
+    ids = (out / "identities" / "identities.csv").read_text().split()[1:]
+    assert {int(r.split(",")[0]) for r in ids} == set(export["subject_id"].tolist())
+    acc = res["identities"].summary["accuracy"]
+    assert res["identities"].summary["column"] == "texture"
+    assert acc["matched_rows"] == 0 or 0 <= acc["identity_accuracy"] <= 1
+
+
+def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart():
+    from netepu.identities import assign_identities
+
+    rng = np.random.default_rng(0)
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    # tracks 1 and 2 are individual A before and after a break, 3 is B, 4 is B after a break
+    spec = [
+        (1, range(0, 10), a),
+        (2, range(12, 20), a),
+        (3, range(0, 15), b),
+        (4, range(16, 20), b),
+    ]
+    rows = [(s, t, c + 0.05 * rng.normal(size=8)) for s, frames, c in spec for t in frames]
+    table = {
+        "subject_id": np.array([r[0] for r in rows]),
+        "frame": np.array([r[1] for r in rows]),
+        "texture": np.stack([r[2] for r in rows]),
+    }
+    ids, summary = assign_identities(table)
+    assert summary["k"] == 2 and summary["identities"] == 2
+    assert ids[1] == ids[2] != ids[3] == ids[4]
+    # one texture for everyone: co-visible tracks still get different identities
+    table["texture"] = np.tile(a, (len(rows), 1))
+    ids, _ = assign_identities(table)
+    assert ids[1] != ids[3] and ids[2] != ids[4]
+    ids, summary = assign_identities(table, k=1)
+    assert set(ids.values()) == {0} and summary["association"] == "skipped: one subject"

@@ -1,4 +1,4 @@
-"""Count accuracy: does NSD with an upper bound of 4 windows find how many individuals a scene holds?
+"""Count accuracy: does NSD with an upper bound of 4 windows find how many individuals there are?
 
     python tools/bench_count.py one --n 2 --minutes 5     # scene + training + count metrics
     python tools/bench_count.py report                     # docs/benchmarks/count.{md,json}

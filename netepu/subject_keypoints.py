@@ -1,0 +1,179 @@
+"""Label-free 3D keypoints of exported subjects: inverse rendering of their multi-view masks.
+
+For each selected frame of an ``nsd-export`` folder, the visible masks of one
+subject (one cross-view ``subject_id``) in every camera that shows it go into
+:func:`netepu.inverse.invert_silhouettes` with a trained NeTePu geometry model
+and the scene's calibration; the recovered world keypoints are written for
+every annotation (camera-frame row) of that subject in that frame, in the
+format ``netepu-embed`` reads::
+
+    keypoints3d.npz
+      id          (n,)       annotation ids of the export (COCO ``id``, embeddings ``id``)
+      keypoints   (n, K, 3)  world keypoints, the calibration's units
+      subject_frame (m,), subject_id (m,), subject_keypoints (m, K, 3),
+      subject_loss (m,), subject_views (m,)   one entry per inverted subject-frame
+
+Visible masks of an occluded subject are partial; the inversion then fits a
+body to what is visible in each view (the multi-view silhouette loss is a
+per-view mean, so a view where the subject is mostly hidden weighs as much as
+the others). Templates (the inversion's starting poses) are poses of the
+geometry model's own synthetic individual (:func:`template_poses`), so no
+training data is needed at run time.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pycocotools import mask as mask_utils
+
+from nsd.atomic import atomic_save_npz
+from nsd.errors import ConfigError
+
+__all__ = ["invert_export", "template_poses"]
+
+log = logging.getLogger(__name__)
+
+
+def template_poses(data_cfg: dict[str, Any], n: int = 2, seed: int = 0) -> torch.Tensor:
+    """``n`` random poses (n, K, 3) of the synthetic individual a geometry model was trained on."""
+    from netepu.data import DataConfig
+    from nsd.synth import make_individual
+    from nsd.synth.motion import sample_pose
+
+    cfg = DataConfig.from_mapping(data_cfg)
+    ind = make_individual(
+        cfg.species,
+        identity=cfg.identity,
+        seed=cfg.seed,
+        proportion_variation=cfg.proportion_variation,
+    )
+    rng = np.random.default_rng(seed)
+    return torch.stack(
+        [ind.keypoints3d(sample_pose(ind, rng, cfg.pose_variation)).float() for _ in range(n)]
+    )
+
+
+def invert_export(
+    export: str | os.PathLike,
+    scene: str | os.PathLike,
+    checkpoint: str | os.PathLike,
+    out: str | os.PathLike,
+    frame_step: int = 10,
+    min_views: int = 2,
+    min_area: int = 16,
+    steps: int = 120,
+    templates: int = 2,
+    max_subject_frames: int = 0,
+) -> dict[str, Any]:
+    """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
+
+    Args:
+        export: an ``nsd-export`` folder.
+        scene: its scene folder (for the calibration).
+        checkpoint: a ``netepu-train`` geometry checkpoint.
+        out: folder for ``keypoints3d.npz``.
+        frame_step: invert every this many exported frames.
+        min_views: subjects seen (visible area >= ``min_area`` pixels) in fewer cameras
+            are skipped.
+        steps: Adam steps per inversion.
+        templates: starting poses (each tried at 4 headings).
+        max_subject_frames: stop after this many inversions (0: no limit).
+
+    Returns:
+        counts and the mean final silhouette loss.
+    """
+    from netepu.inverse import InverseSettings, invert_silhouettes
+    from netepu.model import load_geometry_model
+    from nsd.calibration_io import read_calibration
+
+    if frame_step < 1 or min_views < 1:
+        raise ConfigError(f"frame_step and min_views must be >= 1, got {frame_step}, {min_views}")
+    model, config = load_geometry_model(checkpoint)
+    net = config["netepu"]
+    starts = template_poses(net["data"], templates)
+    settings = InverseSettings(steps=steps, margin=float(net.get("render", {}).get("margin", 0.35)))
+    rig = read_calibration(scene)
+    cams = rig.stacked(torch.float32)
+    coco = json.loads((Path(export) / "subjects.coco.json").read_text())
+    images = {int(im["id"]): im for im in coco["images"]}
+    frames = sorted({int(im["frame"]) for im in images.values()})
+    chosen = set(frames[::frame_step])
+    groups: dict[tuple[int, int], list[dict]] = defaultdict(list)
+    for a in coco["annotations"]:
+        im = images[int(a["image_id"])]
+        if int(im["frame"]) in chosen and a["area"] >= min_area:
+            groups[(int(im["frame"]), int(a["subject_id"]))].append(a)
+    ids, kps = [], []
+    sub: dict[str, list] = defaultdict(list)
+    for (t, sid), anns in sorted(groups.items()):
+        sizes = {
+            (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"]))
+            for a in anns
+        }
+        if len(sizes) > 1:  # invert_silhouettes takes one (V, H, W) stack: keep the common size
+            common = max(
+                sizes,
+                key=lambda s: sum(
+                    (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"])) == s
+                    for a in anns
+                ),
+            )
+            anns = [
+                a
+                for a in anns
+                if (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"]))
+                == common
+            ]
+        if len(anns) < min_views:
+            continue
+        if max_subject_frames and len(sub["frame"]) >= max_subject_frames:
+            break
+        cam_idx = [rig.index(images[a["image_id"]]["camera"]) for a in anns]
+        masks = torch.from_numpy(
+            np.stack([mask_utils.decode(a["segmentation"]) for a in anns]).astype(bool)
+        )
+        res = invert_silhouettes(
+            model,
+            masks,
+            {k: v[cam_idx] for k, v in cams.items()},
+            starts,
+            settings,
+            np.random.default_rng(t),
+        )
+        kp = res.keypoints.float().numpy()
+        for a in anns:
+            ids.append(int(a["id"]))
+            kps.append(kp)
+        sub["frame"].append(t)
+        sub["id"].append(sid)
+        sub["keypoints"].append(kp)
+        sub["loss"].append(res.loss)
+        sub["views"].append(len(anns))
+        log.info(
+            "keypoints: frame %d subject %d from %d views, loss %.3f", t, sid, len(anns), res.loss
+        )
+    K = starts.shape[1]
+    atomic_save_npz(
+        Path(out) / "keypoints3d.npz",
+        id=np.asarray(ids, np.int64),
+        keypoints=np.asarray(kps, np.float32).reshape(-1, K, 3),
+        subject_frame=np.asarray(sub["frame"], np.int64),
+        subject_id=np.asarray(sub["id"], np.int64),
+        subject_keypoints=np.asarray(sub["keypoints"], np.float32).reshape(-1, K, 3),
+        subject_loss=np.asarray(sub["loss"], np.float32),
+        subject_views=np.asarray(sub["views"], np.int64),
+    )
+    return {
+        "subject_frames": len(sub["frame"]),
+        "rows": len(ids),
+        "frames": len(chosen),
+        "mean_loss": float(np.mean(sub["loss"])) if sub["loss"] else None,
+    }
