@@ -118,8 +118,11 @@ def _train_stage(cfg: DictConfig) -> Stage:
         for item in work.iterdir():
             shutil.move(str(item), out / item.name)
         work.rmdir()
+        from nsd.trainer import load_checkpoint
+
         return {
             "checkpoint": "checkpoint.pt",
+            "steps": int(load_checkpoint(out / "checkpoint.pt").get("step", 0)),
             "metrics": {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)},
         }
 
