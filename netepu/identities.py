@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["assign_identities", "identity_accuracy"]
+__all__ = ["assign_identities", "ground_truth_identities", "identity_accuracy"]
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -101,14 +101,11 @@ def assign_identities(
     }
 
 
-def identity_accuracy(
-    export: str | Path,
-    scene: str | Path,
-    identities: dict[int, int],
-    min_iou: float = 0.5,
-    seed: int = 0,
-) -> dict[str, float]:
-    """Identity accuracy of an export's rows against a synthetic scene (see the module)."""
+def ground_truth_identities(
+    export: str | Path, scene: str | Path, min_iou: float = 0.5
+) -> dict[int, tuple[str, int, int, int]]:
+    """Annotation id -> (camera, frame, subject_id, ground-truth identity) of the exported rows
+    that match a visible ground-truth mask of their camera-frame (Hungarian on mask IoU)."""
     import json
 
     from pycocotools import mask as mask_utils
@@ -123,7 +120,7 @@ def identity_accuracy(
     by_image = defaultdict(list)
     for a in coco["annotations"]:
         by_image[int(a["image_id"])].append(a)
-    rows = []  # (camera, frame, predicted identity, gt identity)
+    out = {}
     for iid, anns in by_image.items():
         im = images[iid]
         g = gt.frame(im["camera"], int(im["frame"]))
@@ -134,14 +131,28 @@ def identity_accuracy(
         r, c = linear_sum_assignment(-iou)
         for i, j in zip(r, c, strict=True):
             if iou[i, j] >= min_iou:
-                rows.append(
-                    (
-                        im["camera"],
-                        int(im["frame"]),
-                        identities.get(int(anns[i]["subject_id"]), -1),
-                        int(g.identity[j]),
-                    )
+                a = anns[i]
+                out[int(a["id"])] = (
+                    im["camera"],
+                    int(im["frame"]),
+                    int(a["subject_id"]),
+                    int(g.identity[j]),
                 )
+    return out
+
+
+def identity_accuracy(
+    export: str | Path,
+    scene: str | Path,
+    identities: dict[int, int],
+    min_iou: float = 0.5,
+    seed: int = 0,
+) -> dict[str, float]:
+    """Identity accuracy of an export's rows against a synthetic scene (see the module)."""
+    from scipy.optimize import linear_sum_assignment
+
+    matched = ground_truth_identities(export, scene, min_iou)
+    rows = [(cam, t, identities.get(sid, -1), true) for cam, t, sid, true in matched.values()]
     if not rows:
         return {"matched_rows": 0.0}
     pred_id = np.array([r[2] for r in rows])
@@ -167,9 +178,9 @@ def identity_accuracy(
         "cross_view_accuracy": (
             float(agree[cross_view].mean()) if cross_view.any() else float("nan")
         ),
-        "cross_time_accuracy": float(
-            ((pred_id[a] == pred_id[b]) == (true_id[a] == true_id[b])).mean()
-        )
-        if len(a)
-        else float("nan"),
+        "cross_time_accuracy": (
+            float(((pred_id[a] == pred_id[b]) == (true_id[a] == true_id[b])).mean())
+            if len(a)
+            else float("nan")
+        ),
     }

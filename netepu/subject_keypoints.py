@@ -37,7 +37,7 @@ from pycocotools import mask as mask_utils
 from nsd.atomic import atomic_save_npz
 from nsd.errors import ConfigError
 
-__all__ = ["invert_export", "template_poses"]
+__all__ = ["invert_export", "keypoint_error", "template_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -176,4 +176,42 @@ def invert_export(
         "rows": len(ids),
         "frames": len(chosen),
         "mean_loss": float(np.mean(sub["loss"])) if sub["loss"] else None,
+    }
+
+
+def keypoint_error(
+    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
+) -> dict[str, float]:
+    """MPJPE (mm) of the inverted subjects against a synthetic scene's 3D keypoints.
+
+    Each inverted subject-frame is matched to the ground-truth individual most of its
+    rows match (:func:`netepu.identities.ground_truth_identities`); unmatched ones are
+    counted but not scored.
+    """
+    from collections import Counter
+
+    from netepu.identities import ground_truth_identities
+    from nsd.ground_truth import GroundTruth
+
+    truth = GroundTruth.load(scene).scene.keypoints3d
+    matched = ground_truth_identities(export, scene)
+    votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
+    for _cam, t, sid, ident in matched.values():
+        votes[(t, sid)][ident] += 1
+    with np.load(keypoints) as z:
+        frames, sids, kps = z["subject_frame"], z["subject_id"], z["subject_keypoints"]
+    errors = []
+    for t, sid, kp in zip(frames.tolist(), sids.tolist(), kps, strict=True):
+        v = votes.get((t, sid))
+        if not v:
+            continue
+        gt = truth[v.most_common(1)[0][0]][t]
+        if gt.shape != kp.shape:
+            raise ConfigError(f"keypoints: {kp.shape[0]} keypoints, the scene has {gt.shape[0]}")
+        errors.append(1000 * float(np.linalg.norm(kp - gt, axis=-1).mean()))
+    return {
+        "inverted": float(len(frames)),
+        "scored": float(len(errors)),
+        "mpjpe_mm": float(np.mean(errors)) if errors else float("nan"),
+        "mpjpe_mm_median": float(np.median(errors)) if errors else float("nan"),
     }

@@ -187,15 +187,17 @@ def _keypoints_stage(cfg: DictConfig) -> Stage:
     settings = {"geometry": n.geometry, **_container(n.keypoints)}
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from netepu.subject_keypoints import invert_export
+        from netepu.subject_keypoints import invert_export, keypoint_error
 
-        return invert_export(
-            up["export"].folder,
-            up["scene"].summary["path"],
-            n.geometry,
-            out,
-            **_container(n.keypoints),
+        scene = up["scene"].summary["path"]
+        summary = invert_export(
+            up["export"].folder, scene, n.geometry, out, **_container(n.keypoints)
         )
+        if up["scene"].summary["ground_truth"]:
+            summary["accuracy"] = keypoint_error(
+                up["export"].folder, scene, out / "keypoints3d.npz"
+            )
+        return summary
 
     return Stage(
         "keypoints",

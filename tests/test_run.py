@@ -200,6 +200,7 @@ def test_netepu_stages_with_tiny_models(tmp_path):
     acc = res["identities"].summary["accuracy"]
     assert res["identities"].summary["column"] == "texture"
     assert acc["matched_rows"] == 0 or 0 <= acc["identity_accuracy"] <= 1
+    assert res["keypoints"].summary["accuracy"]["inverted"] == len(kp["subject_frame"])
 
 
 def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart():
@@ -229,3 +230,32 @@ def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(
     assert ids[1] != ids[3] and ids[2] != ids[4]
     ids, summary = assign_identities(table, k=1)
     assert set(ids.values()) == {0} and summary["association"] == "skipped: one subject"
+
+
+def test_identity_accuracy_of_ground_truth_rows(tmp_path):
+    """An 'export' made of the ground-truth masks: the true identities score 1, a mapping
+    that swaps identities in later frames is wrong there in time but not across views."""
+    from netepu.identities import identity_accuracy
+    from nsd.synth import tiny_config, write_scene
+
+    scene = write_scene(tiny_config(num_frames=20), tmp_path / "scene")
+    gt = json.loads((scene / "gt" / "coco.json").read_text())
+    images = {im["id"]: im for im in gt["images"]}
+    export = tmp_path / "export"
+    export.mkdir()
+    anns = []
+    for a in gt["annotations"]:
+        late = images[a["image_id"]]["frame"] >= 10  # a new track id after frame 10
+        sid = a["identity_id"] + (100 if late else 0)
+        anns.append({**a, "subject_id": sid})
+    (export / "subjects.coco.json").write_text(json.dumps({**gt, "annotations": anns}))
+    right = {s: s % 100 for s in {a["subject_id"] for a in anns}}
+    acc = identity_accuracy(export, scene, right)
+    assert acc["matched_rows"] == len(anns)
+    assert acc["identity_accuracy"] == acc["cross_view_accuracy"] == acc["cross_time_accuracy"] == 1
+    swapped = {s: (1 - s % 100) if s >= 100 else s for s in right}
+    acc = identity_accuracy(export, scene, swapped)
+    assert acc["cross_view_accuracy"] == 1  # within a frame, identities still agree
+    assert acc["cross_time_accuracy"] < 0.8
+    late = sum(images[a["image_id"]]["frame"] >= 10 for a in anns)
+    assert acc["identity_accuracy"] == pytest.approx(max(late, len(anns) - late) / len(anns))
