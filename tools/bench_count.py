@@ -18,7 +18,10 @@ use; no labels are used in training):
   individuals visible in it (ground-truth visible area >= 4 pixels);
 * ``mean_active_windows`` per camera-frame, ``scene_count`` (median frame count),
   the mean presence of the windows sorted from most to least present;
-* ``detection_rate`` and ``mask_miou`` (nsd-eval's definitions) on the same frames.
+* ``detection_rate`` and ``mask_miou`` (nsd-eval's definitions) on the same frames;
+* identities: every frame exported (``nsd-export``), tracks grouped into identities
+  by NSD's appearance vectors with the label-free count (``netepu.identities``; no
+  texture model here), scored as in ``netepu.identities.identity_accuracy``.
 
 Run ``one`` for each N under ``/tmp/slot.sh`` (one core each), then ``report``.
 """
@@ -106,6 +109,30 @@ def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -
     }
 
 
+def identities(checkpoint: Path, scene: Path, out: Path) -> dict:
+    """Export every frame, group the tracks into identities by NSD's appearance vectors
+    (``netepu.identities``, label-free k) and score them against the ground truth."""
+    from netepu.identities import assign_identities, identity_accuracy
+    from nsd.embeddings_io import read_embeddings
+    from nsd.export import export_subjects, load_export_config
+
+    cfg = load_export_config(
+        checkpoint=str(checkpoint),
+        scene=str(scene),
+        out=str(out),
+        **{"views.tensorboard": False, "views.tsne": False, "progress": False},
+    )
+    export_subjects(cfg)
+    table = read_embeddings(out, ["subject_id", "frame", "app"])
+    ids, summary = assign_identities(table, "app")
+    acc = identity_accuracy(out, scene, ids)
+    return {
+        "identity_k": summary["k"],
+        "tracks": summary["tracks"],
+        **{f"id_{k}": v for k, v in acc.items()},
+    }
+
+
 def one(n: int, minutes: float, extra: list[str]) -> dict:
     """Write the N-individual scene (once), train on it, measure counts; saves result.json."""
     import torch
@@ -137,6 +164,11 @@ def one(n: int, minutes: float, extra: list[str]) -> dict:
     res = count_metrics(run_dir / "checkpoint.pt", scene, n)
     res.update({"minutes": minutes, "overrides": extra, "wall_seconds": time.perf_counter() - t0})
     (run_dir / "result.json").write_text(json.dumps(res, indent=2))
+    try:
+        res.update(identities(run_dir / "checkpoint.pt", scene, run_dir / "export"))
+    except Exception as e:  # the count figures above are kept
+        res["identities_error"] = repr(e)
+    (run_dir / "result.json").write_text(json.dumps(res, indent=2))
     print(json.dumps(res))
     return res
 
@@ -159,6 +191,10 @@ def report() -> None:
                 "presence_sorted": " / ".join(f"{p:.2f}" for p in r["presence_sorted"]),
                 "detection_rate": round(r["detection_rate"], 3),
                 "mask_miou": round(r["mask_miou"], 3),
+                "tracks": r.get("tracks"),
+                "identity_accuracy": round(r.get("id_identity_accuracy", float("nan")), 3),
+                "cross_view_id_accuracy": round(r.get("id_cross_view_accuracy", float("nan")), 3),
+                "cross_time_id_accuracy": round(r.get("id_cross_time_accuracy", float("nan")), 3),
             }
         )
     notes = Path(__file__).with_suffix(".notes.md")
