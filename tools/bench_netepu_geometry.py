@@ -73,18 +73,22 @@ def accuracy(runs: dict[str, Path], data, slow_views: int) -> tuple[list[dict], 
         state = torch.load(run / "checkpoint.pt", weights_only=True, map_location="cpu")
         minutes = state["train_seconds"] / 60
         slow = model.renderer.vca.mode == "reference"  # seconds per render: a subset only
-        for mode in ("coarse_to_fine",) if slow else ("coarse_to_fine", "culled"):
+        # every model on the reference's subset (same views), fast models on all views too
+        passes = [("coarse_to_fine", True)] if slow else [
+            ("coarse_to_fine", False), ("culled", False), ("coarse_to_fine", True)]
+        for mode, subset in passes:
             settings = MapSettings(**{**config["netepu"]["render"], "mode": mode})
             for set_name in ("heldout_poses", "heldout_cameras", "train"):
                 views = data.evaluation[set_name]
-                if slow:
+                if subset:
                     n = min(slow_views, len(views))
                     views = views.subset(np.linspace(0, len(views) - 1, n).round().astype(int))
                 t0 = time.perf_counter()
                 m = evaluate_views(model, views, settings)
                 rows.append({
                     "model": name, "steps": int(state["step"]), "train_min": round(minutes, 1),
-                    "render": mode, "views": f"{set_name} ({len(views)})",
+                    "render": mode,
+                    "views": f"{set_name} ({len(views)}{' subset' if subset else ''})",
                     "IoU": m["iou"], "NNOPCS MSE": m["nnopcs_mse"],
                     "depth MAE mm": m["depth_mae_mm"],
                     "depth MAE % body": 100 * m["depth_mae_mm"] / 1000 / body,
@@ -232,6 +236,18 @@ def _table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _equal_steps(curve: list[dict]) -> list[dict]:
+    """Rows of the reference run's curve, each with our curve's row at the nearest step."""
+    ours = [r for r in curve if r["model"] == "ours"]
+    rows = []
+    for r in (r for r in curve if r["model"] == "reference"):
+        if not ours:
+            break
+        near = min(ours, key=lambda o: abs(int(o["step"]) - int(r["step"])))
+        rows += [r, near]
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", action="append", default=[], help="name=run_dir of a trained model")
@@ -310,6 +326,12 @@ def main() -> None:
                                        and "min" not in k and not k.startswith("eval/train")}})
         notes += "\n\n## Learning curves (evaluation subsets during training)\n\n" + _table(
             curve_lines)
+        equal = _equal_steps(curve_lines)
+        if equal:
+            notes += ("\n\n## At equal steps\n\nEach evaluation of the reference-size run "
+                      "next to the evaluation of our run with the nearest step count (the "
+                      "training runs' own evaluation subsets, `netepu.eval.eval_views` views "
+                      "per set).\n\n" + _table(equal))
     write_report("netepu_geometry", "NeTePu geometry: accuracy and cost", acc_rows, notes,
                  extra={"cost": cost_rows, "training": train_rows, "ratios": ratios,
                         **acc_extra, "paper": PAPER, "reference_notes": REFERENCE_NOTES})

@@ -19,7 +19,7 @@ speed does not depend on the weights except where noted):
   backward, a training step's crops), the compositor, and NeTePu's renderer
   query (vector cross-attention + head, a training step's points).
 
-Writes ``docs/benchmarks/scaling.{md,json}``.
+Writes ``docs/benchmarks/cost_scaling.{md,json}`` (docs/scaling.md is about distributed training).
 """
 
 from __future__ import annotations
@@ -305,7 +305,7 @@ def main() -> None:
         ]
     )
     write_report(
-        "scaling",
+        "cost_scaling",
         "NSD scaling: subjects, cameras, resolution; hot-loop GFLOP/s",
         [],
         notes,

@@ -57,6 +57,9 @@ NSD_SETTINGS: dict[str, dict] = {
     "dec_convs_1": {"knob": "decoder depth 1 conv/stage", "overrides": ["model.decoder.convs=1"]},
     "dec_convs_3": {"knob": "decoder depth 3 conv/stage", "overrides": ["model.decoder.convs=3"]},
     "windows_3": {"knob": "3 windows (2 subjects)", "overrides": ["model.num_windows=3"]},
+    # the presets (conf/preset/), chosen from the rows above
+    "preset_fast": {"knob": "+preset=fast", "overrides": ["+preset=fast"]},
+    "preset_accurate": {"knob": "+preset=accurate", "overrides": ["+preset=accurate"]},
 }
 
 # The fixed decomposition quality whose training time is reported. The issue's 15-minute
@@ -133,6 +136,14 @@ NETEPU_SETTINGS: dict[str, dict] = {
             "netepu.model.renderer.head_hidden=128",
         ],
     },
+}
+
+# Texture-code size (and the encoder's crop) of the NeTePu texture VAE, conf/netepu/texture/.
+TEXTURE_SETTINGS: dict[str, dict] = {
+    "default": {"knob": "-", "overrides": []},
+    "code_32": {"knob": "texture code 32", "overrides": ["netepu.texture.model.latent=32"]},
+    "code_512": {"knob": "texture code 512", "overrides": ["netepu.texture.model.latent=512"]},
+    "crop_32": {"knob": "encoder crop 32", "overrides": ["netepu.texture.model.crop_size=32"]},
 }
 
 
@@ -237,9 +248,46 @@ def netepu_speed_child(name: str, steps: int) -> dict:
     }
 
 
+def texture_speed_child(name: str, steps: int) -> dict:
+    """Fresh process, 2 threads: texture codes per second from frames, visible masks and
+    NNOPCS maps (:func:`netepu.texture.encode_texture`: crop, resample, encode)."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from netepu.model import build_geometry_model
+    from netepu.texture import build_texture_model, encode_texture
+    from tools.benchlib import median_time, peak_rss_mb
+
+    torch.set_num_threads(2)
+    cfg = _compose("netepu_train", TEXTURE_SETTINGS[name]["overrides"])
+    net = OmegaConf.to_container(cfg.netepu, resolve=True)
+    torch.manual_seed(0)
+    geometry = build_geometry_model(net["model"], 20, 0.3)
+    texture = build_texture_model(net["texture"]["model"], geometry).eval()
+    B, H, W = 32, 192, 256
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(B, H, W, 3, generator=g)
+    mask = torch.zeros(B, H, W, dtype=torch.bool)
+    for b in range(B):  # subjects of 40..100 px
+        h, w = 40 + 2 * b, 30 + b
+        mask[b, 20 + b : 20 + b + h, 40 + 3 * b : 40 + 3 * b + w] = True
+    nnopcs = torch.rand(B, H, W, 3, generator=g)
+    t = median_time(lambda: encode_texture(texture, image, mask, nnopcs), repeats=steps, warmup=1)
+    return {
+        "code_dims": int(net["texture"]["model"]["latent"]),
+        "encodings_per_s": B / t,
+        "peak_rss_mb": peak_rss_mb(),
+        "encoder_params_m": sum(p.numel() for p in texture.encoder.parameters()) / 1e6,
+    }
+
+
+CHILDREN = {"nsd": nsd_speed_child, "netepu": netepu_speed_child, "texture": texture_speed_child}
+TABLES = {"nsd": NSD_SETTINGS, "netepu": NETEPU_SETTINGS, "texture": TEXTURE_SETTINGS}
+
+
 def speed(kind: str, names: list[str], steps: int) -> None:
     """Each setting in a fresh subprocess (independent peak RSS); run under /tmp/both.sh."""
-    table = NSD_SETTINGS if kind == "nsd" else NETEPU_SETTINGS
+    table = TABLES[kind]
     path = RESULTS / f"speed_{kind}.json"
     done = json.loads(path.read_text()) if path.is_file() else {}
     for name in names or list(table):
@@ -343,12 +391,11 @@ def report() -> None:
     from tools.bench_netepu_geometry import _table
     from tools.benchlib import BENCH_DIR, write_report
 
-    speed_nsd = json.loads((RESULTS / "speed_nsd.json").read_text())
-    speed_net = (
-        json.loads((RESULTS / "speed_netepu.json").read_text())
-        if (RESULTS / "speed_netepu.json").is_file()
-        else {}
-    )
+    def load(kind: str) -> dict:
+        path = RESULTS / f"speed_{kind}.json"
+        return json.loads(path.read_text()) if path.is_file() else {}
+
+    speed_nsd, speed_net, speed_tex = load("nsd"), load("netepu"), load("texture")
     acc = {
         p.stem: json.loads(p.read_text())
         for p in (RESULTS / "accuracy").glob("*.json")
@@ -379,13 +426,21 @@ def report() -> None:
         }
         for n, r in speed_net.items()
     ]
+    tex_rows = [
+        {
+            "setting": n,
+            "knob": TEXTURE_SETTINGS[n]["knob"],
+            **{k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()},
+        }
+        for n, r in speed_tex.items()
+    ]
     buf = io.StringIO()
     cols: list[str] = ["model"]
-    for r in rows + net_rows:
+    for r in rows + net_rows + tex_rows:
         cols += [k for k in r if k not in cols]
     w = csv.DictWriter(buf, fieldnames=cols)
     w.writeheader()
-    for model, rr in (("nsd", rows), ("netepu", net_rows)):
+    for model, rr in (("nsd", rows), ("netepu", net_rows), ("texture", tex_rows)):
         for r in rr:
             w.writerow({"model": model, **r})
     atomic_write_text(BENCH_DIR / "tradeoff.csv", buf.getvalue())
@@ -446,7 +501,7 @@ def main() -> None:
     a = sub.add_parser("accuracy")
     a.add_argument("settings", nargs="+", choices=list(NSD_SETTINGS))
     a.add_argument("--minutes", type=float, default=4.0)
-    for kind in ("nsd", "netepu"):
+    for kind in TABLES:
         sp = sub.add_parser(f"speed_{kind}")
         sp.add_argument("settings", nargs="*")
         sp.add_argument("--steps", type=int, default=15)
@@ -461,8 +516,7 @@ def main() -> None:
     elif args.what.startswith("speed_"):
         speed(args.what[6:], args.settings, args.steps)
     elif args.what == "_child":
-        fn = nsd_speed_child if args.kind == "nsd" else netepu_speed_child
-        print(json.dumps(fn(args.setting, args.steps)))
+        print(json.dumps(CHILDREN[args.kind](args.setting, args.steps)))
     elif args.what == "report":
         report()
 
