@@ -66,6 +66,7 @@ NSD_SETTINGS: dict[str, dict] = {
 # targets (detection >= 0.95, mIoU >= 0.70) are not reached by any setting on this machine
 # even after 30 minutes (docs/benchmarks/nsd_training.md), so a lower, reachable level of
 # the same metric was fixed before the runs.
+BUDGET_MINUTES = 4.0  # training minutes per NSD setting (one core)
 QUALITY_METRIC = "mask_miou"
 QUALITY_TARGET = 0.55
 
@@ -371,8 +372,7 @@ def _plot(rows: list[dict], acc_key: str, path: Path) -> None:
         if fr:
             ax.plot(*zip(*fr, strict=True), c="tab:red", lw=1, label="Pareto front")
         ax.set_xlabel(xlabel)
-        budget = rows[0].get("budget_min", 4)
-        ax.set_ylabel(f"{acc_key}\n(held-out, after {budget:g} min on 1 core)")
+        ax.set_ylabel(f"{acc_key}\n(held-out, after {BUDGET_MINUTES:g} min on 1 core)")
         ax.grid(alpha=0.3)
         ax.legend(loc="lower left", fontsize=8)
     fig.suptitle("NSD speed vs accuracy, one knob at a time around the default")
@@ -386,6 +386,8 @@ def _plot(rows: list[dict], acc_key: str, path: Path) -> None:
 def report() -> None:
     import csv
     import io
+
+    import torch
 
     from nsd.atomic import atomic_write_text
     from tools.bench_netepu_geometry import _table
@@ -452,7 +454,7 @@ def report() -> None:
             "frames/s decomposes all 4 views of a held-out frame per call "
             "(`nsd.inference.decompose`), peak RSS of that process with the whole scene loaded. "
             f"Accuracy: the same config trained for a fixed, **short** budget of "
-            f"{rows[0].get('budget_min')} minutes of training time on **one** core (1 thread, "
+            f"{BUDGET_MINUTES:g} minutes of training time on **one** core (1 thread, "
             "evaluation time excluded), evaluated on 20 held-out frames x 4 cameras at 1, 2, 3 "
             "and 4 minutes; `steps (1 thread)` is how far each got. The default scene's "
             "metrics move by several points between neighbouring evaluations of such short "
@@ -474,10 +476,15 @@ def report() -> None:
             "silhouette, so a trained model's render time differs "
             "(docs/benchmarks/netepu_geometry.md). No accuracy per NeTePu setting: the slot "
             "budget went to the NSD settings.",
-            "Texture-code size / texture encodings per second: not measured (the texture model "
-            "was not in the tree when these figures were taken).",
+            "## NeTePu texture-code size (speed only)\n\n"
+            + (_table(tex_rows) if tex_rows else "(not measured)")
+            + "\n\nTexture codes per second from 32 frames (256x192) with their visible masks "
+            "and NNOPCS maps (`netepu.texture.encode_texture`: square crop around the mask, "
+            "masked resampling, CNN encoder, mu); untrained weights. Re-identification "
+            "accuracy per code size was not measured here.",
         ]
     )
+    torch.set_num_threads(2)  # the stamp names the speed runs' thread count
     write_report(
         "tradeoff",
         "Speed/accuracy trade-off (one knob at a time)",
@@ -500,7 +507,7 @@ def main() -> None:
     sub = ap.add_subparsers(dest="what", required=True)
     a = sub.add_parser("accuracy")
     a.add_argument("settings", nargs="+", choices=list(NSD_SETTINGS))
-    a.add_argument("--minutes", type=float, default=4.0)
+    a.add_argument("--minutes", type=float, default=BUDGET_MINUTES)
     for kind in TABLES:
         sp = sub.add_parser(f"speed_{kind}")
         sp.add_argument("settings", nargs="*")
