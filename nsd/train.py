@@ -164,6 +164,18 @@ class NSDTask:
         self.stage2_started = bool(state.get("stage2_started", self.stage2_started))
         self.model.cfg.depth = self.use_depth and self.stage2_started
 
+    def _update_presence(self, step: int) -> None:
+        """Presence is 1 (not learned, its prior constant) before ``prior_presence.from_step``.
+
+        Learned from the first step, presence collapsed to ~0 in every window (the
+        early, blurry renderings reconstruct worse than the median background, and a
+        low presence also scales down the gradients that would improve them;
+        docs/benchmarks/count.md), so the decomposition forms first.
+        """
+        want = bool(self.cfg.model.detector.get("presence", False))
+        start = int(self.cfg.prior_presence.get("from_step", 0))
+        self.model.detector.use_presence = want and step >= start
+
     def _update_stage(self, step: int) -> None:
         if not self.stage2_started and step >= self.depth_from:
             self.stage2_started = True
@@ -293,6 +305,7 @@ class NSDTask:
     def training_step(self, step: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
         self.step = step
         self._update_stage(step)
+        self._update_presence(step)
         return self.losses(self.data.sample(rng, self.cfg.batch_size))
 
     def evaluate(self, step: int) -> dict[str, float]:

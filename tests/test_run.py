@@ -259,3 +259,27 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
     assert acc["cross_time_accuracy"] < 0.8
     late = sum(images[a["image_id"]]["frame"] >= 10 for a in anns)
     assert acc["identity_accuracy"] == pytest.approx(max(late, len(anns) - late) / len(anns))
+
+
+def test_presence_is_one_until_its_start_step(tiny_scene):
+    """prior_presence.from_step: the detector's presence is 1 before it, learned after it."""
+    from nsd.data import SceneData
+    from nsd.train import NSDTask
+    from tests.test_nsd_train import tiny_cfg
+
+    cfg = tiny_cfg(
+        "model.detector.presence=true",
+        "model.detector.presence_init=0.3",
+        "prior_presence=sparse",
+        "prior_presence.from_step=2",
+    )
+    task = NSDTask(cfg, SceneData(tiny_scene, (32, 24), val_fraction=0.25))
+    rng = np.random.default_rng(0)
+    images, bgs = task.data.views(0)
+    for step, expected in ((0, 1.0), (1, 1.0), (2, 0.3), (3, None)):
+        losses = task.training_step(step, rng)
+        p = task.model.detector(images, bgs).presence
+        if expected is not None:
+            assert torch.allclose(p, torch.full_like(p, expected), atol=1e-4), step
+        if step < 2:
+            assert float(losses["prior_presence"]) == 1.0  # constant: no pressure yet
