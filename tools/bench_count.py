@@ -180,7 +180,7 @@ def report() -> None:
         rows.append(
             {
                 "individuals": r["individuals"],
-                "variant": " ".join(r["overrides"]) or "default + presence",
+                "variant": " ".join(r["overrides"]) or "prior_presence.from_step=300 (default)",
                 "minutes": r["minutes"],
                 "steps": r["steps"],
                 "frame_count_accuracy": round(r["frame_count_accuracy"], 3),
@@ -203,7 +203,8 @@ def report() -> None:
         "Count accuracy with an upper bound of 4 windows (synthetic scenes, 1-4 individuals)",
         rows,
         notes=(
-            __doc__.split("Run ``one``")[0].split("\n\n", 1)[1]
+            "For N"
+            + __doc__.split("Run ``one``")[0].split("For N", 1)[1]
             + (notes.read_text() if notes.is_file() else "")
         ),
         extra={"scene_settings": SCENE, "train_overrides": TRAIN, "frames": FRAMES},
