@@ -428,7 +428,11 @@ def _hydra_main(cfg: DictConfig) -> None:
         level=logging.INFO,
         format="%(asctime)s %(name)s: %(message)s",
         handlers=[logging.StreamHandler(), logging.FileHandler(out / "run.log")],
+        force=True,
     )
+    for logger in logging.Logger.manager.loggerDict.values():  # hydra's logging config
+        if isinstance(logger, logging.Logger):  # disabled the loggers that existed before it
+            logger.disabled = False
     torch.set_num_threads(max(1, min(torch.get_num_threads(), int(cfg.threads))))
     try:
         results = run_pipeline(cfg)
