@@ -17,6 +17,12 @@ and rendered at ``points`` in-mask pixels of the full view; the loss is
 ``colour_weight`` x colour MSE + ``kld_weight`` x KLD (NeTePu eq. 8). The
 geometry model gets no gradient and no optimiser.
 
+Cross-view training (``cross_view``, ours; 0 is NeTePu's autoencoder): with
+this probability a sample's code is encoded from *another* view of the same
+texture (another pose and camera) and rendered in the sample's view, so the
+code must hold what is the same in every view -- the texture -- and nothing
+of the view it was read from, which is what re-identification needs.
+
 Evaluation: colour PSNR of the held-out sets and re-identification rank-1 /
 mAP of the held-out codes (:mod:`netepu.reid`).
 """
@@ -59,6 +65,7 @@ class TextureStageConfig:
     colour_weight: float = 5.0
     kld_weight: float = 1e-8
     occlusion: float = 0.25
+    cross_view: float = 0.0
     eval_views: int = 8
 
     @classmethod
@@ -115,6 +122,8 @@ class TextureTask:
             p.requires_grad_(False)
         self.nnopcs_train, self.nnopcs_heldout = nnopcs_train, nnopcs_heldout
         tr = data.train
+        st = tr["sample_texture"]
+        self._by_texture = {int(t): np.nonzero(st == t)[0] for t in np.unique(st)}
         with torch.no_grad():  # the frozen geometry code of every training view
             geometry.eval()
             zs, fs = [], []
@@ -140,14 +149,28 @@ class TextureTask:
     def schedulers(self) -> dict[str, Any]:
         return self.sched
 
+    def cross_view_sources(self, idx: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The samples the encoder reads: ``idx`` itself, or with probability ``cross_view``
+        another sample of the same texture (another pose and camera)."""
+        if self.cfg.cross_view <= 0:
+            return idx
+        tex = self.data.train["sample_texture"][idx]
+        src = idx.copy()
+        for b in np.nonzero(rng.random(len(idx)) < self.cfg.cross_view)[0]:
+            pool = self._by_texture[int(tex[b])]
+            src[b] = pool[rng.integers(0, len(pool))]
+        return src
+
     def batch(self, rng: np.random.Generator) -> dict[str, Any]:
         """Random samples: encoder input, render inputs and colour targets."""
         c, tr = self.cfg, self.data.train
         idx = rng.integers(0, len(tr["sample_view"]), c.batch_size)
         v = tr["sample_view"][idx]
-        inside = occlude(torch.from_numpy(tr["inside"][v]), rng, c.occlusion)
-        rgb = torch.from_numpy(tr["rgb"][idx]).float() / 255 * inside[..., None]
-        nn_ = torch.from_numpy(self.nnopcs_train[v].astype(np.float32))
+        src = self.cross_view_sources(idx, rng)
+        vs = tr["sample_view"][src]
+        inside = occlude(torch.from_numpy(tr["inside"][vs]), rng, c.occlusion)
+        rgb = torch.from_numpy(tr["rgb"][src]).float() / 255 * inside[..., None]
+        nn_ = torch.from_numpy(self.nnopcs_train[vs].astype(np.float32))
         pts = rng.integers(0, tr["pool_uv"].shape[1], (c.batch_size, c.points))
         vv = torch.from_numpy(v)
         cam = {k: t[torch.from_numpy(tr["camera"][v])] for k, t in self.data.train_camera.items()}

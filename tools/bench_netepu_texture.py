@@ -48,6 +48,7 @@ from tools.benchlib import median_time, peak_rss_mb, write_report  # noqa: E402
 
 RUNS = {
     "full": "runs/netepu/texture_full",
+    "full_xv": "runs/netepu/texture_full_xv",
     "no_nnopcs": "runs/netepu/texture_no_nnopcs",
     "no_local": "runs/netepu/texture_no_local",
 }
@@ -60,6 +61,8 @@ TITLES = {
     "dots = held-out cameras",
     "baseline": "CNN baseline (identity + triplet): contours = training cameras, "
     "dots = held-out cameras",
+    "texture_xv": "NeTePu texture code, cross-view training (mu, predicted NNOPCS): contours = "
+    "training cameras, dots = held-out cameras",
 }
 
 
@@ -158,10 +161,13 @@ def evaluate(baseline_minutes: float) -> None:
         raise SystemExit("no full texture run to evaluate")
     task, codes = keep["full"]
     data, h = task.data, task.data.heldout
+    grid_task, grid_codes = keep.get("full_xv", keep["full"])
     import cv2
 
     for held in (False, True):
-        grid = synthesis_grid(task.texture, task.geometry, data, codes, held, n_targets=3)
+        grid = synthesis_grid(
+            grid_task.texture, grid_task.geometry, data, grid_codes, held, n_targets=3
+        )
         name = "netepu_texture_novel_cameras" if held else "netepu_texture_novel_poses"
         cv2.imwrite(
             str(IMAGES / f"{name}.jpg"),
@@ -205,7 +211,13 @@ def evaluate(baseline_minutes: float) -> None:
     cams = np.repeat(h["camera"], T)
     dots = np.repeat(h["heldout_camera"], T)
     names = {i: str(int(t)) for i, t in enumerate(data.textures)}
-    for label, emb in (("texture", codes), ("baseline", base_codes)):
+    figs = [("texture", codes), ("baseline", base_codes)]
+    sep = {"texture code": (codes.reshape(E * T, -1), ids, cams)}
+    if "full_xv" in keep:
+        figs.append(("texture_xv", keep["full_xv"][1]))
+        sep["texture code, cross-view"] = (keep["full_xv"][1].reshape(E * T, -1), ids, cams)
+    sep["CNN baseline"] = (base_codes.reshape(E * T, -1), ids, cams)
+    for label, emb in figs:
         tsne_kde_figure(
             emb.reshape(E * T, -1),
             ids,
@@ -214,13 +226,7 @@ def evaluate(baseline_minutes: float) -> None:
             TITLES[label],
             names,
         )
-    results["separation"] = separation_figure(
-        {
-            "texture code": (codes.reshape(E * T, -1), ids, cams),
-            "CNN baseline": (base_codes.reshape(E * T, -1), ids, cams),
-        },
-        IMAGES / "netepu_reid_separation.png",
-    )
+    results["separation"] = separation_figure(sep, IMAGES / "netepu_reid_separation.png")
     results["peak_rss_mb"] = peak_rss_mb()
     results["heldout"] = {
         "poses": int(h["pose"].max() + 1),
