@@ -16,8 +16,8 @@ Sections
 
 Usage (on an otherwise idle machine; takes ~10 minutes)::
 
-    flock /tmp/cpu.lock .venv/bin/python tools/bench_netepu_geometry.py \\
-        --run ours=runs/netepu/bench_fast --run reference=runs/netepu/bench_reference
+    .venv/bin/python tools/bench_netepu_geometry.py --data biped \\
+        --run ours=runs/netepu/geometry_biped --run reference=runs/netepu/biped_reference
 """
 
 from __future__ import annotations
@@ -57,8 +57,12 @@ def _config(overrides: list[str]):
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def _body_length(keypoints: torch.Tensor) -> float:
-    """Mean largest horizontal extent of the keypoints (nose to tail for the cow), metres."""
+def _body_length(keypoints: torch.Tensor, species: str) -> float:
+    """Body size, metres: mean largest horizontal extent of the keypoints (nose to tail of
+    the cow, NeTePu's "2.2 m cow"); for bipeds the vertical extent (height)."""
+    if species == "biped":
+        z = keypoints[..., 2]
+        return float((z.amax(1) - z.amin(1)).mean())
     xy = keypoints[..., :2]
     d = (xy[:, :, None] - xy[:, None]).norm(dim=-1)
     return float(d.flatten(1).max(1).values.mean())
@@ -67,15 +71,18 @@ def _body_length(keypoints: torch.Tensor) -> float:
 # ------------------------------------------------------------------ accuracy
 def accuracy(runs: dict[str, Path], data, slow_views: int) -> tuple[list[dict], dict]:
     rows, curves = [], {}
-    body = _body_length(data.evaluation["heldout_poses"].keypoints)
+    body = _body_length(data.evaluation["heldout_poses"].keypoints, data.config.species)
     for name, run in runs.items():
         model, config = load_geometry_model(run / "checkpoint.pt")
         state = torch.load(run / "checkpoint.pt", weights_only=True, map_location="cpu")
         minutes = state["train_seconds"] / 60
         slow = model.renderer.vca.mode == "reference"  # seconds per render: a subset only
         # every model on the reference's subset (same views), fast models on all views too
-        passes = [("coarse_to_fine", True)] if slow else [
-            ("coarse_to_fine", False), ("culled", False), ("coarse_to_fine", True)]
+        passes = (
+            [("coarse_to_fine", True)]
+            if slow
+            else [("coarse_to_fine", False), ("culled", False), ("coarse_to_fine", True)]
+        )
         for mode, subset in passes:
             settings = MapSettings(**{**config["netepu"]["render"], "mode": mode})
             for set_name in ("heldout_poses", "heldout_cameras", "train"):
@@ -85,23 +92,36 @@ def accuracy(runs: dict[str, Path], data, slow_views: int) -> tuple[list[dict], 
                     views = views.subset(np.linspace(0, len(views) - 1, n).round().astype(int))
                 t0 = time.perf_counter()
                 m = evaluate_views(model, views, settings)
-                rows.append({
-                    "model": name, "steps": int(state["step"]), "train_min": round(minutes, 1),
-                    "render": mode,
-                    "views": f"{set_name} ({len(views)}{' subset' if subset else ''})",
-                    "IoU": m["iou"], "NNOPCS MSE": m["nnopcs_mse"],
-                    "depth MAE mm": m["depth_mae_mm"],
-                    "depth MAE % body": 100 * m["depth_mae_mm"] / 1000 / body,
-                    "evals/pixel": m["evaluations_per_pixel"], "coverage": m["coverage"],
-                    "eval s": time.perf_counter() - t0,
-                })
+                rows.append(
+                    {
+                        "model": name,
+                        "steps": int(state["step"]),
+                        "train_min": round(minutes, 1),
+                        "render": mode,
+                        "views": f"{set_name} ({len(views)}{' subset' if subset else ''})",
+                        "IoU": m["iou"],
+                        "NNOPCS MSE": m["nnopcs_mse"],
+                        "depth MAE mm": m["depth_mae_mm"],
+                        "depth MAE % body": 100 * m["depth_mae_mm"] / 1000 / body,
+                        "evals/pixel": m["evaluations_per_pixel"],
+                        "coverage": m["coverage"],
+                        "eval s": time.perf_counter() - t0,
+                    }
+                )
                 print(rows[-1], flush=True)
         csv_path = run / "metrics.csv"
         if csv_path.is_file():
             with csv_path.open() as f:
-                curves[name] = [{k: v for k, v in r.items() if v not in ("", None) and (
-                    k in ("step", "minutes") or k.startswith("eval/"))}
-                    for r in csv.DictReader(f) if r.get("eval/heldout_poses/iou")]
+                curves[name] = [
+                    {
+                        k: v
+                        for k, v in r.items()
+                        if v not in ("", None)
+                        and (k in ("step", "minutes") or k.startswith("eval/"))
+                    }
+                    for r in csv.DictReader(f)
+                    if r.get("eval/heldout_poses/iou")
+                ]
     return rows, {"body_length_m": body, "curves": curves}
 
 
@@ -145,48 +165,58 @@ def cost(models: dict[str, torch.nn.Module], data, quick: bool) -> list[dict]:
         is_ref = model.renderer.vca.mode == "reference"
         for size in (128, 256):
             kps, cams = _square_rig_views(data, size, n=1 if is_ref else 4)
-            for mode in (["dense"] if is_ref else ["dense", "culled", "coarse_to_fine"]):
+            for mode in ["dense"] if is_ref else ["dense", "culled", "coarse_to_fine"]:
                 settings = MapSettings(mode=mode, margin=0.35)
                 per_view = []
                 for v in range(kps.shape[0]):
-                    cam = {k: c[v:v + 1] for k, c in cams.items()}
-                    render = partial(_full_render, model, kps[v:v + 1], cam, size, settings)
+                    cam = {k: c[v : v + 1] for k, c in cams.items()}
+                    render = partial(_full_render, model, kps[v : v + 1], cam, size, settings)
                     flops = _flops(render)
                     maps = render()
                     if is_ref and size == 256 and quick:
                         t = float("nan")
                     else:
-                        t = median_time(render, repeats=1 if (is_ref or quick) else 5,
-                                        warmup=0 if is_ref else 1)
-                    per_view.append((flops, t, int(maps.evaluated[0]),
-                                     float(maps.silhouette.float().mean())))
+                        t = median_time(
+                            render, repeats=1 if (is_ref or quick) else 5, warmup=0 if is_ref else 1
+                        )
+                    per_view.append(
+                        (flops, t, int(maps.evaluated[0]), float(maps.silhouette.float().mean()))
+                    )
                 f, t, ev, fg = (float(np.mean([p[i] for p in per_view])) for i in range(4))
                 q = _query_flops(model, kps[:1], {k: c[:1] for k, c in cams.items()}, size)
-                rows.append({
-                    "model": name, "size": f"{size}x{size}", "render": mode,
-                    "MFLOPs/query": q / 1e6, "MFLOPs/image pixel": f / size**2,
-                    "evals/pixel": ev / size**2, "fg share": fg,
-                    "ms/render": 1000 * t, "views": len(per_view),
-                })
+                rows.append(
+                    {
+                        "model": name,
+                        "size": f"{size}x{size}",
+                        "render": mode,
+                        "MFLOPs/query": q / 1e6,
+                        "MFLOPs/image pixel": f / size**2,
+                        "evals/pixel": ev / size**2,
+                        "fg share": fg,
+                        "ms/render": 1000 * t,
+                        "views": len(per_view),
+                    }
+                )
                 print(rows[-1], flush=True)
     return rows
 
 
 # ------------------------------------------------------------------ training
-def train_step_child(model_name: str, batch: int, steps: int) -> dict:
+def train_step_child(model_name: str, batch: int, steps: int, species: str) -> dict:
     """Run in a fresh process: median step time and peak RSS of training at ``batch``."""
     torch.set_num_threads(2)
     from netepu.geometry_stage import GeometryStageConfig, GeometryTask
     from netepu.losses import GeometryLossWeights
 
-    cfg = _config([f"netepu/model={model_name}"])
+    cfg = _config([f"netepu/model={model_name}", f"netepu/data={species}"])
     net = cfg["netepu"]
     data = build_geometry_data(net["data"])
     rss0 = peak_rss_mb()
     torch.manual_seed(0)
     model = build_geometry_model(net["model"], data.config.n_keypoints, data.config.radius)
-    stage = GeometryStageConfig.from_mapping({**net["optim"], "batch_size": batch},
-                                             net["points"], net["eval"])
+    stage = GeometryStageConfig.from_mapping(
+        {**net["optim"], "batch_size": batch}, net["points"], net["eval"]
+    )
     task = GeometryTask(model, data, stage, GeometryLossWeights(**net["loss"]), MapSettings())
     rng = np.random.default_rng(0)
 
@@ -194,30 +224,51 @@ def train_step_child(model_name: str, batch: int, steps: int) -> dict:
         opts = task.optimizers().values()
         for o in opts:
             o.zero_grad()
-        loss = task.losses(sample_batch(data, rng, batch, stage.near, stage.far,
-                                        stage.foreground), rng)["loss"]
+        loss = task.losses(
+            sample_batch(data, rng, batch, stage.near, stage.far, stage.foreground), rng
+        )["loss"]
         loss.backward()
         for o in opts:
-            torch.nn.utils.clip_grad_norm_([p for g in o.param_groups for p in g["params"]],
-                                           1.0)
+            torch.nn.utils.clip_grad_norm_([p for g in o.param_groups for p in g["params"]], 1.0)
             o.step()
 
     t = median_time(step, repeats=steps, warmup=1)
-    return {"model": model_name, "batch": batch, "step s": t,
-            "views/s": batch / t, "peak RSS MiB": peak_rss_mb(),
-            "RSS over data MiB": peak_rss_mb() - rss0,
-            "params M": sum(p.numel() for p in model.parameters()) / 1e6}
+    return {
+        "model": model_name,
+        "batch": batch,
+        "step s": t,
+        "views/s": batch / t,
+        "peak RSS MiB": peak_rss_mb(),
+        "RSS over data MiB": peak_rss_mb() - rss0,
+        "params M": sum(p.numel() for p in model.parameters()) / 1e6,
+    }
 
 
-def training(configs: list[tuple[str, int, int]]) -> list[dict]:
+def training(configs: list[tuple[str, int, int]], species: str) -> list[dict]:
     rows = []
     for model_name, batch, steps in configs:
         out = subprocess.run(
-            [sys.executable, __file__, "--train-step-child", model_name, str(batch), str(steps)],
-            capture_output=True, text=True, cwd=ROOT)
+            [
+                sys.executable,
+                __file__,
+                "--train-step-child",
+                model_name,
+                str(batch),
+                str(steps),
+                species,
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
         if out.returncode != 0:
-            rows.append({"model": model_name, "batch": batch,
-                         "error": out.stderr.strip().splitlines()[-1][:120]})
+            rows.append(
+                {
+                    "model": model_name,
+                    "batch": batch,
+                    "error": out.stderr.strip().splitlines()[-1][:120],
+                }
+            )
         else:
             rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
         print(rows[-1], flush=True)
@@ -238,7 +289,7 @@ def _table(rows: list[dict]) -> str:
 
 def _equal_steps(curve: list[dict]) -> list[dict]:
     """Rows of the reference run's curve, each with our curve's row at the nearest step."""
-    ours = [r for r in curve if r["model"] == "ours"]
+    ours = [r for r in curve if r["model"] != "reference"]  # every run of our model
     rows = []
     for r in (r for r in curve if r["model"] == "reference"):
         if not ours:
@@ -253,16 +304,24 @@ def main() -> None:
     ap.add_argument("--run", action="append", default=[], help="name=run_dir of a trained model")
     ap.add_argument("--quick", action="store_true", help="fewer repeats (smoke test)")
     ap.add_argument("--skip-training", action="store_true")
-    ap.add_argument("--slow-views", type=int, default=24,
-                    help="views per evaluation set for reference-size models")
-    ap.add_argument("--train-step-child", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--slow-views",
+        type=int,
+        default=24,
+        help="views per evaluation set for reference-size models",
+    )
+    ap.add_argument(
+        "--data", default="quadruped", help="netepu/data config of the runs (quadruped | biped)"
+    )
+    ap.add_argument("--threads", type=int, default=2, help="torch threads of the timings")
+    ap.add_argument("--train-step-child", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     if args.train_step_child:
-        name, batch, steps = args.train_step_child
-        print(json.dumps(train_step_child(name, int(batch), int(steps))))
+        name, batch, steps, species = args.train_step_child
+        print(json.dumps(train_step_child(name, int(batch), int(steps), species)))
         return
-    cfg = _config([])
+    cfg = _config([f"netepu/data={args.data}"])
     data = build_geometry_data(cfg["netepu"]["data"])
     runs = {n: ROOT / p for n, p in (r.split("=", 1) for r in args.run)}
     acc_rows, acc_extra = accuracy(runs, data, args.slow_views) if runs else ([], {})
@@ -273,14 +332,21 @@ def main() -> None:
     else:
         torch.manual_seed(0)
         models["ours (untrained)"] = build_geometry_model(
-            cfg["netepu"]["model"], data.config.n_keypoints, data.config.radius)
+            cfg["netepu"]["model"], data.config.n_keypoints, data.config.radius
+        )
     torch.manual_seed(0)
-    ref_cfg = _config(["netepu/model=reference"])["netepu"]["model"]
-    models["reference size"] = build_geometry_model(ref_cfg, data.config.n_keypoints,
-                                                    data.config.radius)
+    ref_cfg = _config(["netepu/model=reference", f"netepu/data={args.data}"])["netepu"]["model"]
+    models["reference size"] = build_geometry_model(
+        ref_cfg, data.config.n_keypoints, data.config.radius
+    )
     cost_rows = cost(models, data, args.quick)
-    train_rows = [] if args.skip_training else training(
-        [("fast", 16, 10), ("fast", 64, 5), ("reference", 1, 3), ("reference", 4, 2)])
+    train_rows = (
+        []
+        if args.skip_training
+        else training(
+            [("fast", 16, 10), ("fast", 64, 5), ("reference", 1, 3), ("reference", 4, 2)], args.data
+        )
+    )
 
     ours = {(r["size"], r["render"]): r for r in cost_rows if r["model"].startswith("ours")}
     ref = {r["size"]: r for r in cost_rows if r["model"] == "reference size"}
@@ -288,53 +354,84 @@ def main() -> None:
     for (size, mode), r in ours.items():
         if size in ref:
             ratios[f"{size} {mode}: FLOPs/pixel ratio"] = (
-                ref[size]["MFLOPs/image pixel"] / r["MFLOPs/image pixel"])
+                ref[size]["MFLOPs/image pixel"] / r["MFLOPs/image pixel"]
+            )
             if np.isfinite(ref[size]["ms/render"]):
                 ratios[f"{size} {mode}: time ratio"] = ref[size]["ms/render"] / r["ms/render"]
-    ratios["FLOPs per query ratio"] = (ref["128x128"]["MFLOPs/query"]
-                                       / ours[("128x128", "dense")]["MFLOPs/query"])
-    notes = "\n\n".join([
-        "## Accuracy\n\nRendered from the ground-truth keypoints of each view. NNOPCS MSE and "
-        "depth MAE over pixels foreground in both ground truth and render. `coarse_to_fine` is "
-        "the default renderer; `culled` evaluates every pixel of the candidate region (what "
-        "coarse-to-fine approximates). Paper (NeTePu table 1, NePuMoo, full training on a GPU): "
-        f"NNOPCS MSE {PAPER['nnopcs_mse']:.1e}, depth MAE {PAPER['depth_mae_mm']} mm on a "
-        f"{PAPER['body_length_m']} m cow ({100 * PAPER['depth_mae_mm'] / 2200:.2f} % of its "
-        f"length). Our cow is {acc_extra.get('body_length_m', float('nan')):.2f} m long "
-        "(keypoint extent).",
-        "## Cost per pixel and render time\n\n" + _table(cost_rows)
-        + "\n\nFLOPs are what `FlopCounterMode` counts (matrix products; element-wise maths "
-        "such as sin/cos/exp is not counted, for both models alike). `MFLOPs/query` is one "
-        "network evaluation at one pixel; `MFLOPs/image pixel` is a whole render (per-view "
-        "precomputation included) divided by the pixels of the image. Reference notes: "
-        f"{REFERENCE_NOTES['mflops_per_pixel']} MFLOPs/pixel, ~{REFERENCE_NOTES['ms_128']:.0f} "
-        "ms per 128x128 render.\n\n" + "\n".join(f"- {k}: {v:.1f}x" for k, v in ratios.items()),
-        "## Training step\n\n" + (_table(train_rows) if train_rows else "(skipped)")
-        + "\n\nOne step = sample the batch, forward 2000 points per view (1500 silhouette, "
-        "500 in-mask), backward, clip, AdamW. Peak RSS of a fresh process holding the cached "
-        "data set; `RSS over data` is the growth after loading the data.",
-    ])
+    ratios["FLOPs per query ratio"] = (
+        ref["128x128"]["MFLOPs/query"] / ours[("128x128", "dense")]["MFLOPs/query"]
+    )
+    notes = "\n\n".join(
+        [
+            "## Accuracy\n\nRendered from the ground-truth keypoints of each view. NNOPCS MSE and "
+            "depth MAE over pixels foreground in both ground truth and render. `coarse_to_fine` is "
+            "the default renderer; `culled` evaluates every pixel of the candidate region (what "
+            "coarse-to-fine approximates). Paper (NeTePu table 1, NePuMoo, full training on a "
+            "GPU): "
+            f"NNOPCS MSE {PAPER['nnopcs_mse']:.1e}, depth MAE {PAPER['depth_mae_mm']} mm on a "
+            f"{PAPER['body_length_m']} m cow ({100 * PAPER['depth_mae_mm'] / 2200:.2f} % of its "
+            f"length). Data: `netepu/data={args.data}`, body size "
+            f"{acc_extra.get('body_length_m', float('nan')):.2f} m (keypoint extent: length of "
+            "a quadruped, height of a biped); `depth MAE % body` divides by it.",
+            "## Cost per pixel and render time\n\n"
+            + _table(cost_rows)
+            + "\n\nFLOPs are what `FlopCounterMode` counts (matrix products; element-wise maths "
+            "such as sin/cos/exp is not counted, for both models alike). `MFLOPs/query` is one "
+            "network evaluation at one pixel; `MFLOPs/image pixel` is a whole render (per-view "
+            "precomputation included) divided by the pixels of the image. Reference notes: "
+            f"{REFERENCE_NOTES['mflops_per_pixel']} MFLOPs/pixel, ~{REFERENCE_NOTES['ms_128']:.0f} "
+            "ms per 128x128 render.\n\n" + "\n".join(f"- {k}: {v:.1f}x" for k, v in ratios.items()),
+            "## Training step\n\n"
+            + (_table(train_rows) if train_rows else "(skipped)")
+            + "\n\nOne step = sample the batch, forward 2000 points per view (1500 silhouette, "
+            "500 in-mask), backward, clip, AdamW. Peak RSS of a fresh process holding the cached "
+            "data set; `RSS over data` is the growth after loading the data.",
+        ]
+    )
     if acc_extra.get("curves"):
         curve_lines = []
         for name, rows in acc_extra["curves"].items():
             for r in rows:
-                curve_lines.append({"model": name, "step": r.get("step"),
-                                    "minutes": float(r.get("minutes", "nan")),
-                                    **{k.replace("eval/", ""): float(v) for k, v in r.items()
-                                       if k.startswith("eval/") and (
-                                           "iou" in k or "nnopcs_mse" in k or "depth_mae" in k)
-                                       and "min" not in k and not k.startswith("eval/train")}})
+                curve_lines.append(
+                    {
+                        "model": name,
+                        "step": r.get("step"),
+                        "minutes": float(r.get("minutes", "nan")),
+                        **{
+                            k.replace("eval/", ""): float(v)
+                            for k, v in r.items()
+                            if k.startswith("eval/")
+                            and ("iou" in k or "nnopcs_mse" in k or "depth_mae" in k)
+                            and "min" not in k
+                            and not k.startswith("eval/train")
+                        },
+                    }
+                )
         notes += "\n\n## Learning curves (evaluation subsets during training)\n\n" + _table(
-            curve_lines)
+            curve_lines
+        )
         equal = _equal_steps(curve_lines)
         if equal:
-            notes += ("\n\n## At equal steps\n\nEach evaluation of the reference-size run "
-                      "next to the evaluation of our run with the nearest step count (the "
-                      "training runs' own evaluation subsets, `netepu.eval.eval_views` views "
-                      "per set).\n\n" + _table(equal))
-    write_report("netepu_geometry", "NeTePu geometry: accuracy and cost", acc_rows, notes,
-                 extra={"cost": cost_rows, "training": train_rows, "ratios": ratios,
-                        **acc_extra, "paper": PAPER, "reference_notes": REFERENCE_NOTES})
+            notes += (
+                "\n\n## At equal steps\n\nEach evaluation of the reference-size run "
+                "next to the evaluation of our run with the nearest step count (the "
+                "training runs' own evaluation subsets, `netepu.eval.eval_views` views "
+                "per set).\n\n" + _table(equal)
+            )
+    write_report(
+        "netepu_geometry",
+        "NeTePu geometry: accuracy and cost",
+        acc_rows,
+        notes,
+        extra={
+            "cost": cost_rows,
+            "training": train_rows,
+            "ratios": ratios,
+            **acc_extra,
+            "paper": PAPER,
+            "reference_notes": REFERENCE_NOTES,
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ inversion. Writes ``docs/benchmarks/netepu_inverse.md`` and ``.json``.
 
 Usage::
 
-    flock /tmp/cpu.lock .venv/bin/python tools/bench_netepu_inverse.py runs/netepu/bench_fast
+    .venv/bin/python tools/bench_netepu_inverse.py runs/netepu/geometry_biped --poses 6
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ POSE_SEED = 12345  # held-out poses: a seed the data set never uses
 
 # input cameras of the NePuMoo rig (3 rings of 8: ring r camera i has index 8 r + i)
 VIEW_SETS = {
-    2: [8, 10],                       # middle ring, 90 degrees apart
-    4: [8, 10, 12, 14],               # middle ring, every 90 degrees
+    2: [8, 10],  # middle ring, 90 degrees apart
+    4: [8, 10, 12, 14],  # middle ring, every 90 degrees
     8: [0, 3, 6, 9, 12, 15, 18, 21],  # all three rings, spread in azimuth
 }
 
@@ -55,8 +55,9 @@ def main() -> None:
     ap.add_argument("--poses", type=int, default=8, help="held-out poses")
     ap.add_argument("--steps", type=int, default=InverseSettings.steps)
     ap.add_argument("--templates", type=int, default=2, help="training poses used as starts")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (timings depend on it)")
     args = ap.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     run = ROOT / args.run
     model, config = load_geometry_model(run / "checkpoint.pt")
     data_cfg = config["netepu"]["data"]
@@ -73,15 +74,19 @@ def main() -> None:
         for V, sel in VIEW_SETS.items():
             cam = {k: c[sel] for k, c in cams.items()}
             t0 = time.perf_counter()
-            res = invert_silhouettes(model, masks[sel], cam, templates, settings,
-                                     np.random.default_rng(p))
+            res = invert_silhouettes(
+                model, masks[sel], cam, templates, settings, np.random.default_rng(p)
+            )
             seconds = time.perf_counter() - t0
             others = [c for c in range(len(rig)) if c not in sel]
             sil_in = _render_silhouettes(model, res.z, res.centre, cam, size)
-            sil_out = _render_silhouettes(model, res.z, res.centre,
-                                          {k: c[others] for k, c in cams.items()}, size)
+            sil_out = _render_silhouettes(
+                model, res.z, res.centre, {k: c[others] for k, c in cams.items()}, size
+            )
             row = {
-                "pose": p, "views": V, "mpjpe_mm": 1000 * float(mpjpe(res.keypoints, truth)),
+                "pose": p,
+                "views": V,
+                "mpjpe_mm": 1000 * float(mpjpe(res.keypoints, truth)),
                 "iou_input": float(silhouette_iou(sil_in, masks[sel]).mean()),
                 "iou_other": float(silhouette_iou(sil_out, masks[others]).mean()),
                 "seconds": seconds,
@@ -91,22 +96,33 @@ def main() -> None:
     rows = []
     for V, rs in per_view.items():
         mp = np.array([r["mpjpe_mm"] for r in rs])
-        rows.append({
-            "input views": V, "poses": len(rs), "MPJPE mm (mean)": float(mp.mean()),
-            "MPJPE mm (median)": float(np.median(mp)),
-            "IoU input views": float(np.mean([r["iou_input"] for r in rs])),
-            f"IoU other {len(rig) - V} views": float(np.mean([r["iou_other"] for r in rs])),
-            "s per inversion": float(np.mean([r["seconds"] for r in rs])),
-        })
+        rows.append(
+            {
+                "input views": V,
+                "poses": len(rs),
+                "MPJPE mm (mean)": float(mp.mean()),
+                "MPJPE mm (median)": float(np.median(mp)),
+                "IoU input views": float(np.mean([r["iou_input"] for r in rs])),
+                f"IoU other {len(rig) - V} views": float(np.mean([r["iou_other"] for r in rs])),
+                "s per inversion": float(np.mean([r["seconds"] for r in rs])),
+            }
+        )
     notes = (
         f"Model: `{args.run}`. Held-out poses (seed {POSE_SEED}) of the training individual, "
         f"{len(rig)} cameras of the training rig at {size[0]}x{size[1]}; input cameras per V: "
         f"{VIEW_SETS}. Starts: {args.templates} training poses x {settings.headings} headings, "
         f"{settings.steps} Adam steps, {settings.points_per_view} points per view and step, "
+        f"{args.threads} torch thread(s) (`s per inversion`), "
         "the worse half of the starts dropped every "
-        f"{settings.prune_every} steps. IoU from coarse-to-fine renders of the recovered code.")
-    write_report("netepu_inverse", "NeTePu inverse rendering: silhouettes to 3D keypoints",
-                 rows, notes, extra={"per_pose": per_view, "settings": vars(settings)})
+        f"{settings.prune_every} steps. IoU from coarse-to-fine renders of the recovered code."
+    )
+    write_report(
+        "netepu_inverse",
+        "NeTePu inverse rendering: silhouettes to 3D keypoints",
+        rows,
+        notes,
+        extra={"per_pose": per_view, "settings": vars(settings)},
+    )
 
 
 if __name__ == "__main__":
