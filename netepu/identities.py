@@ -6,8 +6,9 @@ track can break (an occlusion, a subject leaving the view) and two tracks can
 be the same individual. Here each track is described by the mean of its rows'
 unit texture codes (NeTePu's :math:`\\mu` from the visible pixels only, see
 ``netepu-embed``), and tracks are grouped into ``k`` identities by average-
-linkage agglomerative clustering on the cosine distance, with tracks seen in
-the same frame kept apart (their distance is set to the maximum, 2). ``k`` is
+linkage agglomerative clustering on the cosine distance that never joins two
+tracks seen in the same frame (so more than ``k`` identities remain when the
+tracks do not allow fewer). ``k`` is
 the number of individuals the export shows at once (the median over frames of
 the distinct subjects per frame) unless given. With one subject (k = 1) no
 association is needed and every track is identity 0.
@@ -32,11 +33,43 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["assign_identities", "ground_truth_identities", "identity_accuracy"]
+__all__ = [
+    "assign_identities",
+    "constrained_average_linkage",
+    "ground_truth_identities",
+    "identity_accuracy",
+]
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
     return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
+
+
+def constrained_average_linkage(dist: np.ndarray, apart: np.ndarray, k: int) -> np.ndarray:
+    """Average-linkage clustering of T items into (at least) ``k`` clusters, never joining two
+    items marked ``apart`` (T, T) bool; fewer merges are made if the constraints forbid them.
+
+    Returns:
+        labels (T,) in [0, clusters), numbered by first appearance.
+    """
+    clusters = [[i] for i in range(len(dist))]
+    while len(clusters) > k:
+        best, pair = np.inf, None
+        for a in range(len(clusters)):
+            for b in range(a + 1, len(clusters)):
+                if apart[np.ix_(clusters[a], clusters[b])].any():
+                    continue
+                d = dist[np.ix_(clusters[a], clusters[b])].mean()
+                if d < best:
+                    best, pair = d, (a, b)
+        if pair is None:
+            break
+        a, b = pair
+        clusters[a] += clusters.pop(b)
+    labels = np.empty(len(dist), np.int64)
+    for j, members in enumerate(sorted(clusters, key=min)):
+        labels[members] = j
+    return labels
 
 
 def assign_identities(
@@ -54,9 +87,6 @@ def assign_identities(
         ``({subject_id: identity}, summary)``. Tracks without a valid code are
         identity -1.
     """
-    from scipy.cluster.hierarchy import fcluster, linkage
-    from scipy.spatial.distance import squareform
-
     sid = np.asarray(table["subject_id"], np.int64)
     frame = np.asarray(table["frame"], np.int64)
     codes = np.asarray(table[column], np.float64)
@@ -83,21 +113,18 @@ def assign_identities(
     desc = np.stack([_unit(_unit(codes[valid & (sid == s)]).mean(0)) for s in tracks])
     dist = np.clip(1 - desc @ desc.T, 0, 2)
     index = {s: i for i, s in enumerate(tracks)}
+    apart = np.zeros(dist.shape, bool)
     for members in per_frame.values():
         m = [index[s] for s in members if s in index]
-        for a in m:
-            for b in m:
-                if a != b:
-                    dist[a, b] = 2.0
-    np.fill_diagonal(dist, 0)
-    n_id = min(k, len(tracks))
-    labels = fcluster(linkage(squareform(dist, checks=False), "average"), n_id, "maxclust") - 1
+        apart[np.ix_(m, m)] = True
+    np.fill_diagonal(apart, False)
+    labels = constrained_average_linkage(dist, apart, k)
     out.update({s: int(labels[i]) for s, i in index.items()})
     return out, {
         "identities": len(set(labels.tolist())),
         "tracks": len(tracks),
         "k": k,
-        "association": "texture codes",
+        "association": f"clustered by {column}",
     }
 
 

@@ -283,3 +283,15 @@ def test_presence_is_one_until_its_start_step(tiny_scene):
             assert torch.allclose(p, torch.full_like(p, expected), atol=1e-4), step
         if step < 2:
             assert float(losses["prior_presence"]) == 1.0  # constant: no pressure yet
+
+
+def test_constrained_linkage_never_joins_co_visible_tracks():
+    from netepu.identities import constrained_average_linkage
+
+    dist = np.array([[0, 0.1, 0.9], [0.1, 0, 0.8], [0.9, 0.8, 0]])
+    apart = np.zeros((3, 3), bool)
+    assert constrained_average_linkage(dist, apart, 2).tolist() == [0, 0, 1]
+    apart[0, 1] = apart[1, 0] = True
+    assert constrained_average_linkage(dist, apart, 2).tolist() == [0, 1, 1]
+    apart[:] = ~np.eye(3, dtype=bool)  # all seen together: three identities whatever k
+    assert constrained_average_linkage(dist, apart, 1).tolist() == [0, 1, 2]
