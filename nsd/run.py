@@ -332,18 +332,17 @@ def write_grids(
             im = images[(cam, t)]
             anns = by_image.get(int(im["id"]), [])
             h, w = img.shape[:2]
-            masks = (
-                np.stack([mask_utils.decode(a["segmentation"]) for a in anns]).astype(np.float32)
-                if anns
-                else np.zeros((0, h, w), np.float32)
-            )
+            s = size / max(h, w)  # drawn at panel size, so that boxes and labels stay visible
+            pw, ph = round(w * s), round(h * s)
+            img = cv2.resize(img, (pw, ph), interpolation=cv2.INTER_AREA)
+            masks = np.zeros((len(anns), ph, pw), np.float32)
+            for k, a in enumerate(anns):
+                m = mask_utils.decode(a["segmentation"]).astype(np.float32)
+                masks[k] = cv2.resize(m, (pw, ph), interpolation=cv2.INTER_AREA)
+            for a in anns:
+                a["bbox"] = [c * s for c in a["bbox"]]
             dec = _OneFrame(anns, masks)
             panels = [img, *decomposition_panels(img, dec, 0, [a["subject_id"] for a in anns])]
-            s = size / max(h, w)
-            panels = [
-                cv2.resize(p, (round(w * s), round(h * s)), interpolation=cv2.INTER_NEAREST)
-                for p in panels
-            ]
             rows.append(panels)
         if rows:
             path = out / f"frame_{t:06d}.png"
