@@ -373,3 +373,14 @@ def test_texture_config_rejects_unknown_keys():
 
     with pytest.raises(ConfigError, match="unknown keys \\['colour'\\]"):
         TextureConfig.from_mapping({"colour": 1})
+
+
+def test_cross_view_sources_keep_the_texture_and_change_the_view():
+    task = _task(textures=(0, 2), per_view=2, cross_view=1.0)
+    tr = task.data.train
+    idx = np.arange(len(tr["sample_view"]))
+    src = task.cross_view_sources(idx, np.random.default_rng(0))
+    assert (tr["sample_texture"][src] == tr["sample_texture"][idx]).all()
+    assert (src != idx).mean() > 0.5
+    task.cfg.cross_view = 0.0
+    assert (task.cross_view_sources(idx, np.random.default_rng(0)) == idx).all()
