@@ -336,6 +336,20 @@ def _accuracy_row(res: dict) -> dict:
     return row
 
 
+def _contention_note(rows: list[dict]) -> str:
+    """Name the accuracy runs that got clearly fewer steps than the others (shared machine)."""
+    steps = {r["setting"]: r["steps (1 thread)"] for r in rows if r.get("steps (1 thread)")}
+    if not steps:
+        return ""
+    median = sorted(steps.values())[len(steps) // 2]
+    slow = [f"{k} ({v})" for k, v in steps.items() if v < 0.8 * median]
+    return (
+        "The accuracy runs shared the machine with other jobs; one core was theirs, but "
+        f"processes outside the core locks slowed some: the median run made {median} steps"
+        + (f", these made far fewer: {', '.join(slow)}." if slow else ".")
+    )
+
+
 def _pareto(points: list[tuple[float, float]]) -> list[bool]:
     """True for points no other point beats in both coordinates (higher is better)."""
     return [
@@ -461,6 +475,7 @@ def report() -> None:
             "runs (see the default's curve in the JSON), so differences below ~0.05 are noise; "
             f"`{acc_key}` (evaluations at 3 and 4 minutes) is the accuracy used for the Pareto "
             "plot and the presets.",
+            _contention_note(rows),
             f"Quality target for the time-to-quality column: held-out `{QUALITY_METRIC}` >= "
             f"{QUALITY_TARGET}, fixed before the runs. The issue's 15-minute targets "
             "(detection >= 0.95, mIoU >= 0.70, ...) are not reached by the default even after 30 "
