@@ -344,8 +344,8 @@ def _contention_note(rows: list[dict]) -> str:
     median = sorted(steps.values())[len(steps) // 2]
     slow = [f"{k} ({v})" for k, v in steps.items() if v < 0.8 * median]
     return (
-        "The accuracy runs shared the machine with other jobs; one core was theirs, but "
-        f"processes outside the core locks slowed some: the median run made {median} steps"
+        "The accuracy runs shared the machine with other jobs; each held its own core lock, "
+        f"but processes outside the locks slowed some: the median run made {median} steps"
         + (f", these made far fewer: {', '.join(slow)}." if slow else ".")
     )
 
