@@ -146,7 +146,16 @@ def tsne_kde_figure(
         if sel.sum() >= 3:
             kde = gaussian_kde(y[sel].T)
             z = kde(np.stack([gx.ravel(), gy.ravel()])).reshape(gx.shape)
-            ax.contour(gx, gy, z, levels=4, colors=[c], linewidths=0.8)
+            # levels relative to the peak: matplotlib's automatic lowest level sits at
+            # ~0 density, where contours of numerical noise run across the whole plot
+            ax.contour(
+                gx,
+                gy,
+                z,
+                levels=z.max() * np.array([0.1, 0.3, 0.5, 0.7]),
+                colors=[c],
+                linewidths=0.8,
+            )
         d = (ids == i) & dots
         ax.scatter(y[d, 0], y[d, 1], s=6, color=c, label=(names or {}).get(int(i), str(int(i))))
     ax.set_title(title, fontsize=10)
