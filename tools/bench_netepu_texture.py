@@ -108,7 +108,7 @@ def _subset_rank1(emb, ids, cams, queries) -> float:
     return float((ids[d.argmin(1)] == ids[q]).mean())
 
 
-def evaluate(baseline_minutes: float, speed_threads: int = 0) -> None:
+def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = False) -> None:
     from netepu.reid import (
         ReidCNN,
         reid_metrics,
@@ -157,6 +157,11 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0) -> None:
         results["runs"][name] = row
         print(name, json.dumps(row), f"{time.time() - t0:.0f}s", flush=True)
         keep[name] = (task, codes)
+    if add_only:  # merge these runs' rows into an existing evaluate.json (no baseline, figures)
+        old = json.loads((WORK / "evaluate.json").read_text())
+        old["runs"].update(results["runs"])
+        (WORK / "evaluate.json").write_text(json.dumps(old, indent=1))
+        return
     if "full" not in keep:
         raise SystemExit("no full texture run to evaluate")
     task, codes = keep["full"]
@@ -399,6 +404,11 @@ def main() -> None:
         help="evaluate: also time encodings with this many threads (in a slot)",
     )
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument(
+        "--add-only",
+        action="store_true",
+        help="evaluate: add the runs' rows to an existing evaluate.json",
+    )
     p.add_argument("--run", action="append", default=[], help="name=run folder (replaces RUNS)")
     p.add_argument("--work", default=None, help="folder of the intermediate JSON files")
     p.add_argument("--images", default=None, help="figure folder (default docs/images)")
@@ -410,7 +420,7 @@ def main() -> None:
     WORK = Path(a.work) if a.work else WORK
     IMAGES = Path(a.images) if a.images else IMAGES
     if a.what == "evaluate":
-        evaluate(a.baseline_minutes, a.speed_threads)
+        evaluate(a.baseline_minutes, a.speed_threads, a.add_only)
     elif a.what == "speed":
         speed(a.repeats)
     else:
