@@ -69,7 +69,9 @@ def _body_length(keypoints: torch.Tensor, species: str) -> float:
 
 
 # ------------------------------------------------------------------ accuracy
-def accuracy(runs: dict[str, Path], data, slow_views: int) -> tuple[list[dict], dict]:
+def accuracy(
+    runs: dict[str, Path], data, slow_views: int, light: bool = False
+) -> tuple[list[dict], dict]:
     rows, curves = [], {}
     body = _body_length(data.evaluation["heldout_poses"].keypoints, data.config.species)
     for name, run in runs.items():
@@ -81,6 +83,8 @@ def accuracy(runs: dict[str, Path], data, slow_views: int) -> tuple[list[dict], 
         passes = (
             [("coarse_to_fine", True)]
             if slow
+            else [("coarse_to_fine", True), ("culled", True)]
+            if light
             else [("coarse_to_fine", False), ("culled", False), ("coarse_to_fine", True)]
         )
         for mode, subset in passes:
@@ -150,6 +154,11 @@ def _full_render(model, keypoints, camera, size: int, settings: MapSettings):
     return render_maps(model.query, ctx, (size, size), settings)
 
 
+def _prepare(model, keypoints, camera):
+    """The per-view part of a render: encode and prepare."""
+    return model.prepare(model.encode(keypoints), camera, keypoints=keypoints)
+
+
 def _query_flops(model, keypoints, camera, size: int, n: int = 4096) -> float:
     """FLOPs of one network evaluation at one pixel (per-view precomputation excluded)."""
     ctx = model.prepare(model.encode(keypoints), camera, keypoints=keypoints)
@@ -158,22 +167,35 @@ def _query_flops(model, keypoints, camera, size: int, n: int = 4096) -> float:
 
 
 @torch.no_grad()
-def cost(models: dict[str, torch.nn.Module], data, quick: bool) -> list[dict]:
+def cost(models: dict[str, torch.nn.Module], data, quick: bool, light: bool = False) -> list[dict]:
+    """FLOPs and times of full renders. ``light``: one view, no timings, and the
+    reference's dense render counted as its per-view part plus pixels x FLOPs per query
+    (what a dense render evaluates) instead of running it."""
     rows = []
     for name, model in models.items():
         model.eval()
         is_ref = model.renderer.vca.mode == "reference"
         for size in (128, 256):
-            kps, cams = _square_rig_views(data, size, n=1 if is_ref else 4)
+            kps, cams = _square_rig_views(data, size, n=1 if (is_ref or light) else 4)
+            nq = 256 if light else 4096
+            q = _query_flops(model, kps[:1], {k: c[:1] for k, c in cams.items()}, size, nq)
             for mode in ["dense"] if is_ref else ["dense", "culled", "coarse_to_fine"]:
                 settings = MapSettings(mode=mode, margin=0.35)
                 per_view = []
                 for v in range(kps.shape[0]):
                     cam = {k: c[v : v + 1] for k, c in cams.items()}
                     render = partial(_full_render, model, kps[v : v + 1], cam, size, settings)
+                    if light and is_ref:  # dense: every pixel once, plus the per-view part
+                        per_view_part = _flops(partial(_prepare, model, kps[v : v + 1], cam))
+                        per_view.append(
+                            (per_view_part + q * size**2, float("nan"), size**2, float("nan"))
+                        )
+                        continue
                     flops = _flops(render)
                     maps = render()
-                    if is_ref and size == 256 and quick:
+                    if light:
+                        t = float("nan")
+                    elif is_ref and size == 256 and quick:
                         t = float("nan")
                     else:
                         t = median_time(
@@ -183,14 +205,13 @@ def cost(models: dict[str, torch.nn.Module], data, quick: bool) -> list[dict]:
                         (flops, t, int(maps.evaluated[0]), float(maps.silhouette.float().mean()))
                     )
                 f, t, ev, fg = (float(np.mean([p[i] for p in per_view])) for i in range(4))
-                q = _query_flops(model, kps[:1], {k: c[:1] for k, c in cams.items()}, size)
                 rows.append(
                     {
                         "model": name,
                         "size": f"{size}x{size}",
                         "render": mode,
                         "MFLOPs/query": q / 1e6,
-                        "MFLOPs/image pixel": f / size**2,
+                        "MFLOPs/image pixel": f / size**2 / 1e6,
                         "evals/pixel": ev / size**2,
                         "fg share": fg,
                         "ms/render": 1000 * t,
@@ -204,7 +225,6 @@ def cost(models: dict[str, torch.nn.Module], data, quick: bool) -> list[dict]:
 # ------------------------------------------------------------------ training
 def train_step_child(model_name: str, batch: int, steps: int, species: str) -> dict:
     """Run in a fresh process: median step time and peak RSS of training at ``batch``."""
-    torch.set_num_threads(2)
     from netepu.geometry_stage import GeometryStageConfig, GeometryTask
     from netepu.losses import GeometryLossWeights
 
@@ -256,6 +276,8 @@ def training(configs: list[tuple[str, int, int]], species: str) -> list[dict]:
                 str(batch),
                 str(steps),
                 species,
+                "--threads",
+                str(torch.get_num_threads()),
             ],
             capture_output=True,
             text=True,
@@ -314,6 +336,11 @@ def main() -> None:
         "--data", default="quadruped", help="netepu/data config of the runs (quadruped | biped)"
     )
     ap.add_argument("--threads", type=int, default=2, help="torch threads of the timings")
+    ap.add_argument(
+        "--light",
+        action="store_true",
+        help="FLOPs and accuracy on the --slow-views subsets only: no timings, no training",
+    )
     ap.add_argument("--train-step-child", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -324,7 +351,7 @@ def main() -> None:
     cfg = _config([f"netepu/data={args.data}"])
     data = build_geometry_data(cfg["netepu"]["data"])
     runs = {n: ROOT / p for n, p in (r.split("=", 1) for r in args.run)}
-    acc_rows, acc_extra = accuracy(runs, data, args.slow_views) if runs else ([], {})
+    acc_rows, acc_extra = accuracy(runs, data, args.slow_views, args.light) if runs else ([], {})
 
     models = {}
     if "ours" in runs:
@@ -339,7 +366,7 @@ def main() -> None:
     models["reference size"] = build_geometry_model(
         ref_cfg, data.config.n_keypoints, data.config.radius
     )
-    cost_rows = cost(models, data, args.quick)
+    cost_rows = cost(models, data, args.quick, args.light)
     train_rows = (
         []
         if args.skip_training
@@ -356,7 +383,7 @@ def main() -> None:
             ratios[f"{size} {mode}: FLOPs/pixel ratio"] = (
                 ref[size]["MFLOPs/image pixel"] / r["MFLOPs/image pixel"]
             )
-            if np.isfinite(ref[size]["ms/render"]):
+            if np.isfinite(ref[size]["ms/render"]) and np.isfinite(r["ms/render"]):
                 ratios[f"{size} {mode}: time ratio"] = ref[size]["ms/render"] / r["ms/render"]
     ratios["FLOPs per query ratio"] = (
         ref["128x128"]["MFLOPs/query"] / ours[("128x128", "dense")]["MFLOPs/query"]
@@ -418,6 +445,12 @@ def main() -> None:
                 "training runs' own evaluation subsets, `netepu.eval.eval_views` views "
                 "per set).\n\n" + _table(equal)
             )
+    if args.light:
+        notes = (
+            "**Light run** (`--light`): no render timings; accuracy on the `--slow-views` "
+            "subsets only; the reference's dense render is counted as its per-view part plus "
+            "(pixels x FLOPs per query) instead of being run.\n\n" + notes
+        )
     write_report(
         "netepu_geometry",
         "NeTePu geometry: accuracy and cost",
