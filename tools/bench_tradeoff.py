@@ -336,6 +336,34 @@ def _accuracy_row(res: dict) -> dict:
     return row
 
 
+def _presets_note(presets: dict, session1: dict) -> str:
+    """The presets' timing session, with the rows it repeated (run-to-run variation)."""
+    if not presets:
+        return ""
+    from tools.bench_netepu_geometry import _table
+
+    rows = [
+        {
+            "setting": k,
+            "train_it_per_s": round(v["train_it_per_s"], 2),
+            "infer_frames_per_s": round(v["infer_frames_per_s"], 1),
+            "peak_rss_mb": round(v["peak_rss_mb"]),
+            "same setting, earlier session (it/s, frames/s)": (
+                f"{session1[k]['train_it_per_s']:.2f}, {session1[k]['infer_frames_per_s']:.1f}"
+                if k in session1
+                else "-"
+            ),
+        }
+        for k, v in presets.items()
+    ]
+    return (
+        "## Presets (a second timing session)\n\n" + _table(rows) + "\n\nSettings timed "
+        "again next to the presets moved by up to 30 % between the two sessions (same code, "
+        "exclusive machine, 15-step medians): only speed differences of ~1.3x or more in "
+        "the table above are real."
+    )
+
+
 def _contention_note(rows: list[dict]) -> str:
     """Name the accuracy runs that got clearly fewer steps than the others (shared machine)."""
     steps = {r["setting"]: r["steps (1 thread)"] for r in rows if r.get("steps (1 thread)")}
@@ -412,6 +440,9 @@ def report() -> None:
         return json.loads(path.read_text()) if path.is_file() else {}
 
     speed_nsd, speed_net, speed_tex = load("nsd"), load("netepu"), load("texture")
+    # a later timing session of the presets next to the default (speed_nsd with its
+    # results moved to speed_presets.json): rows of one session only are compared
+    speed_presets = load("presets")
     acc = {
         p.stem: json.loads(p.read_text())
         for p in (RESULTS / "accuracy").glob("*.json")
@@ -419,6 +450,8 @@ def report() -> None:
     }
     rows = []
     for name, s in NSD_SETTINGS.items():
+        if name.startswith("preset_"):
+            continue
         row = {"setting": name, "knob": s["knob"]}
         sp = speed_nsd.get(name, {})
         row.update({k: round(v, 3) if isinstance(v, float) else v for k, v in sp.items()})
@@ -476,6 +509,7 @@ def report() -> None:
             f"`{acc_key}` (evaluations at 3 and 4 minutes) is the accuracy used for the Pareto "
             "plot and the presets.",
             _contention_note(rows),
+            _presets_note(speed_presets, speed_nsd),
             f"Quality target for the time-to-quality column: held-out `{QUALITY_METRIC}` >= "
             f"{QUALITY_TARGET}, fixed before the runs. The issue's 15-minute targets "
             "(detection >= 0.95, mIoU >= 0.70, ...) are not reached by the default even after 30 "
