@@ -49,9 +49,7 @@ def _grads(outputs: torch.Tensor, inputs, seed: int = 0):
 
 # ---------------------------------------------------------------------------- compositor
 MASK_VALUES = st.one_of(st.just(0.0), st.just(1.0), st.floats(0.0, 1.0, width=32))
-DEPTH_VALUES = st.one_of(
-    st.just(0.0), st.just(1e4), st.just(-1e4), st.floats(-1e4, 1e4, width=32)
-)
+DEPTH_VALUES = st.one_of(st.just(0.0), st.just(1e4), st.just(-1e4), st.floats(-1e4, 1e4, width=32))
 
 
 @st.composite
@@ -88,8 +86,9 @@ class TestCompositorExtremes(BaseTester):
         for c, gm, gz in ((c64, gm64, gz64), (c32, gm32, gz32)):
             assert _finite(c.weights, c.background_weight, c.depth, gm, gz)
             assert (c.weights >= 0).all() and (c.weights <= 1 + 1e-6).all()
-            self.assert_close(c.weights.sum(1) + c.background_weight,
-                              torch.ones_like(c.background_weight))
+            self.assert_close(
+                c.weights.sum(1) + c.background_weight, torch.ones_like(c.background_weight)
+            )
             # the background weight is T(inf) = exp(-2 sum S) everywhere, also where S = 0
             self.assert_close(c.background_weight, torch.exp(-2 * masks.sum(1)).to(c.weights.dtype))
         self.assert_close(c32.weights.double(), c64.weights, rtol=1e-4, atol=1e-5)
@@ -130,8 +129,10 @@ class TestCompositorExtremes(BaseTester):
             m = torch.full((1, 3, 1, 1), scale, dtype=dtype, requires_grad=True)
             c = erf_transmittance_composite(m, torch.tensor([[0.0, 0.5, 3.0]], dtype=dtype))
             return torch.stack(
-                [torch.autograd.grad(c.weights[0, j].sum(), m, retain_graph=True)[0][0, j, 0, 0]
-                 for j in range(3)]
+                [
+                    torch.autograd.grad(c.weights[0, j].sum(), m, retain_graph=True)[0][0, j, 0, 0]
+                    for j in range(3)
+                ]
             )
 
         at_zero = jacobian_diag(0.0)
@@ -139,15 +140,18 @@ class TestCompositorExtremes(BaseTester):
             self.assert_close(jacobian_diag(s), at_zero, rtol=1e-4, atol=1e-4)
         # across the power-series / closed-form switch of phi (mass 1e-2)
         switch = 0.01 / 3
-        self.assert_close(jacobian_diag(switch * (1 - 1e-6)), jacobian_diag(switch * (1 + 1e-6)),
-                          rtol=1e-4, atol=1e-5)
+        self.assert_close(
+            jacobian_diag(switch * (1 - 1e-6)),
+            jacobian_diag(switch * (1 + 1e-6)),
+            rtol=1e-4,
+            atol=1e-5,
+        )
 
     def test_gradcheck_at_zero_and_tiny_masks(self):
         depths = torch.tensor([[0.0, 0.7]], dtype=torch.float64)
         for scale in (0.0, 1e-3):
             masks = torch.full((1, 2, 1, 2), scale, dtype=torch.float64)
-            assert self.gradcheck(lambda m: erf_transmittance_composite(m, depths).weights,
-                                  [masks])
+            assert self.gradcheck(lambda m: erf_transmittance_composite(m, depths).weights, [masks])
 
     @DTYPES
     @pytest.mark.parametrize("n", [1, 2, 8])
@@ -165,10 +169,12 @@ class TestCompositorExtremes(BaseTester):
         assert _finite(gm, gz)
         assert torch.equal(gz, torch.zeros_like(gz))  # erf is flat 1e4 away
         equal = erf_transmittance_composite(masks, torch.zeros(1, n, dtype=dtype))
-        self.assert_close(equal.weights.flatten(),
-                          torch.full((n,), -math.expm1(-2 * n) / n, dtype=dtype))
-        self.assert_close(equal.background_weight.flatten(),
-                          torch.tensor([math.exp(-2 * n)], dtype=dtype))
+        self.assert_close(
+            equal.weights.flatten(), torch.full((n,), -math.expm1(-2 * n) / n, dtype=dtype)
+        )
+        self.assert_close(
+            equal.background_weight.flatten(), torch.tensor([math.exp(-2 * n)], dtype=dtype)
+        )
 
     @DTYPES
     def test_additive_compositor_limits(self, dtype):
@@ -177,8 +183,9 @@ class TestCompositorExtremes(BaseTester):
         assert torch.equal(c.background_weight, torch.ones_like(c.background_weight))
         jac = torch.autograd.grad(c.weights[:, 0].sum(), masks)[0]
         assert torch.equal(jac[:, 0], torch.ones_like(jac[:, 0]))
-        full = additive_composite(torch.ones(1, 8, 1, 1, dtype=dtype),
-                                  torch.zeros(1, 8, dtype=dtype))
+        full = additive_composite(
+            torch.ones(1, 8, 1, 1, dtype=dtype), torch.zeros(1, 8, dtype=dtype)
+        )
         self.assert_close(full.weights.flatten(), torch.full((8,), 1 / 8, dtype=dtype))
 
 
@@ -233,8 +240,12 @@ class TestAssociationExtremes(BaseTester):
                 a.detach().double()[:, :, None, :16], b.detach().double()[:, None, :, :16], -1
             )
             nonzero = a.detach()[:, :, None, :16].abs().sum(-1) > 0
-            self.assert_close(torch.where(nonzero, M.double(), 0), torch.where(nonzero, ref, 0),
-                              rtol=1e-5, atol=1e-6)
+            self.assert_close(
+                torch.where(nonzero, M.double(), 0),
+                torch.where(nonzero, ref, 0),
+                rtol=1e-5,
+                atol=1e-6,
+            )
 
     def test_large_beta_is_the_hard_association(self):
         a = torch.eye(4, 16)[None]
@@ -248,8 +259,9 @@ class TestAssociationExtremes(BaseTester):
 
 # ---------------------------------------------------------------------------- spatial transformers
 def _ramp(dtype=torch.float64, H=6, W=8):
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=dtype), torch.arange(W, dtype=dtype),
-                            indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=dtype), torch.arange(W, dtype=dtype), indexing="ij"
+    )
     return torch.stack([xs, ys, xs + ys])[None] / 10  # (1, 3, H, W), linear in x and y
 
 
@@ -296,8 +308,9 @@ class TestSpatialTransformerExtremes(BaseTester):
             boxes = torch.tensor([[[0.2, 0.2, tx, ty]]], dtype=dtype, requires_grad=True)
             c = crop(image, boxes, (1, 1), focal=True)  # the bump is 1 at the centre
             x_pix, y_pix = (tx + 1) * 8 / 2 - 0.5, (ty + 1) * 6 / 2 - 0.5
-            self.assert_close(c.flatten(), torch.tensor([x_pix, y_pix, x_pix + y_pix],
-                                                        dtype=dtype) / 10)
+            self.assert_close(
+                c.flatten(), torch.tensor([x_pix, y_pix, x_pix + y_pix], dtype=dtype) / 10
+            )
             (g,) = torch.autograd.grad(c[0, 0, 0].sum(), boxes)
             self.assert_close(g[0, 0, 2], torch.tensor(8 / 2 / 10, dtype=dtype))  # d x / d tx
 
@@ -328,16 +341,21 @@ class TestSpatialTransformerExtremes(BaseTester):
 
     @DTYPES
     def test_focal_bump_at_and_past_its_edge(self, dtype):
-        x = torch.tensor([0.0, 0.5, 0.95, 1 - 1e-7, 1.0, 1 + 1e-7, 2.0], dtype=dtype,
-                         requires_grad=True)
+        x = torch.tensor(
+            [0.0, 0.5, 0.95, 1 - 1e-7, 1.0, 1 + 1e-7, 2.0], dtype=dtype, requires_grad=True
+        )
         for y in (torch.zeros_like(x), x * 0.3):
             G = focal_bump_at(x, y)
             (g,) = torch.autograd.grad(G.sum(), x)
             assert _finite(G, g)
             assert (G >= 0).all() and (G <= 1).all()
             assert torch.equal(G[4:], torch.zeros(3, dtype=dtype))
-        self.assert_close(focal_bump_at(x[:3], torch.zeros(3, dtype=dtype)),
-                          torch.tensor([1.0, 0.7165, 1.0e-4], dtype=dtype), rtol=0, atol=1e-4)
+        self.assert_close(
+            focal_bump_at(x[:3], torch.zeros(3, dtype=dtype)),
+            torch.tensor([1.0, 0.7165, 1.0e-4], dtype=dtype),
+            rtol=0,
+            atol=1e-4,
+        )
 
 
 # ---------------------------------------------------------------------------- NNOPCS
@@ -363,8 +381,9 @@ class TestNNOPCSExtremes(BaseTester):
         g = torch.Generator().manual_seed(axis)
         n = 200
         part = torch.randint(0, len(flat.primitives), (n,), generator=g)
-        local = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64),
-                                              dim=-1).requires_grad_(True)
+        local = torch.nn.functional.normalize(
+            torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1
+        ).requires_grad_(True)
         values = nnopcs_of(flat, part, local)
         (grad,) = torch.autograd.grad(values.sum(), local)
         assert _finite(values, grad)
@@ -381,8 +400,10 @@ class TestNNOPCSExtremes(BaseTester):
         """Fixed: a zero extent gave 0 / 0 = NaN, which the clamp to [0, 1] kept."""
         point = dataclasses.replace(
             BIPED,
-            primitives=tuple(dataclasses.replace(p, centre=(0.0, 0.0, 0.0), radii=(0.0, 0.0, 0.0))
-                             for p in BIPED.primitives),
+            primitives=tuple(
+                dataclasses.replace(p, centre=(0.0, 0.0, 0.0), radii=(0.0, 0.0, 0.0))
+                for p in BIPED.primitives
+            ),
         )
         with pytest.raises(ValueError, match="zero size along every axis"):
             nnopcs_bounds(point)
@@ -411,8 +432,9 @@ def _renderer_case(name: str, dtype):
 
 class TestRendererExtremes(BaseTester):
     @DTYPES
-    @pytest.mark.parametrize("case", ["some_behind", "on_camera_plane", "coincident",
-                                      "outside_image"])
+    @pytest.mark.parametrize(
+        "case", ["some_behind", "on_camera_plane", "coincident", "outside_image"]
+    )
     def test_render_finite_with_gradients(self, case, dtype):
         model, _, cam, kps = _renderer_case(case, dtype)
         kps.requires_grad_(True)
@@ -453,7 +475,63 @@ class TestRendererExtremes(BaseTester):
         centre = kps[0, 0]  # the first keypoint was mirrored behind the camera
         behind = centre.expand_as(kps).clone()
         with pytest.raises(ValueError, match="behind their camera"):
-            model.renderer(behind, torch.zeros(1, kps.shape[1], 16, dtype=torch.float64),
-                           torch.zeros(1, 32, dtype=torch.float64), cam,
-                           torch.zeros(1, 1, 2, dtype=torch.float64))
+            model.renderer(
+                behind,
+                torch.zeros(1, kps.shape[1], 16, dtype=torch.float64),
+                torch.zeros(1, 32, dtype=torch.float64),
+                cam,
+                torch.zeros(1, 1, 2, dtype=torch.float64),
+            )
 
+
+class TestTextureVAEExtremes:
+    """The texture VAE's KLD and reparameterisation at log-variances of +-50."""
+
+    @given(
+        mu=st.floats(-1e3, 1e3),
+        logvar=st.floats(-50.0, 50.0),
+    )
+    @settings(max_examples=60, deadline=None)
+    def test_kld_finite_and_equal_to_its_float64_closed_form(self, mu, logvar):
+        from netepu.texture import kld
+
+        m = torch.tensor([[mu, -mu]], dtype=torch.float32, requires_grad=True)
+        lv = torch.tensor([[logvar, -logvar]], dtype=torch.float32, requires_grad=True)
+        k = kld(m, lv)
+        k.backward()
+        assert _finite(k, m.grad, lv.grad)
+        closed = sum(
+            0.5 * (x * x + math.exp(v) - 1.0 - v) for x, v in ((mu, logvar), (-mu, -logvar))
+        )
+        assert math.isclose(k.item(), closed, rel_tol=1e-5, abs_tol=1e-5)
+        # d KLD / d logvar = (exp(logvar) - 1) / 2, of either sign; d KLD / d mu = mu
+        assert math.isclose(
+            lv.grad[0, 0].item(), 0.5 * math.expm1(logvar), rel_tol=1e-5, abs_tol=1e-6
+        )
+        assert math.isclose(m.grad[0, 0].item(), mu, rel_tol=1e-5, abs_tol=1e-6)
+
+    def test_kld_limits(self):
+        from netepu.texture import kld
+
+        # zero exactly at the prior; grows like exp(logvar) / 2 and like -logvar / 2 at the extremes
+        assert kld(torch.zeros(1, 4), torch.zeros(1, 4)).item() == 0.0
+        big = kld(
+            torch.zeros(1, 1, dtype=torch.float64), torch.full((1, 1), 50.0, dtype=torch.float64)
+        )
+        small = kld(
+            torch.zeros(1, 1, dtype=torch.float64), torch.full((1, 1), -50.0, dtype=torch.float64)
+        )
+        assert math.isclose(big.item(), 0.5 * (math.exp(50.0) - 51.0), rel_tol=1e-12)
+        assert math.isclose(small.item(), 0.5 * (math.exp(-50.0) + 49.0), rel_tol=1e-12)
+
+    @pytest.mark.parametrize("logvar", [-50.0, 50.0])
+    def test_reparameterise_finite_with_gradients(self, logvar):
+        from netepu.texture import reparameterise
+
+        mu = torch.zeros(3, 8, requires_grad=True)
+        lv = torch.full((3, 8), logvar, requires_grad=True)
+        noise = torch.randn(3, 8, generator=torch.Generator().manual_seed(0))
+        z = reparameterise(mu, lv, noise)
+        z.sum().backward()
+        assert _finite(z, mu.grad, lv.grad)
+        torch.testing.assert_close(z, noise * math.exp(logvar / 2))
