@@ -330,7 +330,7 @@ def report() -> None:
                 "PSNR held-out cameras (dB)": _fmt_db(r["heldout_cameras/psnr_reconstruction"]),
                 "PSNR novel pose+view, held-out poses": _fmt_db(r["heldout_poses/psnr_novel"]),
                 "PSNR novel pose+view, held-out cameras": _fmt_db(r["heldout_cameras/psnr_novel"]),
-                "paper PSNR (dB)": PAPER.get(name),
+                "paper PSNR (dB)": PAPER.get(name, ""),
                 "re-id rank-1": round(r["reid_rank1"], 4),
                 "re-id mAP": round(r["reid_map"], 4),
                 "rank-1 look-alike queries": round(r["reid_rank1_look_alikes"], 4),
