@@ -69,6 +69,7 @@ class BiNVSConfig:
     mask_normalisation: str = "max"  # "max": divide each window's mask by its maximum
     mask_floor: float = 1e-4  # floor of that maximum
     crop_padding: str = "zeros"  # grid_sample padding of crops reaching outside the frame
+    presence_gate: str = "soft"  # "soft": presence scales the pasted masks; "none": ungated
 
     def validate(self) -> None:
         if self.num_windows < 1:
@@ -78,6 +79,10 @@ class BiNVSConfig:
         if self.mask_normalisation not in ("max", "none"):
             raise ConfigError(
                 f"model.mask_normalisation must be 'max' or 'none', got {self.mask_normalisation!r}"
+            )
+        if self.presence_gate not in ("soft", "none"):
+            raise ConfigError(
+                f"model.presence_gate must be 'soft' or 'none', got {self.presence_gate!r}"
             )
         if not 1 <= self.association_dims:
             raise ConfigError("model.association_dims must be >= 1")
@@ -111,6 +116,7 @@ class Rendering:
         composite: weights (instance masks), background weight and depth map.
         layers: pasted subject images (B, N, 3, H, W).
         masks: pasted subject masks (B, N, H, W) (after association and presence).
+        ungated_masks: the same before presence and switch-off (B, N, H, W).
         association: (B, N, N) soft (training) or one-hot (inference) association.
         window_rgb, window_mask: the decoded windows in target slots, (B, N, 3|1, h, w).
         occlusion_reasoning: False when the masks did not overlap and the erf compositor's
@@ -125,6 +131,7 @@ class Rendering:
     window_rgb: Tensor
     window_mask: Tensor
     occlusion_reasoning: bool = True
+    ungated_masks: Tensor | None = None
 
 
 class BiNVS(nn.Module):
@@ -237,7 +244,9 @@ class BiNVS(nn.Module):
         boxes = target.det.boxes
         layers = paste(rgb, boxes, (H, W), focal=self.cfg.focal, padding_mode="border")
         masks = paste(mask, boxes, (H, W), focal=self.cfg.focal, padding_mode="zeros")[:, :, 0]
-        masks = masks.clamp(0.0, 1.0) * target.det.presence[..., None, None]
+        ungated = masks = masks.clamp(0.0, 1.0)
+        if self.cfg.presence_gate == "soft":  # "none": presence acts only through `on`
+            masks = masks * target.det.presence[..., None, None]
         if target.on is not None:  # inference: skip occlusion reasoning without overlaps
             masks = masks * target.on[..., None, None]
         if not self.cfg.depth:
@@ -253,10 +262,13 @@ class BiNVS(nn.Module):
                 rgb,
                 mask,
                 occlusion_reasoning=False,
+                ungated_masks=ungated,
             )
         else:
             comp = erf_transmittance_composite(masks, target.det.depths)
-        return Rendering(blend(comp, layers, background), comp, layers, masks, A, rgb, mask)
+        return Rendering(
+            blend(comp, layers, background), comp, layers, masks, A, rgb, mask, True, ungated
+        )
 
     def forward(
         self,

@@ -12,7 +12,10 @@ Loss per view pair (both directions of Bi-NVS):
 * foreground-evidence prior: the composited coverage 1 - T(inf) should match
   the background-residual evidence (a label-free cue from the median background);
 * weak priors on the windows of both views (position, scale, aspect) and the
-  presence prior.
+  presence prior;
+* with ``prior_presence.target=marginal``, the presence learns a detached,
+  label-free target, each window's marginal contribution to explaining the
+  foreground evidence (:mod:`nsd.presence`).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from nsd.encoder import Encoder
 from nsd.errors import ConfigError
 from nsd.evaluation import evaluate_model
 from nsd.losses import foreground_evidence, total_image_loss
+from nsd.presence import marginal_presence_target, presence_target_loss, window_area
 from nsd.priors import aspect_prior, position_prior, presence_prior, scale_prior
 from nsd.proposals import association_prior, match_proposals, proposal_prior
 from nsd.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
@@ -116,6 +120,11 @@ class NSDTask:
         self._make_optimizer()
         self.stage2_started = self.depth_from <= 0
         self.step = 0
+        self.presence_target = str(cfg.prior_presence.get("target", "none"))
+        if self.presence_target not in ("none", "marginal"):
+            raise ConfigError(
+                f"prior_presence.target must be 'none' or 'marginal', got {self.presence_target!r}"
+            )
         pp = cfg.prior_proposal
         if (
             pp.weight > 0
@@ -223,6 +232,8 @@ class NSDTask:
         out["prior_scale"] = scale_prior(boxes, c.prior_scale.target)
         out["prior_aspect"] = aspect_prior(boxes, c.prior_aspect.ratio, (H, W))
         out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
+        if self.presence_target == "marginal" and self.model.detector.use_presence:
+            out.update(self._presence_target(batch, rv, rw, wv, ww))
         matching = None
         if batch.proposals_v is not None:
             props = torch.cat([batch.proposals_v, batch.proposals_w])
@@ -263,6 +274,8 @@ class NSDTask:
             "prior_scale": c.prior_scale.weight,
             "prior_aspect": c.prior_aspect.weight,
             "prior_presence": c.prior_presence.weight,
+            "presence_target": c.prior_presence.get("target_weight", 0.0),
+            "presence_target_on": 0.0,  # logged only: windows on per view in the target
             "prior_proposal": self.proposal_weight(),
             "prior_depth": c.prior_depth.weight,
             "prior_association": c.prior_association.weight,
@@ -271,6 +284,23 @@ class NSDTask:
             total = total + weights[k] * v
         out["loss"] = total
         return out
+
+    def _presence_target(self, batch, rv, rw, wv, ww) -> dict[str, torch.Tensor]:
+        """BCE of both views' presences against their marginal-gain targets (nsd.presence)."""
+        c = self.cfg
+        H, W = batch.image_v.shape[-2:]
+        loss, on = torch.zeros(()), torch.zeros(())
+        for r, win, img, bg in (
+            (rv, wv, batch.image_v, batch.background_v),
+            (rw, ww, batch.image_w, batch.background_w),
+        ):
+            ev = foreground_evidence(img, bg, c.loss.evidence_threshold, c.loss.evidence_softness)
+            target, _ = marginal_presence_target(
+                r.ungated_masks, ev, window_area(win.det.boxes, (H, W)), c.prior_presence.margin
+            )
+            loss = loss + presence_target_loss(win.det.presence, target) / 2
+            on = on + target.sum(-1).mean() / 2
+        return {"presence_target": loss, "presence_target_on": on}
 
     def _depth_prior(self, batch, rv, rw, wv, ww) -> torch.Tensor:
         """Triangulated relative-depth consistency for both directions (nsd.triangulation)."""

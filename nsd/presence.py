@@ -1,0 +1,102 @@
+r"""Label-free window presence: a window is present if it explains foreground no other does.
+
+With an upper bound of :math:`N` windows, the detector predicts a presence
+:math:`p_i \in [0, 1]` per window. Gating the image loss by :math:`p_i` and
+pushing it down with a sparsity prior collapses every presence to 0: a blurry
+early window reconstructs worse than the median background it covers, so the
+image loss itself lowers :math:`p_i`, and a low presence shrinks the gradients
+that would teach the window (docs/benchmarks/count.md). Here the masks stay
+ungated in the image loss (``model.presence_gate=none``: the decomposition
+learns as with a fixed :math:`N`) and the presence learns from a detached
+target, the window's *marginal contribution* to explaining the foreground.
+
+With the soft foreground evidence :math:`e(x) \in [0, 1]` (background residual,
+:func:`nsd.losses.foreground_evidence`), the ungated pasted masks
+:math:`m_i(x) \in [0, 1]` and the window areas :math:`A_i = s_{x,i} s_{y,i} H W`
+pixels (half-sizes in normalised coordinates), windows are accepted greedily:
+starting from nothing explained, :math:`c_0(x) = 0`, at each round the window
+with the largest area-normalised gain among those not yet evaluated,
+
+.. math::
+    g_i = \frac{1}{A_i} \sum_x m_i(x)\, e(x)\, \big(1 - c(x)\big),
+
+is evaluated; its target is :math:`y_i = [g_i \ge \delta]` (``margin``) and, if
+accepted, what it explains is added, :math:`c \leftarrow c + (1 - c)\, m_i`. Once
+the best remaining window is rejected, so are all others (their gains cannot
+exceed it, :math:`c` no longer changes). Hence an empty window (:math:`e = 0`
+under its mask) is off; of two duplicates of the same individual exactly one is
+on (the second gains nothing once the first explains the individual, and the
+first always gains as much as either alone); and a window on each of several
+individuals is on. :math:`y` carries no gradient; the presence learns it by
+binary cross-entropy, :math:`L = \frac{1}{BN}\sum_{b,i} \mathrm{BCE}(p_{b,i}, y_{b,i})`.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = ["marginal_presence_target", "presence_target_loss", "window_area"]
+
+
+def window_area(boxes: Tensor, image_size: tuple[int, int]) -> Tensor:
+    """Area in pixels of windows (B, N, 4) = (sx, sy, tx, ty): :math:`s_x s_y H W`, shape (B, N)."""
+    H, W = image_size
+    return boxes[..., 0] * boxes[..., 1] * (H * W)
+
+
+@torch.no_grad()
+def marginal_presence_target(
+    masks: Tensor, evidence: Tensor, area: Tensor, margin: float = 0.1
+) -> tuple[Tensor, Tensor]:
+    """Greedy marginal-gain presence targets (detached).
+
+    Args:
+        masks: ungated pasted window masks (B, N, H, W) in [0, 1].
+        evidence: foreground evidence (B, H, W) in [0, 1].
+        area: window areas (B, N) in pixels (:func:`window_area`).
+        margin: smallest newly explained foreground, as a fraction of the window's area.
+
+    Returns:
+        target (B, N) in {0, 1} and gain (B, N), each window's area-normalised gain
+        given the windows accepted before it was evaluated; both without gradient.
+
+    Example:
+        >>> m = torch.zeros(1, 3, 4, 4); m[0, 0, :2, :2] = 1; m[0, 1] = m[0, 0]
+        >>> e = m[:, 0].clone()
+        >>> marginal_presence_target(m, e, torch.full((1, 3), 4.0))[0].tolist()
+        [[1.0, 0.0, 0.0]]
+    """
+    if masks.dim() != 4 or evidence.shape != (masks.shape[0], *masks.shape[2:]):
+        raise ValueError(
+            f"masks must be (B, N, H, W) and evidence (B, H, W), got {tuple(masks.shape)} "
+            f"and {tuple(evidence.shape)}"
+        )
+    if area.shape != masks.shape[:2]:
+        raise ValueError(f"area must be (B, N) = {tuple(masks.shape[:2])}, got {tuple(area.shape)}")
+    B, N = masks.shape[:2]
+    m = masks.detach().clamp(0.0, 1.0).flatten(2)  # (B, N, P)
+    e = evidence.detach().flatten(1)  # (B, P)
+    a = area.detach().clamp_min(1.0)
+    covered = torch.zeros_like(e)
+    target = torch.zeros(B, N, dtype=m.dtype, device=m.device)
+    gain = torch.zeros_like(target)
+    pending = torch.ones(B, N, dtype=torch.bool, device=m.device)
+    rows = torch.arange(B, device=m.device)
+    for _ in range(N):
+        g = (m * (e * (1 - covered))[:, None]).sum(-1) / a  # (B, N)
+        best = g.masked_fill(~pending, -1.0).argmax(-1)  # (B,)
+        g_best = g[rows, best]
+        accept = g_best >= margin
+        gain[rows, best] = g_best
+        target[rows, best] = accept.to(m.dtype)
+        pending[rows, best] = False
+        picked = m[rows, best] * accept[:, None].to(m.dtype)  # (B, P)
+        covered = covered + (1 - covered) * picked
+    return target, gain
+
+
+def presence_target_loss(presence: Tensor, target: Tensor) -> Tensor:
+    """Mean binary cross-entropy of presences (B, N) in [0, 1] against detached targets."""
+    return F.binary_cross_entropy(presence.clamp(1e-6, 1 - 1e-6), target.detach())

@@ -1,0 +1,162 @@
+"""Label-free presence target (nsd/presence.py), the ungated compositor and its training term."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nsd.presence import marginal_presence_target, presence_target_loss, window_area
+from nsd.train import build_model
+from tests.test_nsd_train import tiny_cfg
+
+H = W = 16
+
+
+def _square(y0: int, x0: int, size: int = 6, value: float = 1.0) -> torch.Tensor:
+    m = torch.zeros(H, W)
+    m[y0 : y0 + size, x0 : x0 + size] = value
+    return m
+
+
+def _scene():
+    """Two individuals (squares of evidence); windows on A, empty, on A again (dup), on B."""
+    evidence = (_square(1, 1) + _square(9, 9)).clamp(max=1)[None]
+    masks = torch.stack([_square(1, 1), _square(1, 9), _square(1, 1, value=0.9), _square(9, 9)])
+    area = torch.full((1, 4), 64.0)  # 8 x 8 px windows around the 6 x 6 px individuals
+    return masks[None], evidence, area
+
+
+def test_target_on_for_individuals_off_for_empty_and_duplicate():
+    masks, evidence, area = _scene()
+    target, gain = marginal_presence_target(masks, evidence, area, margin=0.1)
+    assert target.tolist() == [[1.0, 0.0, 0.0, 1.0]]
+    assert gain[0, 0].item() == pytest.approx(36 / 64)  # all of A, newly explained
+    assert gain[0, 1].item() == 0.0  # empty window
+    assert gain[0, 2].item() == pytest.approx(0.0, abs=1e-6)  # A already explained
+    assert gain[0, 3].item() == pytest.approx(36 / 64)
+
+
+@pytest.mark.parametrize("order", [[0, 1, 2, 3], [2, 0, 3, 1], [3, 2, 1, 0]])
+def test_exactly_one_of_two_duplicates_stays_on_whatever_the_order(order):
+    masks, evidence, area = _scene()
+    masks[0, 2] = masks[0, 0]  # exact duplicate
+    target, _ = marginal_presence_target(masks[:, order], evidence, area, margin=0.1)
+    on = {o for o, t in zip(order, target[0].tolist(), strict=True) if t == 1}
+    assert len(on & {0, 2}) == 1 and 3 in on and 1 not in on
+
+
+def test_margin_is_relative_to_window_area():
+    masks, evidence, area = _scene()
+    small = torch.zeros_like(masks)
+    small[0, 0] = masks[0, 0] * 0.1  # faint mask: explains 3.6 of 64 px
+    target, gain = marginal_presence_target(small, evidence, area, margin=0.1)
+    assert gain[0, 0].item() == pytest.approx(3.6 / 64)
+    assert target.sum() == 0
+    target, _ = marginal_presence_target(small, evidence, torch.full((1, 4), 16.0), 0.1)
+    assert target[0, 0] == 1  # same mask, a window 4x smaller: on
+
+
+def test_batch_items_are_independent():
+    masks, evidence, area = _scene()
+    empty = torch.zeros_like(evidence)
+    target, _ = marginal_presence_target(
+        torch.cat([masks, masks]), torch.cat([evidence, empty]), torch.cat([area, area])
+    )
+    assert target[0].tolist() == [1.0, 0.0, 0.0, 1.0]
+    assert target[1].sum() == 0  # no foreground: every window off
+
+
+def test_target_is_detached_and_the_loss_reaches_only_presence():
+    masks, evidence, area = _scene()
+    masks.requires_grad_(True)
+    evidence.requires_grad_(True)
+    target, gain = marginal_presence_target(masks, evidence, area)
+    assert not target.requires_grad and not gain.requires_grad
+    logits = torch.zeros(1, 4, dtype=torch.float64, requires_grad=True)
+    presence_target_loss(torch.sigmoid(logits), target.double()).backward()
+    # d BCE / d logit = (p - y) / (B N): pulls on-windows up, off-windows down
+    assert torch.allclose(logits.grad, (0.5 - target.double()) / 4)
+    assert masks.grad is None and evidence.grad is None
+
+
+def test_bad_shapes_raise():
+    masks, evidence, area = _scene()
+    with pytest.raises(ValueError, match="evidence"):
+        marginal_presence_target(masks, evidence[0], area)
+    with pytest.raises(ValueError, match="area"):
+        marginal_presence_target(masks, evidence, area[:, :2])
+
+
+def test_window_area_in_pixels():
+    boxes = torch.tensor([[[0.5, 0.25, 0.1, -0.3]]])  # half-sizes in [-1, 1] coordinates
+    assert window_area(boxes, (24, 32)).item() == pytest.approx(0.5 * 32 * 0.25 * 24)
+
+
+def _render(gate: str, presence_logit: float):
+    torch.manual_seed(0)
+    cfg = tiny_cfg("model.detector.presence=true", f"model.presence_gate={gate}")
+    model = build_model(cfg.model)
+    with torch.no_grad():
+        model.detector.head.bias.view(-1, 6)[:, 5] = presence_logit
+    model.eval()  # no decoder dropout: the two renderings differ only by presence
+    images, bgs = torch.rand(2, 3, 24, 32), torch.rand(2, 3, 24, 32)
+    win = model.windows(images, bgs)
+    eye = torch.eye(3).expand(2, 3, 3)
+    return model.render(win, win, eye, bgs, associate=False), win
+
+
+def test_ungated_masks_ignore_presence_in_training():
+    r_low, win = _render("none", -2.0)
+    r_high, _ = _render("none", 2.0)
+    assert torch.allclose(r_low.masks, r_high.masks)  # presence does not scale the masks
+    assert torch.equal(r_low.masks, r_low.ungated_masks)
+    assert not torch.allclose(win.det.presence, torch.ones_like(win.det.presence))
+    # no image gradient reaches the presence when ungated
+    assert not r_low.image.requires_grad or torch.autograd.grad(
+        r_low.image.sum(), win.det.presence, allow_unused=True
+    )[0] is None
+    r_soft, _ = _render("soft", -2.0)
+    p = torch.sigmoid(torch.tensor(-2.0))
+    assert torch.allclose(r_soft.masks, r_soft.ungated_masks * p, atol=1e-6)
+
+
+def test_bad_presence_gate_raises():
+    from nsd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"presence_gate"):
+        build_model(tiny_cfg("model.presence_gate=hard").model)
+
+
+def test_marginal_group_ungates_and_trains_presence(tiny_scene):
+    """prior_presence=marginal: masks ungated, the BCE term is logged and moves only presence."""
+    from nsd.data import SceneData
+    from nsd.train import NSDTask
+
+    assert tiny_cfg().model.presence_gate == "soft"  # fixed-N default unchanged
+    cfg = tiny_cfg("model.detector.presence=true", "prior_presence=marginal")
+    assert cfg.model.presence_gate == "none"
+    task = NSDTask(cfg, SceneData(tiny_scene, (32, 24), val_fraction=0.25))
+    assert task.model.cfg.presence_gate == "none"
+    losses = task.training_step(0, np.random.default_rng(0))
+    assert torch.isfinite(losses["presence_target"])
+    on = float(losses["presence_target_on"])
+    assert 0 <= on <= cfg.model.num_windows
+    # the presence head bias gets gradient from the BCE term only
+    task.opt.zero_grad()
+    losses["pixel"].backward(retain_graph=True)
+    g = task.model.detector.head.bias.grad
+    assert g is None or g.view(-1, 6)[:, 5].abs().max() == 0
+    task.opt.zero_grad()
+    losses["presence_target"].backward()
+    assert task.model.detector.head.bias.grad.view(-1, 6)[:, 5].abs().max() > 0
+
+
+def test_unknown_presence_target_raises(tiny_scene):
+    from nsd.data import SceneData
+    from nsd.errors import ConfigError
+    from nsd.train import NSDTask
+
+    cfg = tiny_cfg("model.detector.presence=true", "prior_presence.target=oracle")
+    with pytest.raises(ConfigError, match=r"prior_presence\.target"):
+        NSDTask(cfg, SceneData(tiny_scene, (32, 24), val_fraction=0.25))
