@@ -54,7 +54,8 @@ class InverseSettings:
 
     Attributes:
         steps: Adam steps.
-        lr: Adam learning rate of ``z`` (the translation uses ``lr * radius``).
+        lr: Adam learning rate of ``z`` in units of the codes' RMS entry (the
+            translation uses ``lr * radius``).
         points_per_view: loss points per view and step.
         headings: start directions per template.
         prune_every: steps between dropping the worse half of the starts (0: never).
@@ -159,19 +160,21 @@ def _optimise(model, masks, camera, templates, s: InverseSettings, rng):
             starts.append(rotate_about_up(centred, 2 * math.pi * h / s.headings, up))
     with torch.no_grad():
         z0 = model.encode(torch.stack(starts) + centre0).z
-    z = z0.clone().requires_grad_(True)
+    sigma = z0.pow(2).mean().sqrt().clamp(min=1e-8)
+    w = (z0 / sigma).requires_grad_(True)  # z = sigma w
     centre = centre0.expand(len(starts), 3).clone().requires_grad_(True)
 
-    def adam(z: Tensor, centre: Tensor) -> torch.optim.Adam:
-        return torch.optim.Adam([{"params": [z], "lr": s.lr},
+    def adam(w: Tensor, centre: Tensor) -> torch.optim.Adam:
+        return torch.optim.Adam([{"params": [w], "lr": s.lr},
                                  {"params": [centre], "lr": s.lr * model.radius}])
 
-    opt = adam(z, centre)
+    opt = adam(w, centre)
     np_masks = masks.numpy()
     cams = {k: v.float() for k, v in camera.items()}
     losses = torch.zeros(len(starts))
     for step in range(s.steps):
-        S = z.shape[0]
+        S = w.shape[0]
+        z = sigma * w
         uv = torch.from_numpy(_points(np_masks, s.points_per_view, rng, s.sigma_near))
         px, py = uv[..., 0].long(), uv[..., 1].long()
         label = masks[torch.arange(V)[:, None], py, px].float()
@@ -195,15 +198,15 @@ def _optimise(model, masks, camera, templates, s: InverseSettings, rng):
         if s.prune_every and (step + 1) % s.prune_every == 0 and S > 1:
             keep = losses.argsort()[: max(1, S // 2)]
             state = opt.state_dict()["state"]
-            z = z.detach()[keep].requires_grad_(True)
+            w = w.detach()[keep].requires_grad_(True)
             centre = centre.detach()[keep].requires_grad_(True)
-            opt = adam(z, centre)
-            for i, param in enumerate((z, centre)):  # carry Adam's moments of the survivors
+            opt = adam(w, centre)
+            for i, param in enumerate((w, centre)):  # carry Adam's moments of the survivors
                 if i in state:
                     opt.state[param] = {k: (v[keep] if torch.is_tensor(v) and v.dim() else v)
                                         for k, v in state[i].items()}
             losses = losses[keep]
-    return z.detach(), centre.detach(), losses
+    return (sigma * w).detach(), centre.detach(), losses
 
 
 def invert_silhouettes(

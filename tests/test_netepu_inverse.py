@@ -66,3 +66,49 @@ def test_recovers_known_pose_from_own_renders():
                             views.size, MapSettings()).silhouette
     assert silhouette_iou(again, own).min() > 0.85
     assert all(p.requires_grad for p in model.parameters())  # model left as found
+
+
+class _ScaledEncoder(torch.nn.Module):
+    """An encoder whose codes are multiplied by ``a``."""
+
+    def __init__(self, inner: torch.nn.Module, a: float) -> None:
+        super().__init__()
+        self.inner, self.a, self.n_keypoints = inner, a, inner.n_keypoints
+
+    def forward(self, keypoints):
+        return self.inner(keypoints) * self.a
+
+
+class _ScaledDecoder(torch.nn.Module):
+    """The matching decoder: divides its codes by ``a`` first (same model, codes x a)."""
+
+    def __init__(self, inner: torch.nn.Module, a: float) -> None:
+        super().__init__()
+        self.inner, self.a = inner, a
+
+    def forward(self, z, z_features=None):
+        return self.inner(z / self.a, None if z_features is None else z_features / self.a)
+
+
+def test_recovery_does_not_depend_on_the_scale_of_codes():
+    """Trained codes are small (entries ~1e-2); the same model with codes x 0.01 is inverted
+    as well as the original (steps are taken in the codes' own scale)."""
+    model, data, _ = trained_toy()
+    views = data.evaluation["train"]
+    truth, sel = views.keypoints[0], [0, 2, 4]
+    cam = {k: v[sel] for k, v in views.camera.items()}
+    with torch.no_grad():
+        own = render_maps(model.query, model.prepare(model.encode(truth[None]), cam),
+                          views.size, MapSettings()).silhouette
+    template = torch.from_numpy(toy_pose(np.random.default_rng(7))).float()[None]
+    settings = InverseSettings(steps=80, points_per_view=256, headings=4, latent_weight=0.0)
+    plain = invert_silhouettes(model, own, cam, template, settings)
+    encoder, decoder = model.encoder, model.decoder
+    try:
+        model.encoder = _ScaledEncoder(encoder, 0.01)
+        model.decoder = _ScaledDecoder(decoder, 0.01)
+        small = invert_silhouettes(model, own, cam, template, settings)
+    finally:
+        model.encoder, model.decoder = encoder, decoder
+    assert small.z.abs().max() < 0.1 * plain.z.abs().max()  # the codes really are smaller
+    assert mpjpe(small.keypoints, plain.keypoints) < 0.02
