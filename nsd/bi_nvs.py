@@ -69,7 +69,9 @@ class BiNVSConfig:
     mask_normalisation: str = "max"  # "max": divide each window's mask by its maximum
     mask_floor: float = 1e-4  # floor of that maximum
     crop_padding: str = "zeros"  # grid_sample padding of crops reaching outside the frame
-    presence_gate: str = "soft"  # "soft": presence scales the pasted masks; "none": ungated
+    # how presence acts on the pasted masks in training: "soft" scales them by it, "hard" keeps
+    # only windows with presence >= 0.5 (a detached 0/1 gate), "none" leaves them ungated
+    presence_gate: str = "soft"
 
     def validate(self) -> None:
         if self.num_windows < 1:
@@ -80,9 +82,9 @@ class BiNVSConfig:
             raise ConfigError(
                 f"model.mask_normalisation must be 'max' or 'none', got {self.mask_normalisation!r}"
             )
-        if self.presence_gate not in ("soft", "none"):
+        if self.presence_gate not in ("soft", "hard", "none"):
             raise ConfigError(
-                f"model.presence_gate must be 'soft' or 'none', got {self.presence_gate!r}"
+                f"model.presence_gate must be 'soft', 'hard' or 'none', got {self.presence_gate!r}"
             )
         if not 1 <= self.association_dims:
             raise ConfigError("model.association_dims must be >= 1")
@@ -245,8 +247,10 @@ class BiNVS(nn.Module):
         layers = paste(rgb, boxes, (H, W), focal=self.cfg.focal, padding_mode="border")
         masks = paste(mask, boxes, (H, W), focal=self.cfg.focal, padding_mode="zeros")[:, :, 0]
         ungated = masks = masks.clamp(0.0, 1.0)
-        if self.cfg.presence_gate == "soft":  # "none": presence acts only through `on`
+        if self.cfg.presence_gate == "soft":
             masks = masks * target.det.presence[..., None, None]
+        elif self.cfg.presence_gate == "hard":  # no image gradient into the presence
+            masks = masks * (target.det.presence.detach() >= 0.5)[..., None, None].to(masks.dtype)
         if target.on is not None:  # inference: skip occlusion reasoning without overlaps
             masks = masks * target.on[..., None, None]
         if not self.cfg.depth:

@@ -5,15 +5,21 @@ With an upper bound of :math:`N` windows, the detector predicts a presence
 pushing it down with a sparsity prior collapses every presence to 0: a blurry
 early window reconstructs worse than the median background it covers, so the
 image loss itself lowers :math:`p_i`, and a low presence shrinks the gradients
-that would teach the window (docs/benchmarks/count.md). Here the masks stay
-ungated in the image loss (``model.presence_gate=none``: the decomposition
-learns as with a fixed :math:`N`) and the presence learns from a detached
-target, the window's *marginal contribution* to explaining the foreground.
+that would teach the window (docs/benchmarks/count.md). Here no image gradient
+reaches the presence: the image loss composites the windows that are on with a
+detached 0/1 gate (``model.presence_gate=hard``; ``none`` keeps every window, as
+with a fixed :math:`N`) and the presence learns from a detached target, the
+window's *marginal contribution* to explaining the foreground. The hard gate
+makes the windows that stay on explain each individual whole, while the
+windows that are off keep being evaluated (their ungated masks), so they turn
+on again where foreground is left unexplained.
 
 With the soft foreground evidence :math:`e(x) \in [0, 1]` (background residual,
 :func:`nsd.losses.foreground_evidence`), the ungated pasted masks
-:math:`m_i(x) \in [0, 1]` and the window areas :math:`A_i = s_{x,i} s_{y,i} H W`
-pixels (half-sizes in normalised coordinates), windows are accepted greedily:
+:math:`m_i(x) \in [0, 1]` and the window areas :math:`A_i` (``normalise=mask``:
+the mask's own area :math:`\max(\sum_x m_i, a_{min})`, so that :math:`g_i` below is
+the fraction of the mask that lands on unexplained foreground; ``box``:
+:math:`s_{x,i} s_{y,i} H W` pixels), windows are accepted greedily:
 starting from nothing explained, :math:`c_0(x) = 0`, at each round the window
 with the largest area-normalised gain among those not yet evaluated,
 

@@ -121,6 +121,11 @@ class NSDTask:
         self.stage2_started = self.depth_from <= 0
         self.step = 0
         self.presence_target = str(cfg.prior_presence.get("target", "none"))
+        if cfg.prior_presence.get("normalise", "mask") not in ("mask", "box"):
+            raise ConfigError(
+                "prior_presence.normalise must be 'mask' or 'box', got "
+                f"{cfg.prior_presence.normalise!r}"
+            )
         if self.presence_target not in ("none", "marginal"):
             raise ConfigError(
                 f"prior_presence.target must be 'none' or 'marginal', got {self.presence_target!r}"
@@ -295,8 +300,12 @@ class NSDTask:
             (rw, ww, batch.image_w, batch.background_w),
         ):
             ev = foreground_evidence(img, bg, c.loss.evidence_threshold, c.loss.evidence_softness)
+            if c.prior_presence.get("normalise", "mask") == "box":
+                area = window_area(win.det.boxes, (H, W))
+            else:  # the window's own (ungated) mask area, at least min_area pixels
+                area = r.ungated_masks.flatten(2).sum(-1).clamp_min(c.prior_presence.min_area)
             target, _ = marginal_presence_target(
-                r.ungated_masks, ev, window_area(win.det.boxes, (H, W)), c.prior_presence.margin
+                r.ungated_masks, ev, area, c.prior_presence.margin
             )
             loss = loss + presence_target_loss(win.det.presence, target) / 2
             on = on + target.sum(-1).mean() / 2

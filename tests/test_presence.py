@@ -121,23 +121,39 @@ def test_ungated_masks_ignore_presence_in_training():
     assert torch.allclose(r_soft.masks, r_soft.ungated_masks * p, atol=1e-6)
 
 
+def test_hard_gate_keeps_only_present_windows_without_gradient():
+    torch.manual_seed(0)
+    model = build_model(tiny_cfg("model.detector.presence=true", "model.presence_gate=hard").model)
+    with torch.no_grad():
+        model.detector.head.bias.view(-1, 6)[0, 5] = -2.0  # window 0 off
+        model.detector.head.bias.view(-1, 6)[1, 5] = 2.0  # window 1 on
+    model.eval()
+    images, bgs = torch.rand(2, 3, 24, 32), torch.rand(2, 3, 24, 32)
+    win = model.windows(images, bgs)
+    r = model.render(win, win, torch.eye(3).expand(2, 3, 3), bgs, associate=False)
+    assert r.masks[:, 0].abs().max() == 0 and r.ungated_masks[:, 0].abs().max() > 0
+    assert torch.equal(r.masks[:, 1], r.ungated_masks[:, 1])  # on: unscaled
+    g = torch.autograd.grad(r.image.sum(), win.det.presence, allow_unused=True)[0]
+    assert g is None or g.abs().max() == 0
+
+
 def test_bad_presence_gate_raises():
     from nsd.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"presence_gate"):
-        build_model(tiny_cfg("model.presence_gate=hard").model)
+        build_model(tiny_cfg("model.presence_gate=straight").model)
 
 
 def test_marginal_group_ungates_and_trains_presence(tiny_scene):
-    """prior_presence=marginal: masks ungated, the BCE term is logged and moves only presence."""
+    """prior_presence=marginal: hard gate, the BCE term is logged and moves only presence."""
     from nsd.data import SceneData
     from nsd.train import NSDTask
 
     assert tiny_cfg().model.presence_gate == "soft"  # fixed-N default unchanged
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence=marginal")
-    assert cfg.model.presence_gate == "none"
+    assert cfg.model.presence_gate == "hard"
     task = NSDTask(cfg, SceneData(tiny_scene, (32, 24), val_fraction=0.25))
-    assert task.model.cfg.presence_gate == "none"
+    assert task.model.cfg.presence_gate == "hard"
     losses = task.training_step(0, np.random.default_rng(0))
     assert torch.isfinite(losses["presence_target"])
     on = float(losses["presence_target_on"])
