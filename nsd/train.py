@@ -305,7 +305,7 @@ class NSDTask:
             else:  # the window's own (ungated) mask area, at least min_area pixels
                 area = r.ungated_masks.flatten(2).sum(-1).clamp_min(c.prior_presence.min_area)
             target, _ = marginal_presence_target(
-                r.ungated_masks, ev, area, c.prior_presence.margin
+                r.ungated_masks, ev, area, c.prior_presence.margin, win.det.presence
             )
             loss = loss + presence_target_loss(win.det.presence, target) / 2
             on = on + target.sum(-1).mean() / 2

@@ -46,6 +46,14 @@ def test_exactly_one_of_two_duplicates_stays_on_whatever_the_order(order):
     assert len(on & {0, 2}) == 1 and 3 in on and 1 not in on
 
 
+def test_the_more_present_duplicate_stays_on():
+    masks, evidence, area = _scene()
+    for p_first, expected in ((0.9, [1.0, 0.0, 0.0, 1.0]), (0.2, [0.0, 0.0, 1.0, 1.0])):
+        presence = torch.tensor([[p_first, 0.5, 0.6, 0.1]])
+        target, _ = marginal_presence_target(masks, evidence, area, 0.1, presence)
+        assert target.tolist() == [expected]  # window 3 is on however low its presence
+
+
 def test_margin_is_relative_to_window_area():
     masks, evidence, area = _scene()
     small = torch.zeros_like(masks)
