@@ -23,6 +23,11 @@ texture (another pose and camera) and rendered in the sample's view, so the
 code must hold what is the same in every view -- the texture -- and nothing
 of the view it was read from, which is what re-identification needs.
 
+Contrastive codes (``contrast_weight`` > 0, ours): every sample also gets a
+partner, another view (pose, camera) of its texture, encoded the same way, and
+:func:`netepu.texture.code_contrast_loss` of the two batches' codes is added
+with that weight (the synthetic world's texture ids say which rows match).
+
 Evaluation: colour PSNR of the held-out sets and re-identification rank-1 /
 mAP of the held-out codes (:mod:`netepu.reid`).
 """
@@ -42,7 +47,13 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
 from netepu.model import GeometryModel
-from netepu.texture import TextureModel, build_texture_model, reparameterise, texture_loss
+from netepu.texture import (
+    TextureModel,
+    build_texture_model,
+    code_contrast_loss,
+    reparameterise,
+    texture_loss,
+)
 from netepu.texture_data import TextureData, build_texture_data, predicted_nnopcs_crops
 from netepu.texture_evaluation import evaluate_colour, heldout_codes, synthesis_grid
 from nsd.errors import ConfigError
@@ -66,6 +77,8 @@ class TextureStageConfig:
     kld_weight: float = 1e-8
     occlusion: float = 0.25
     cross_view: float = 0.0
+    contrast_weight: float = 0.0
+    contrast_temperature: float = 0.1
     eval_views: int = 8
 
     @classmethod
@@ -79,6 +92,11 @@ class TextureStageConfig:
         c = cls(**dict(cfg))
         if c.batch_size < 1 or c.points < 1 or not 0 <= c.occlusion <= 1:
             raise ConfigError("netepu.texture.optim: batch_size, points >= 1; occlusion in [0, 1]")
+        if c.contrast_weight < 0 or c.contrast_temperature <= 0:
+            raise ConfigError(
+                "netepu.texture.optim: contrast_weight must be >= 0 and contrast_temperature > 0, "
+                f"got {c.contrast_weight}, {c.contrast_temperature}"
+            )
         return c
 
 
@@ -161,27 +179,45 @@ class TextureTask:
             src[b] = pool[rng.integers(0, len(pool))]
         return src
 
+    def partners(self, idx: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Another sample of the same texture for each of ``idx`` (another pose and camera)."""
+        tex = self.data.train["sample_texture"][idx]
+        return np.array([self._by_texture[int(t)][rng.integers(0, len(self._by_texture[int(t)]))]
+                         for t in tex])
+
+    def encoder_input(self, src: np.ndarray, rng: np.random.Generator) -> Tensor:
+        """Encoder input of training samples ``src``: masked RGB, (occluded) mask, NNOPCS."""
+        tr = self.data.train
+        vs = tr["sample_view"][src]
+        inside = occlude(torch.from_numpy(tr["inside"][vs]), rng, self.cfg.occlusion)
+        rgb = torch.from_numpy(tr["rgb"][src]).float() / 255 * inside[..., None]
+        nn_ = torch.from_numpy(self.nnopcs_train[vs].astype(np.float32))
+        return self.texture.encoder_input(rgb, inside, nn_)
+
     def batch(self, rng: np.random.Generator) -> dict[str, Any]:
         """Random samples: encoder input, render inputs and colour targets."""
         c, tr = self.cfg, self.data.train
         idx = rng.integers(0, len(tr["sample_view"]), c.batch_size)
         v = tr["sample_view"][idx]
         src = self.cross_view_sources(idx, rng)
-        vs = tr["sample_view"][src]
-        inside = occlude(torch.from_numpy(tr["inside"][vs]), rng, c.occlusion)
-        rgb = torch.from_numpy(tr["rgb"][src]).float() / 255 * inside[..., None]
-        nn_ = torch.from_numpy(self.nnopcs_train[vs].astype(np.float32))
+        x = self.encoder_input(src, rng)
         pts = rng.integers(0, tr["pool_uv"].shape[1], (c.batch_size, c.points))
         vv = torch.from_numpy(v)
         cam = {k: t[torch.from_numpy(tr["camera"][v])] for k, t in self.data.train_camera.items()}
-        return {
-            "x": self.texture.encoder_input(rgb, inside, nn_),
+        out = {
+            "x": x,
             "view": vv,
             "keypoints": torch.from_numpy(tr["keypoints"][v]),
             "camera": cam,
             "uv": torch.from_numpy(tr["pool_uv"][v[:, None], pts].astype(np.float32)),
             "target": torch.from_numpy(tr["pool_colour"][idx[:, None], pts]).float() / 255,
         }
+        if c.contrast_weight > 0:
+            tex = tr["sample_texture"]
+            partner = self.partners(src, rng)
+            out["x_partner"] = self.encoder_input(partner, rng)
+            out["same"] = torch.from_numpy(tex[src][:, None] == tex[partner][None])
+        return out
 
     def training_step(self, step: int, rng: np.random.Generator) -> dict[str, Tensor]:
         b = self.batch(rng)
@@ -191,9 +227,16 @@ class TextureTask:
         v = b["view"]
         ctx = self.texture.prepare(z, self.geo_z[v], self.geo_f[v], b["keypoints"], b["camera"])
         colour = self.texture.query(ctx, b["uv"])
-        return texture_loss(
+        terms = texture_loss(
             colour, b["target"], mu, logvar, self.cfg.colour_weight, self.cfg.kld_weight
         )
+        if self.cfg.contrast_weight > 0:
+            partner, _ = self.texture.encode(b["x_partner"])
+            terms["contrast"] = code_contrast_loss(
+                mu, partner, b["same"], self.cfg.contrast_temperature
+            )
+            terms["loss"] = terms["loss"] + self.cfg.contrast_weight * terms["contrast"]
+        return terms
 
     def codes(self) -> np.ndarray:
         return heldout_codes(self.texture, self.data, self.nnopcs_heldout)

@@ -14,6 +14,7 @@ from netepu.model import build_geometry_model
 from netepu.texture import (
     TextureConfig,
     build_texture_model,
+    code_contrast_loss,
     crop_grid,
     crop_windows,
     encode_texture,
@@ -384,3 +385,52 @@ def test_cross_view_sources_keep_the_texture_and_change_the_view():
     assert (src != idx).mean() > 0.5
     task.cfg.cross_view = 0.0
     assert (task.cross_view_sources(idx, np.random.default_rng(0)) == idx).all()
+
+
+def test_code_contrast_loss_known_values_and_limits():
+    tau = 0.5
+    eye = torch.eye(2, dtype=torch.bool)
+    mu = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    # orthogonal unit codes, each matching only its partner: log(1 + e^(-1/tau))
+    expect = np.log1p(np.exp(-1 / tau))
+    assert abs(float(code_contrast_loss(mu, mu, eye, tau)) - expect) < 1e-12
+    # invariant to the codes' length (cosine similarity)
+    assert abs(float(code_contrast_loss(5 * mu, 0.1 * mu, eye, tau)) - expect) < 1e-12
+    # every partner positive: nothing to separate, zero loss
+    assert abs(float(code_contrast_loss(mu, mu, torch.ones(2, 2, dtype=torch.bool), tau))) < 1e-12
+    # swapped partners are the worst case: log(1 + e^(1/tau))
+    swapped = code_contrast_loss(mu, mu.flip(0), eye, tau)
+    assert abs(float(swapped) - np.log1p(np.exp(1 / tau))) < 1e-12
+    with pytest.raises(ValueError, match="temperature"):
+        code_contrast_loss(mu, mu, eye, 0.0)
+
+
+def test_code_contrast_loss_gradient_float64():
+    g = torch.Generator().manual_seed(0)
+    mu = torch.randn(5, 4, dtype=torch.float64, generator=g, requires_grad=True)
+    partner = torch.randn(5, 4, dtype=torch.float64, generator=g, requires_grad=True)
+    tex = torch.tensor([0, 1, 0, 2, 1])
+    same = tex[:, None] == tex[None]
+    assert torch.autograd.gradcheck(lambda a, b: code_contrast_loss(a, b, same, 0.2), (mu, partner))
+
+
+def test_contrastive_step_pairs_views_of_one_texture_and_trains_the_encoder():
+    task = _task(textures=(0, 2), per_view=2, contrast_weight=1.0)
+    rng = np.random.default_rng(0)
+    tr = task.data.train
+    idx = np.arange(len(tr["sample_view"]))
+    partner = task.partners(idx, rng)
+    assert (tr["sample_texture"][partner] == tr["sample_texture"][idx]).all()
+    terms = task.training_step(0, rng)
+    assert torch.isfinite(terms["contrast"]) and terms["contrast"] > 0
+    terms["loss"].backward()
+    grads = [p.grad for p in task.texture.encoder.parameters() if p.grad is not None]
+    assert grads and any(float(g.abs().sum()) > 0 for g in grads)
+
+
+def test_contrast_settings_are_checked():
+    from netepu.texture_stage import TextureStageConfig
+    from nsd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="contrast_temperature"):
+        TextureStageConfig.from_mapping({"contrast_temperature": 0.0})
