@@ -7,7 +7,7 @@ For N = 1..4 individuals, a synthetic scene (4 studio cameras, 96 x 96, 150
 frames, close interaction) is written with nsd-synth and nsd-train trains on it
 with ``model.num_windows=4``, the learned window presence on
 (``model.detector.presence=true``) and presence learned from its label-free
-marginal-contribution target with the masks ungated in the image loss
+marginal-contribution target, only the windows that are on in the image loss
 (``prior_presence=marginal``, :mod:`nsd.presence`), everything else at the
 defaults. Earlier variants (``--extra prior_presence=sparse ...``: presence
 gating the masks, a mean-presence prior) are kept in the table when present.
