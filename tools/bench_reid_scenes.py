@@ -1,0 +1,261 @@
+"""Identities from texture codes on synthetic scenes with occlusion: label-free vs true keypoints.
+
+    .venv/bin/python tools/bench_reid_scenes.py one --n 2 --minutes 10   # scene + nsd-run + scores
+    .venv/bin/python tools/bench_reid_scenes.py one --n 3 --minutes 10
+    .venv/bin/python tools/bench_reid_scenes.py report      # docs/benchmarks/reid_scenes.{md,json}
+
+For N = 2 and 3 bipeds in close interaction (4 studio cameras, 300 frames at
+128 x 128), every individual wears a generated texture (ids >= 100) that the
+texture model never saw: it was trained on the 16 textures of the fixed pool.
+``nsd-run`` then runs the whole pipeline on the unlabeled footage: NSD trained
+with N windows, evaluation, export, label-free 3D keypoints by NeTePu inverse
+rendering of each subject's visible masks in the 4 views (every
+``--frame-step`` frames), texture codes from the visible pixels, identities of
+the tracks. The texture codes are computed a second time for the same rows from
+the ground-truth 3D keypoints of the individual each row matches, so that the
+two columns differ only in the keypoints that place the NNOPCS maps.
+
+Scores (rows = exported subject-camera-frames with a texture code in both
+variants that match a ground-truth visible mask at IoU >= 0.5):
+
+* ``mask_miou``, ``detection_rate``: nsd-eval on the held-out frames;
+* ``count_accuracy``: frames whose exported subjects (distinct track ids) number N;
+* ``mpjpe_mm``: the label-free keypoints against the ground truth;
+* ``cross_view_rank1``: for each row, its nearest row (cosine of texture
+  codes) among the rows of the same frame in the other cameras belongs to the
+  same individual; ``cross_time_rank1``: the same among rows of the same camera
+  ten or more frames away; ``chance``: 1 / N;
+* ``identity_accuracy`` and its cross-view / cross-time pair accuracies: the
+  pipeline's identities (tracks grouped by their mean texture code,
+  :mod:`netepu.identities`) scored on those rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tools.benchlib import write_report  # noqa: E402
+
+WORK = Path("/tmp/nsd-bench-reid")
+GEOMETRY = ROOT / "runs/netepu/geometry_biped/checkpoint.pt"
+TEXTURE = ROOT / "runs/netepu/texture_full_xv/checkpoint.pt"
+FIRST_UNSEEN_TEXTURE = 100  # ids >= the pool size are generated textures, never in the pool
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
+
+
+def rank1(codes: np.ndarray, ident: np.ndarray, candidates: np.ndarray) -> float:
+    """Share of rows whose nearest candidate (cosine) has their identity.
+
+    Args:
+        codes: (R, D); ident: (R,); candidates: (R, R) bool, row i may retrieve row j.
+    """
+    sim = _unit(codes) @ _unit(codes).T
+    sim = np.where(candidates, sim, -np.inf)
+    has = candidates.any(1)
+    if not has.any():
+        return float("nan")
+    best = sim.argmax(1)
+    return float((ident[best] == ident)[has].mean())
+
+
+def _gt_keypoints(export: Path, scene: Path, label_free: Path, out: Path) -> None:
+    """Ground-truth keypoints (npz id, keypoints) for the rows the label-free file covers."""
+    from netepu.identities import ground_truth_identities
+    from nsd.ground_truth import GroundTruth
+
+    truth = GroundTruth.load(scene).scene.keypoints3d
+    matched = ground_truth_identities(export, scene)
+    with np.load(label_free) as z:
+        ids = [int(i) for i in z["id"] if int(i) in matched]
+    kps = [truth[matched[i][3]][matched[i][1]] for i in ids]
+    np.savez(out, id=np.array(ids, np.int64), keypoints=np.stack(kps).astype(np.float32))
+
+
+def _embed(export: Path, scene: Path, keypoints: Path, out: Path) -> None:
+    """Texture codes of an export's rows into a copy of its table at ``out``."""
+    from netepu.embed import embed_export
+    from nsd.embeddings_io import embeddings_path
+
+    out.mkdir(parents=True, exist_ok=True)
+    table = embeddings_path(export)
+    shutil.copyfile(table, out / table.name)
+    (out / "crops").symlink_to((export / "crops").resolve())
+    try:
+        embed_export(out, TEXTURE, keypoints, scene)
+    finally:
+        (out / "crops").unlink()
+
+
+def _scores(export: Path, scene: Path, tables: dict[str, Path], n: int) -> dict[str, dict]:
+    """Row-level rank-1 and pipeline identity accuracy of each texture column, on common rows."""
+    from netepu.identities import assign_identities, ground_truth_identities, identity_accuracy
+    from nsd.embeddings_io import read_embeddings
+
+    matched = ground_truth_identities(export, scene)
+    cols = ["id", "subject_id", "frame", "texture", "texture_valid"]
+    read = {k: read_embeddings(p, cols) for k, p in tables.items()}
+    ids = next(iter(read.values()))["id"]
+    common = np.isin(ids, list(matched))
+    for t in read.values():
+        assert np.array_equal(t["id"], ids), "tables differ in row order"
+        common &= t["texture_valid"].astype(bool)
+    rows = ids[common]
+    ident = np.array([matched[int(i)][3] for i in rows])
+    cams = np.array([matched[int(i)][0] for i in rows])
+    frames = np.array([matched[int(i)][1] for i in rows])
+    cross_view = (frames[:, None] == frames[None]) & (cams[:, None] != cams[None])
+    cross_time = (cams[:, None] == cams[None]) & (np.abs(frames[:, None] - frames[None]) >= 10)
+    out = {}
+    for name, t in read.items():
+        codes = t["texture"][common].astype(np.float64)
+        sub = {k: t[k][common] for k in ("subject_id", "frame", "texture")}
+        identities, summary = assign_identities(sub, "texture", n)
+        acc = identity_accuracy(export, scene, identities)
+        # scores every matched row of the export; rows of tracks without codes are identity -1
+        out[name] = {
+            "rows": int(common.sum()),
+            "cross_view_rank1": rank1(codes, ident, cross_view),
+            "cross_time_rank1": rank1(codes, ident, cross_time),
+            "tracks": summary["tracks"],
+            **{k: v for k, v in acc.items() if k != "matched_rows"},
+        }
+    return out
+
+
+def _count_accuracy(export: Path, n: int) -> float:
+    coco = json.loads((export / "subjects.coco.json").read_text())
+    frame_of = {int(im["id"]): int(im["frame"]) for im in coco["images"]}
+    per_frame: dict[int, set] = {t: set() for t in frame_of.values()}
+    for a in coco["annotations"]:
+        per_frame[frame_of[int(a["image_id"])]].add(int(a["subject_id"]))
+    return float(np.mean([len(s) == n for s in per_frame.values()]))
+
+
+def one(n: int, minutes: float, frame_step: int, threads: int) -> None:
+    import torch
+
+    from nsd.run import load_run_config, run_pipeline
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    torch.set_num_threads(threads)
+    scene, run = WORK / f"scene{n}", WORK / f"run{n}"
+    textures = [FIRST_UNSEEN_TEXTURE + 7 * n + i for i in range(n)]
+    subprocess.run(
+        [str(ROOT / ".venv/bin/nsd-synth"), f"out={scene}", f"num_individuals={n}",
+         f"texture_ids={textures}".replace(" ", ""), f"seed={n}", "overwrite=true"],
+        check=True,
+    )
+    cfg = load_run_config(
+        f"scene={scene}", f"out={run}", f"threads={threads}",
+        "train.trainer.progress=false", "+export.progress=false",
+        f"train.model.num_windows={n}", f"train.trainer.max_minutes={minutes}",
+        f"netepu.geometry={GEOMETRY}", f"netepu.texture={TEXTURE}",
+        f"netepu.keypoints.frame_step={frame_step}", f"netepu.identities.k={n}",
+    )
+    t0 = time.perf_counter()
+    results = run_pipeline(cfg)
+    seconds = {k: round(r.seconds, 1) for k, r in results.items()}
+    export = results["export"].folder
+    label_free = results["keypoints"].folder / "keypoints3d.npz"
+    gt_kp = WORK / f"gt_keypoints{n}.npz"
+    _gt_keypoints(export, scene, label_free, gt_kp)
+    gt_dir = WORK / f"texture_gt{n}"
+    shutil.rmtree(gt_dir, ignore_errors=True)
+    t1 = time.perf_counter()
+    _embed(export, scene, gt_kp, gt_dir)
+    seconds["texture (ground-truth keypoints)"] = round(time.perf_counter() - t1, 1)
+    from nsd.embeddings_io import embeddings_path
+
+    tables = {
+        "label-free keypoints": embeddings_path(results["texture"].folder),
+        "ground-truth keypoints": embeddings_path(gt_dir),
+    }
+    ev = results["evaluate"].summary.get("metrics", {})
+    record = {
+        "individuals": n,
+        "textures": textures,
+        "minutes": minutes,
+        "frame_step": frame_step,
+        "training_steps": results["train"].summary.get("steps"),
+        "mask_miou": ev.get("mask_miou"),
+        "detection_rate": ev.get("detection_rate"),
+        "count_accuracy": _count_accuracy(export, n),
+        "keypoints": results["keypoints"].summary.get("accuracy", {}),
+        "scores": _scores(export, scene, tables, n),
+        "seconds": seconds,
+        "total_seconds": round(time.perf_counter() - t0, 1),
+    }
+    (WORK / f"result{n}.json").write_text(json.dumps(record, indent=1, default=float))
+    print(json.dumps(record, indent=1, default=float))
+
+
+def report() -> None:
+    import torch
+
+    torch.set_num_threads(1)  # the header states the threads of the runs (`one --threads 1`)
+    rows, records = [], []
+    for path in sorted(WORK.glob("result*.json")):
+        r = json.loads(path.read_text())
+        records.append(r)
+        for variant, s in r["scores"].items():
+            rows.append({
+                "individuals": r["individuals"],
+                "keypoints": variant,
+                "mask mIoU": r["mask_miou"],
+                "detection rate": r["detection_rate"],
+                "count accuracy": r["count_accuracy"],
+                "MPJPE mm": r["keypoints"].get("mpjpe_mm") if variant.startswith("label") else "",
+                "rows": s["rows"],
+                "cross-view rank-1": s["cross_view_rank1"],
+                "cross-time rank-1": s["cross_time_rank1"],
+                "chance": 1 / r["individuals"],
+                "identity accuracy": s.get("identity_accuracy"),
+                "cross-view pairs": s.get("cross_view_accuracy"),
+                "cross-time pairs": s.get("cross_time_accuracy"),
+                "train steps": r["training_steps"],
+            })
+    notes = (ROOT / "tools/bench_reid_scenes.notes.md").read_text()
+    write_report(
+        "reid_scenes",
+        "Identities from texture codes on synthetic scenes with occlusion",
+        rows,
+        notes,
+        extra={"runs": records, "geometry": str(GEOMETRY.relative_to(ROOT)),
+               "texture": str(TEXTURE.relative_to(ROOT))},
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    o = sub.add_parser("one")
+    o.add_argument("--n", type=int, required=True)
+    o.add_argument("--minutes", type=float, default=10.0, help="NSD training minutes")
+    o.add_argument("--frame-step", type=int, default=15, help="invert every this many frames")
+    o.add_argument("--threads", type=int, default=1)
+    sub.add_parser("report")
+    args = ap.parse_args()
+    if args.cmd == "one":
+        WORK.mkdir(parents=True, exist_ok=True)
+        one(args.n, args.minutes, args.frame_step, args.threads)
+    else:
+        report()
+
+
+if __name__ == "__main__":
+    main()
