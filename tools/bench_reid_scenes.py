@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import shutil
 import subprocess
 import sys
@@ -50,7 +51,10 @@ from tools.benchlib import write_report  # noqa: E402
 
 WORK = Path("/tmp/nsd-bench-reid")
 GEOMETRY = ROOT / "runs/netepu/geometry_biped/checkpoint.pt"
-TEXTURE = ROOT / "runs/netepu/texture_full_xv/checkpoint.pt"
+TEXTURES = {  # texture models (netepu-train stage=texture), all trained on the 16 pool textures
+    "cross-view": ROOT / "runs/netepu/texture_full_xv/checkpoint.pt",
+    "cross-view + contrastive": ROOT / "runs/netepu/texture_full_xv_contrast/checkpoint.pt",
+}
 FIRST_UNSEEN_TEXTURE = 100  # ids >= the pool size are generated textures, never in the pool
 
 
@@ -86,7 +90,7 @@ def _gt_keypoints(export: Path, scene: Path, label_free: Path, out: Path) -> Non
     np.savez(out, id=np.array(ids, np.int64), keypoints=np.stack(kps).astype(np.float32))
 
 
-def _embed(export: Path, scene: Path, keypoints: Path, out: Path) -> None:
+def _embed(export: Path, scene: Path, keypoints: Path, out: Path, texture: Path) -> None:
     """Texture codes of an export's rows into a copy of its table at ``out``."""
     from netepu.embed import embed_export
     from nsd.embeddings_io import embeddings_path
@@ -96,7 +100,7 @@ def _embed(export: Path, scene: Path, keypoints: Path, out: Path) -> None:
     shutil.copyfile(table, out / table.name)
     (out / "crops").symlink_to((export / "crops").resolve())
     try:
-        embed_export(out, TEXTURE, keypoints, scene)
+        embed_export(out, texture, keypoints, scene)
     finally:
         (out / "crops").unlink()
 
@@ -146,7 +150,7 @@ def _count_accuracy(export: Path, n: int) -> float:
     return float(np.mean([len(s) == n for s in per_frame.values()]))
 
 
-def one(n: int, minutes: float, frame_step: int, threads: int) -> None:
+def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str) -> None:
     import torch
 
     from nsd.run import load_run_config, run_pipeline
@@ -154,17 +158,19 @@ def one(n: int, minutes: float, frame_step: int, threads: int) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     torch.set_num_threads(threads)
     scene, run = WORK / f"scene{n}", WORK / f"run{n}"
+    texture = TEXTURES[texture_name]
     textures = [FIRST_UNSEEN_TEXTURE + 7 * n + i for i in range(n)]
-    subprocess.run(
-        [str(ROOT / ".venv/bin/nsd-synth"), f"out={scene}", f"num_individuals={n}",
-         f"texture_ids={textures}".replace(" ", ""), f"seed={n}", "overwrite=true"],
-        check=True,
-    )
+    if not (scene / "gt").is_dir():  # an existing scene is kept: nsd-run then reuses its stages
+        subprocess.run(
+            [str(ROOT / ".venv/bin/nsd-synth"), f"out={scene}", f"num_individuals={n}",
+             f"texture_ids={textures}".replace(" ", ""), f"seed={n}", "overwrite=true"],
+            check=True,
+        )
     cfg = load_run_config(
         f"scene={scene}", f"out={run}", f"threads={threads}",
         "train.trainer.progress=false", "+export.progress=false",
         f"train.model.num_windows={n}", f"train.trainer.max_minutes={minutes}",
-        f"netepu.geometry={GEOMETRY}", f"netepu.texture={TEXTURE}",
+        f"netepu.geometry={GEOMETRY}", f"netepu.texture={texture}",
         f"netepu.keypoints.frame_step={frame_step}", f"netepu.identities.k={n}",
     )
     t0 = time.perf_counter()
@@ -177,7 +183,7 @@ def one(n: int, minutes: float, frame_step: int, threads: int) -> None:
     gt_dir = WORK / f"texture_gt{n}"
     shutil.rmtree(gt_dir, ignore_errors=True)
     t1 = time.perf_counter()
-    _embed(export, scene, gt_kp, gt_dir)
+    _embed(export, scene, gt_kp, gt_dir, texture)
     seconds["texture (ground-truth keypoints)"] = round(time.perf_counter() - t1, 1)
     from nsd.embeddings_io import embeddings_path
 
@@ -188,6 +194,7 @@ def one(n: int, minutes: float, frame_step: int, threads: int) -> None:
     ev = results["evaluate"].summary.get("metrics", {})
     record = {
         "individuals": n,
+        "texture_model": texture_name,
         "textures": textures,
         "minutes": minutes,
         "frame_step": frame_step,
@@ -200,7 +207,8 @@ def one(n: int, minutes: float, frame_step: int, threads: int) -> None:
         "seconds": seconds,
         "total_seconds": round(time.perf_counter() - t0, 1),
     }
-    (WORK / f"result{n}.json").write_text(json.dumps(record, indent=1, default=float))
+    tag = "" if texture_name == "cross-view" else "_" + re.sub(r"\W+", "_", texture_name)
+    (WORK / f"result{n}{tag}.json").write_text(json.dumps(record, indent=1, default=float))
     print(json.dumps(record, indent=1, default=float))
 
 
@@ -215,6 +223,7 @@ def report() -> None:
         for variant, s in r["scores"].items():
             rows.append({
                 "individuals": r["individuals"],
+                "texture model": r.get("texture_model", "cross-view"),
                 "keypoints": variant,
                 "mask mIoU": r["mask_miou"],
                 "detection rate": r["detection_rate"],
@@ -236,7 +245,7 @@ def report() -> None:
         rows,
         notes,
         extra={"runs": records, "geometry": str(GEOMETRY.relative_to(ROOT)),
-               "texture": str(TEXTURE.relative_to(ROOT))},
+               "textures": {k: str(v.relative_to(ROOT)) for k, v in TEXTURES.items()}},
     )
 
 
@@ -248,11 +257,12 @@ def main() -> None:
     o.add_argument("--minutes", type=float, default=10.0, help="NSD training minutes")
     o.add_argument("--frame-step", type=int, default=15, help="invert every this many frames")
     o.add_argument("--threads", type=int, default=1)
+    o.add_argument("--texture", choices=sorted(TEXTURES), default="cross-view")
     sub.add_parser("report")
     args = ap.parse_args()
     if args.cmd == "one":
         WORK.mkdir(parents=True, exist_ok=True)
-        one(args.n, args.minutes, args.frame_step, args.threads)
+        one(args.n, args.minutes, args.frame_step, args.threads, args.texture)
     else:
         report()
 
