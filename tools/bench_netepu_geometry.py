@@ -440,8 +440,9 @@ def main() -> None:
         equal = _equal_steps(curve_lines)
         if equal:
             notes += (
-                "\n\n## At equal steps\n\nEach evaluation of the reference-size run "
-                "next to the evaluation of our run with the nearest step count (the "
+                "\n\n## Reference next to ours\n\nEach evaluation of the reference-size run "
+                "next to the evaluation of our run with the nearest step count, not the "
+                "same step count unless the runs allow it (the "
                 "training runs' own evaluation subsets, `netepu.eval.eval_views` views "
                 "per set).\n\n" + _table(equal)
             )
