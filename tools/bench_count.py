@@ -26,7 +26,7 @@ use; no labels are used in training):
   by NSD's appearance vectors with the label-free count (``netepu.identities``; no
   texture model here), scored as in ``netepu.identities.identity_accuracy``.
 
-Run ``one`` for each N under ``/tmp/slot.sh`` (one core each), then ``report``.
+Run ``one`` for each N (one core each, e.g. ``taskset -c 1``), then ``report``.
 """
 
 from __future__ import annotations

@@ -6,14 +6,14 @@ and figures under ``docs/images/``.
 Steps (each its own process, so that each can run under the machine's CPU protocol)::
 
     # texture models on the frozen biped geometry (netepu-train stage=texture)
-    /tmp/slot.sh .venv/bin/netepu-train stage=texture \\
+    .venv/bin/netepu-train stage=texture \\
         init_from=runs/netepu/geometry_biped/checkpoint.pt \\
         trainer.max_minutes=10 trainer.max_steps=0 hydra.run.dir=runs/netepu/texture_full
     ... netepu.texture.model.use_nnopcs=false      hydra.run.dir=runs/netepu/texture_no_nnopcs
     ... netepu.texture.model.local_features=false  hydra.run.dir=runs/netepu/texture_no_local
 
-    /tmp/slot.sh .venv/bin/python tools/bench_netepu_texture.py evaluate --baseline-minutes 5
-    /tmp/both.sh .venv/bin/python tools/bench_netepu_texture.py speed
+    .venv/bin/python tools/bench_netepu_texture.py evaluate --baseline-minutes 5
+    .venv/bin/python tools/bench_netepu_texture.py speed   # nothing else running
     .venv/bin/python tools/bench_netepu_texture.py report
 
 ``evaluate``: for every run, the colour PSNR over all held-out full-map views
@@ -353,7 +353,7 @@ def report() -> None:
     if sp:
         notes.append(
             "Texture-code encodings per second, geometry render included, 2 threads "
-            "(`/tmp/both.sh`, exclusive):\n"
+            "(nothing else running):\n"
         )
     elif ev.get("speed_shared_slot"):
         sp = {"rows": ev["speed_shared_slot"]}

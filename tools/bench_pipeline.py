@@ -1,6 +1,6 @@
 """Wall time of the whole default pipeline (``nsd-run``), stage by stage, on this machine.
 
-    /tmp/both.sh .venv/bin/python tools/bench_pipeline.py        # ~13 minutes on 2 cores
+    .venv/bin/python tools/bench_pipeline.py        # ~11 minutes on 2 cores, nothing else running
 
 Runs ``nsd-run``'s default config (the built-in default scene, 10 minutes of
 training) into a fresh run folder, then runs it again to time a resume where
@@ -99,7 +99,7 @@ def main() -> None:
         "crops, Parquet embeddings, MOT tracks, TensorBoard projector and t-SNE (`export`), "
         "identities of the tracks from NSD's appearance vectors (no texture model configured: "
         "the NeTePu `keypoints` and `texture` stages are skipped) and 4 image grids (`grids`). "
-        "One process, 2 torch threads, nothing else running (`/tmp/both.sh`)."
+        "One process, 2 torch threads, nothing else running."
     )
     write_report(
         "pipeline", "nsd-run: wall time of the default pipeline, stage by stage", rows, notes, extra

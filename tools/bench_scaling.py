@@ -1,6 +1,6 @@
 """How NSD's cost grows with subjects, cameras and resolution; GFLOP/s of the hot loops.
 
-    /tmp/both.sh .venv/bin/python tools/bench_scaling.py        # ~5 minutes, exclusive
+    .venv/bin/python tools/bench_scaling.py        # ~5 minutes, nothing else running
 
 Sections (all timed with 2 threads, medians of short loops, untrained networks:
 speed does not depend on the weights except where noted):

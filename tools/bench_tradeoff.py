@@ -1,9 +1,9 @@
 """Speed/accuracy trade-off: sweep one knob at a time around the default config.
 
-    /tmp/slot.sh python tools/bench_tradeoff.py accuracy default crop_16 ...   # one core each
-    /tmp/both.sh python tools/bench_tradeoff.py speed                           # exclusive
-    /tmp/both.sh python tools/bench_tradeoff.py netepu                          # exclusive
-    python tools/bench_tradeoff.py report                                       # merge, plot
+    python tools/bench_tradeoff.py accuracy default crop_16 ...   # one core each
+    python tools/bench_tradeoff.py speed_nsd        # nothing else running
+    python tools/bench_tradeoff.py speed_netepu     # (and speed_texture) likewise
+    python tools/bench_tradeoff.py report           # merge, plot
 
 NSD knobs (:data:`NSD_SETTINGS`): frame resolution, crop size, network widths,
 decoder depth, number of windows. NeTePu knobs (:data:`NETEPU_SETTINGS`):
@@ -11,7 +11,7 @@ points sampled per step, k of the renderer's attention, widths.
 
 ``accuracy`` trains each named NSD setting for a fixed short budget
 (``--minutes``, 4 by default) in a fresh subprocess on one core (run it
-through ``/tmp/slot.sh``), evaluating at 1, 2 and 3 minutes and at the end;
+on one core each), evaluating at 1, 2 and 3 minutes and at the end;
 its results go to ``runs/tradeoff/accuracy/<setting>.json``. ``speed`` and
 ``netepu`` time short loops in fresh subprocesses with both cores (training
 iterations/s, decomposition frames/s, peak RSS) and write
@@ -287,7 +287,7 @@ TABLES = {"nsd": NSD_SETTINGS, "netepu": NETEPU_SETTINGS, "texture": TEXTURE_SET
 
 
 def speed(kind: str, names: list[str], steps: int) -> None:
-    """Each setting in a fresh subprocess (independent peak RSS); run under /tmp/both.sh."""
+    """Each setting in a fresh subprocess (independent peak RSS); run with nothing else running."""
     table = TABLES[kind]
     path = RESULTS / f"speed_{kind}.json"
     done = json.loads(path.read_text()) if path.is_file() else {}
