@@ -37,7 +37,7 @@ from omegaconf import DictConfig
 
 from nsd.errors import ConfigError, NSDError
 
-__all__ = ["embed_export", "main"]
+__all__ = ["embed_export", "embed_into_copy", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +153,33 @@ def embed_export(
     valid = ~np.isnan(codes).any(1)
     path = add_columns(table, {column: codes, f"{column}_valid": valid})
     return {"rows": len(row_ids), "encoded": int(valid.sum()), "path": str(path)}
+
+
+def embed_into_copy(
+    export: str | os.PathLike,
+    out: str | os.PathLike,
+    checkpoint: str | os.PathLike,
+    keypoints: str | os.PathLike | None = None,
+    calibration: str | os.PathLike | None = None,
+) -> dict[str, Any]:
+    """:func:`embed_export` into a copy of the export's embedding table in folder ``out``.
+
+    The export itself is left untouched: its table is copied to ``out`` and its
+    ``crops/`` are linked there while the codes are computed.
+    """
+    import shutil
+
+    from nsd.embeddings_io import embeddings_path
+
+    export, out = Path(export), Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = embeddings_path(export)
+    shutil.copyfile(table, out / table.name)
+    (out / "crops").symlink_to((export / "crops").resolve())
+    try:
+        return embed_export(out, checkpoint, keypoints, calibration)
+    finally:
+        (out / "crops").unlink()
 
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="netepu_embed", version_base="1.3")

@@ -172,18 +172,15 @@ class TextureTask:
         another sample of the same texture (another pose and camera)."""
         if self.cfg.cross_view <= 0:
             return idx
-        tex = self.data.train["sample_texture"][idx]
         src = idx.copy()
-        for b in np.nonzero(rng.random(len(idx)) < self.cfg.cross_view)[0]:
-            pool = self._by_texture[int(tex[b])]
-            src[b] = pool[rng.integers(0, len(pool))]
+        chosen = rng.random(len(idx)) < self.cfg.cross_view
+        src[chosen] = self.partners(idx[chosen], rng)
         return src
 
     def partners(self, idx: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Another sample of the same texture for each of ``idx`` (another pose and camera)."""
-        tex = self.data.train["sample_texture"][idx]
-        return np.array([self._by_texture[int(t)][rng.integers(0, len(self._by_texture[int(t)]))]
-                         for t in tex])
+        pools = (self._by_texture[int(t)] for t in self.data.train["sample_texture"][idx])
+        return np.array([pool[rng.integers(0, len(pool))] for pool in pools], dtype=idx.dtype)
 
     def encoder_input(self, src: np.ndarray, rng: np.random.Generator) -> Tensor:
         """Encoder input of training samples ``src``: masked RGB, (occluded) mask, NNOPCS."""

@@ -271,7 +271,14 @@ class BiNVS(nn.Module):
         else:
             comp = erf_transmittance_composite(masks, target.det.depths)
         return Rendering(
-            blend(comp, layers, background), comp, layers, masks, A, rgb, mask, True, ungated
+            blend(comp, layers, background),
+            comp,
+            layers,
+            masks,
+            A,
+            rgb,
+            mask,
+            ungated_masks=ungated,
         )
 
     def forward(

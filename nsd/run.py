@@ -213,18 +213,11 @@ def _texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
     n = cfg.netepu
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from netepu.embed import embed_export
-        from nsd.embeddings_io import embeddings_path
+        from netepu.embed import embed_into_copy
 
-        table = embeddings_path(up["export"].folder)
-        shutil.copyfile(table, out / table.name)
-        (out / "crops").symlink_to((up["export"].folder / "crops").resolve())
         kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
-        try:
-            res = embed_export(out, n.texture, kp, up["scene"].summary["path"])
-        finally:
-            (out / "crops").unlink()
-        return {"table": table.name, "rows": res["rows"], "encoded": res["encoded"]}
+        res = embed_into_copy(up["export"].folder, out, n.texture, kp, up["scene"].summary["path"])
+        return {"table": Path(res["path"]).name, "rows": res["rows"], "encoded": res["encoded"]}
 
     return Stage(
         "texture",

@@ -121,10 +121,10 @@ class NSDTask:
         self.stage2_started = self.depth_from <= 0
         self.step = 0
         self.presence_target = str(cfg.prior_presence.get("target", "none"))
-        if cfg.prior_presence.get("normalise", "mask") not in ("mask", "box"):
+        self.presence_normalise = str(cfg.prior_presence.get("normalise", "mask"))
+        if self.presence_normalise not in ("mask", "box"):
             raise ConfigError(
-                "prior_presence.normalise must be 'mask' or 'box', got "
-                f"{cfg.prior_presence.normalise!r}"
+                f"prior_presence.normalise must be 'mask' or 'box', got {self.presence_normalise!r}"
             )
         if self.presence_target not in ("none", "marginal"):
             raise ConfigError(
@@ -217,11 +217,12 @@ class NSDTask:
         )
         out: dict[str, torch.Tensor] = {}
         total = torch.zeros(())
-        for r, img, bg in (
-            (rv, batch.image_v, batch.background_v),
-            (rw, batch.image_w, batch.background_w),
-        ):
-            ev = foreground_evidence(img, bg, c.loss.evidence_threshold, c.loss.evidence_softness)
+        pairs = ((batch.image_v, batch.background_v), (batch.image_w, batch.background_w))
+        evidence = [
+            foreground_evidence(img, bg, c.loss.evidence_threshold, c.loss.evidence_softness)
+            for img, bg in pairs
+        ]
+        for r, img, ev in ((rv, batch.image_v, evidence[0]), (rw, batch.image_w, evidence[1])):
             weight = 1 + c.loss.residual_weight * ev if c.loss.residual_weight > 0 else None
             terms = total_image_loss(
                 r.image, img, weight, c.loss.ssim_weight, c.loss.ssim_window, c.loss.renormalise
@@ -238,7 +239,7 @@ class NSDTask:
         out["prior_aspect"] = aspect_prior(boxes, c.prior_aspect.ratio, (H, W))
         out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
         if self.presence_target == "marginal" and self.model.detector.use_presence:
-            out.update(self._presence_target(batch, rv, rw, wv, ww))
+            out.update(self._presence_target(evidence, rv, rw, wv, ww, (H, W)))
         matching = None
         if batch.proposals_v is not None:
             props = torch.cat([batch.proposals_v, batch.proposals_w])
@@ -290,22 +291,18 @@ class NSDTask:
         out["loss"] = total
         return out
 
-    def _presence_target(self, batch, rv, rw, wv, ww) -> dict[str, torch.Tensor]:
-        """BCE of both views' presences against their marginal-gain targets (nsd.presence)."""
-        c = self.cfg
-        H, W = batch.image_v.shape[-2:]
+    def _presence_target(self, evidence, rv, rw, wv, ww, size) -> dict[str, torch.Tensor]:
+        """BCE of both views' presences against their marginal-gain targets (nsd.presence);
+        ``evidence``: the two views' foreground evidence (B, H, W), ``size``: (H, W)."""
+        pp = self.cfg.prior_presence
         loss, on = torch.zeros(()), torch.zeros(())
-        for r, win, img, bg in (
-            (rv, wv, batch.image_v, batch.background_v),
-            (rw, ww, batch.image_w, batch.background_w),
-        ):
-            ev = foreground_evidence(img, bg, c.loss.evidence_threshold, c.loss.evidence_softness)
-            if c.prior_presence.get("normalise", "mask") == "box":
-                area = window_area(win.det.boxes, (H, W))
+        for r, win, ev in ((rv, wv, evidence[0]), (rw, ww, evidence[1])):
+            if self.presence_normalise == "box":
+                area = window_area(win.det.boxes, size)
             else:  # the window's own (ungated) mask area, at least min_area pixels
-                area = r.ungated_masks.flatten(2).sum(-1).clamp_min(c.prior_presence.min_area)
+                area = r.ungated_masks.flatten(2).sum(-1).clamp_min(pp.min_area)
             target, _ = marginal_presence_target(
-                r.ungated_masks, ev, area, c.prior_presence.margin, win.det.presence
+                r.ungated_masks, ev, area, pp.margin, win.det.presence
             )
             loss = loss + presence_target_loss(win.det.presence, target) / 2
             on = on + target.sum(-1).mean() / 2

@@ -90,21 +90,6 @@ def _gt_keypoints(export: Path, scene: Path, label_free: Path, out: Path) -> Non
     np.savez(out, id=np.array(ids, np.int64), keypoints=np.stack(kps).astype(np.float32))
 
 
-def _embed(export: Path, scene: Path, keypoints: Path, out: Path, texture: Path) -> None:
-    """Texture codes of an export's rows into a copy of its table at ``out``."""
-    from netepu.embed import embed_export
-    from nsd.embeddings_io import embeddings_path
-
-    out.mkdir(parents=True, exist_ok=True)
-    table = embeddings_path(export)
-    shutil.copyfile(table, out / table.name)
-    (out / "crops").symlink_to((export / "crops").resolve())
-    try:
-        embed_export(out, texture, keypoints, scene)
-    finally:
-        (out / "crops").unlink()
-
-
 def _scores(export: Path, scene: Path, tables: dict[str, Path], n: int) -> dict[str, dict]:
     """Row-level rank-1 and pipeline identity accuracy of each texture column, on common rows."""
     from netepu.identities import assign_identities, ground_truth_identities, identity_accuracy
@@ -153,6 +138,7 @@ def _count_accuracy(export: Path, n: int) -> float:
 def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str) -> None:
     import torch
 
+    from netepu.embed import embed_into_copy
     from nsd.run import load_run_config, run_pipeline
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -183,7 +169,7 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
     gt_dir = WORK / f"texture_gt{n}"
     shutil.rmtree(gt_dir, ignore_errors=True)
     t1 = time.perf_counter()
-    _embed(export, scene, gt_kp, gt_dir, texture)
+    embed_into_copy(export, gt_dir, texture, gt_kp, scene)
     seconds["texture (ground-truth keypoints)"] = round(time.perf_counter() - t1, 1)
     from nsd.embeddings_io import embeddings_path
 
