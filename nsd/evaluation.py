@@ -19,6 +19,12 @@ matching on visible-mask IoU). Then:
   individual matched in both views, the hard association of its window in v
   (the model's score: appearance, plus ray distance if configured) picks its
   window in w;
+* **merge rate**: over camera-frames with >= 2 visible GT individuals, the
+  fraction where one window's mask covers at least half of the visible mask of
+  two or more of them (the auto-encoder's failure in the NSD paper);
+* **overlap ownership**: over visible pixels inside GT amodal overlaps, the
+  fraction whose strongest window is the one matched to the pixel's GT owner
+  (blended overlaps, NSD's failure without depth, lower it);
 * **novel-view PSNR / SSIM**: Bi-NVS re-synthesis of view w from view v;
 * **COCO AP** (bbox and segm, class-agnostic) through pycocotools COCOeval on
   the scene's COCO ground truth.
@@ -96,6 +102,10 @@ class FrameScore:
     order_total: int = 0
     order_correct: int = 0
     ari: list[float] = field(default_factory=list)
+    multi: int = 0  # camera-frames with >= 2 visible GT individuals
+    merged: int = 0  # ... of which one window covers half of two of them
+    overlap_pixels: int = 0
+    overlap_owned: int = 0
     matches: dict[int, int] = field(default_factory=dict)  # gt identity -> predicted window
 
 
@@ -162,6 +172,23 @@ def score_frame(
         pred_lab = np.full((H, W), -1)
     if G:
         s.ari.append(fg_ari(gt_lab, pred_lab))
+    if G == 0:
+        return s
+    # merged subjects and ownership of overlaps
+    gt_area = gt_visible.reshape(G, -1).sum(1)
+    if (gt_area > 0).sum() >= 2:
+        s.multi += 1
+        if len(win):
+            inter = pm.reshape(len(win), -1).astype(np.int64) @ gt_visible.reshape(G, -1).T
+            covered = inter >= 0.5 * np.maximum(gt_area, 1)[None]
+            s.merged += int((covered.sum(1) >= 2).any())
+    in_overlap = (gt_amodal.sum(0) >= 2) & (gt_lab >= 0)
+    s.overlap_pixels += int(in_overlap.sum())
+    if len(win) and in_overlap.any():
+        owner = np.full(G, -2)
+        for g, w in matched_gt.items():
+            owner[g] = int(np.flatnonzero(win == w)[0])
+        s.overlap_owned += int((pred_lab[in_overlap] == owner[gt_lab[in_overlap]]).sum())
     return s
 
 
@@ -280,6 +307,10 @@ def evaluate_model(
                 total.order_total += s.order_total
                 total.order_correct += s.order_correct
                 total.ari += s.ari
+                total.multi += s.multi
+                total.merged += s.merged
+                total.overlap_pixels += s.overlap_pixels
+                total.overlap_owned += s.overlap_owned
                 per_view.append(s.matches)
                 results += decomposition_to_coco(dec, v, fgt.image_id, fgt.native_size, threshold)
                 image_ids.append(fgt.image_id)
@@ -307,10 +338,16 @@ def evaluate_model(
                     total.order_correct / total.order_total if total.order_total else float("nan")
                 ),
                 "depth_order_pairs": float(total.order_total),
+                "merge_rate": total.merged / total.multi if total.multi else float("nan"),
+                "overlap_ownership": (
+                    total.overlap_owned / total.overlap_pixels
+                    if total.overlap_pixels
+                    else float("nan")
+                ),
                 "association_accuracy": (
                     assoc_correct / assoc_total if assoc_total else float("nan")
                 ),
             }
         )
         out.update(coco_ap(gt.coco, results, image_ids))
-    return out
+    return {k: float(v) for k, v in out.items()}  # plain floats (numpy scalars break JSON)

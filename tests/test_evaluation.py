@@ -70,6 +70,36 @@ def test_score_frame_perfect_and_depth_order():
     assert missing.detected == 1 and missing.order_total == 0
 
 
+def test_merge_rate_and_overlap_ownership():
+    """One window covering both subjects is a merge; the overlap's visible pixels are
+    owned by the front subject's window, and a blend that gives them to the back
+    window loses exactly those pixels."""
+    H = W = 20
+    a = _rect(H, W, 2, 2, 10, 18)  # front, columns 2..9, 128 px
+    b_amodal = _rect(H, W, 6, 2, 14, 18)  # columns 6..13, overlap columns 6..9 (64 px)
+    gt_vis, gt_amo = np.stack([a, b_amodal & ~a]), np.stack([a, b_amodal])
+    boxes = np.array([[2, 2, 8, 16], [10, 2, 4, 16]], float)
+    args = (gt_vis, gt_amo, boxes, [7, 9])
+    good = score_frame(gt_vis.astype(float), np.array([0.0, 1.0]), np.ones(2, bool), *args)
+    assert (good.multi, good.merged) == (1, 0)
+    assert (good.overlap_pixels, good.overlap_owned) == (64, 64)
+    union = (a | b_amodal).astype(float)
+    merged = score_frame(np.stack([union, np.zeros((H, W))]), np.zeros(2), np.ones(2, bool), *args)
+    assert merged.merged == 1
+    blended = gt_vis.astype(float) * 0.9
+    blended[1][2:16, 6:10] = 1.0  # the back window claims 56 of the 64 overlap pixels
+    s = score_frame(blended, np.array([0.0, 1.0]), np.ones(2, bool), *args)
+    assert s.overlap_pixels == 64 and s.overlap_owned == 8 and s.merged == 0
+    alone = score_frame(
+        gt_vis[:1].astype(float),
+        np.zeros(1),
+        np.ones(1, bool),
+        *[x[:1] for x in (gt_vis, gt_amo, boxes)],
+        [7],
+    )
+    assert (alone.multi, alone.overlap_pixels) == (0, 0)
+
+
 def test_coco_ap_of_ground_truth_is_one():
     from pycocotools.coco import COCO
 

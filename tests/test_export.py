@@ -146,6 +146,9 @@ def test_coco_ap_equals_nsd_eval(trained, tmp_path):
     theirs = evaluate_checkpoint(ckpt, scene, frames="all")
     for k in ("coco_bbox_ap", "coco_bbox_ap50", "coco_segm_ap", "coco_segm_ap50"):
         assert ours[k] == pytest.approx(theirs[k], abs=1e-9), k
+    # nsd-eval writes these as JSON: numpy scalars (float32 mIoU sums) used to break it
+    assert all(type(v) is float for v in theirs.values())
+    json.loads(json.dumps(theirs))
 
 
 def test_mot_files_parse_and_match_coco(trained, tmp_path):

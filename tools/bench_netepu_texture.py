@@ -44,6 +44,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from nsd.synth import LOOK_ALIKE_PAIRS  # noqa: E402
 from tools.benchlib import median_time, peak_rss_mb, write_report  # noqa: E402
 
 RUNS = {
@@ -55,7 +56,7 @@ RUNS = {
 WORK = ROOT / "runs" / "netepu" / "texture_bench"
 IMAGES = ROOT / "docs" / "images"
 PAPER = {"full": 19.35, "no_nnopcs": 13.63, "no_local": 14.74}
-LOOK_ALIKES = (1, 11, 9, 10, 4, 13)
+LOOK_ALIKES = tuple(i for pair in LOOK_ALIKE_PAIRS for i in pair)
 TITLES = {
     "texture": "NeTePu texture code (mu, predicted NNOPCS): contours = training cameras, "
     "dots = held-out cameras",
@@ -63,7 +64,10 @@ TITLES = {
     "dots = held-out cameras",
     "texture_xv": "NeTePu texture code, cross-view training (mu, predicted NNOPCS): contours = "
     "training cameras, dots = held-out cameras",
+    "texture_default": "NeTePu texture code, default training (cross-view + contrastive; mu, "
+    "predicted NNOPCS): contours = training cameras, dots = held-out cameras",
 }
+DEFAULT_RUN = "full_xv_contrast"  # the run trained with conf/netepu/texture/default.yaml
 
 
 def _load(run: str):
@@ -95,17 +99,36 @@ def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[
     emb = codes.reshape(E * T, -1)
     out = reid_metrics(emb, ids, cams)
     look = np.isin(textures[ids], LOOK_ALIKES)
-    sub = _subset_rank1(emb, ids, cams, look)
-    return {**out, "rank1_look_alikes": sub}
+    top = _top1(emb, ids, cams)
+    partner = {a: b for a, b in LOOK_ALIKE_PAIRS} | {b: a for a, b in LOOK_ALIKE_PAIRS}
+    wrong = top != ids
+    to_partner = np.array(
+        [
+            partner.get(int(textures[i]), -1) == int(textures[j])
+            for i, j in zip(ids, top, strict=True)
+        ]
+    )
+    return {
+        **out,
+        "rank1_look_alikes": float((~wrong[look]).mean()),
+        "rank1_others": float((~wrong[~look]).mean()),
+        "errors_to_look_alike_partner": (
+            float(to_partner[wrong].mean()) if wrong.any() else float("nan")
+        ),
+    }
 
 
-def _subset_rank1(emb, ids, cams, queries) -> float:
+def _top1(emb, ids, cams, chunk: int = 1024) -> np.ndarray:
+    """The identity of each query's nearest embedding from another camera (cosine)."""
     from netepu.reid import pairwise_distances
 
-    q = np.nonzero(queries)[0]
-    d = pairwise_distances(emb[q], emb)
-    d[cams[q][:, None] == cams[None]] = np.inf
-    return float((ids[d.argmin(1)] == ids[q]).mean())
+    out = np.empty(len(ids), ids.dtype)
+    for s in range(0, len(ids), chunk):
+        q = np.arange(s, min(len(ids), s + chunk))
+        d = pairwise_distances(emb[q], emb)
+        d[cams[q][:, None] == cams[None]] = np.inf
+        out[q] = ids[d.argmin(1)]
+    return out
 
 
 def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = False) -> None:
@@ -164,9 +187,12 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
         return
     if "full" not in keep:
         raise SystemExit("no full texture run to evaluate")
+    if (WORK / "evaluate.json").is_file():  # keep the rows of runs not evaluated this time
+        old = json.loads((WORK / "evaluate.json").read_text())["runs"]
+        results["runs"] = {**old, **results["runs"]}
     task, codes = keep["full"]
     data, h = task.data, task.data.heldout
-    grid_task, grid_codes = keep.get("full_xv", keep["full"])
+    grid_task, grid_codes = keep.get(DEFAULT_RUN, keep.get("full_xv", keep["full"]))
     import cv2
 
     for held in (False, True):
@@ -218,9 +244,9 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
     names = {i: str(int(t)) for i, t in enumerate(data.textures)}
     figs = [("texture", codes), ("baseline", base_codes)]
     sep = {"texture code": (codes.reshape(E * T, -1), ids, cams)}
-    if "full_xv" in keep:
-        figs.append(("texture_xv", keep["full_xv"][1]))
-        sep["texture code, cross-view"] = (keep["full_xv"][1].reshape(E * T, -1), ids, cams)
+    if DEFAULT_RUN in keep:
+        figs.append(("texture_default", keep[DEFAULT_RUN][1]))
+        sep["texture code, default"] = (keep[DEFAULT_RUN][1].reshape(E * T, -1), ids, cams)
     sep["CNN baseline"] = (base_codes.reshape(E * T, -1), ids, cams)
     for label, emb in figs:
         tsne_kde_figure(
@@ -318,6 +344,10 @@ def _fmt_db(x):
     return round(float(x), 2)
 
 
+def _r4(x):
+    return "" if x is None else round(x, 4)
+
+
 def report() -> None:
     ev = json.loads((WORK / "evaluate.json").read_text())
     sp = json.loads((WORK / "speed.json").read_text()) if (WORK / "speed.json").is_file() else None
@@ -334,6 +364,8 @@ def report() -> None:
                 "re-id rank-1": round(r["reid_rank1"], 4),
                 "re-id mAP": round(r["reid_map"], 4),
                 "rank-1 look-alike queries": round(r["reid_rank1_look_alikes"], 4),
+                "rank-1 other queries": _r4(r.get("reid_rank1_others")),
+                "errors to the look-alike partner": _r4(r.get("reid_errors_to_look_alike_partner")),
                 "steps": r["steps"],
                 "train min": round(r["train_minutes"], 1),
             }
@@ -345,6 +377,8 @@ def report() -> None:
             "re-id rank-1": round(b["reid_rank1"], 4),
             "re-id mAP": round(b["reid_map"], 4),
             "rank-1 look-alike queries": round(b["reid_rank1_look_alikes"], 4),
+            "rank-1 other queries": _r4(b.get("reid_rank1_others")),
+            "errors to the look-alike partner": _r4(b.get("reid_errors_to_look_alike_partner")),
             "steps": int(b["steps"]),
             "train min": round(b["train_minutes"], 1),
         }
