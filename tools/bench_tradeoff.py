@@ -368,24 +368,49 @@ CHILDREN = {"nsd": nsd_speed_child, "netepu": netepu_speed_child, "texture": tex
 TABLES = {"nsd": NSD_SETTINGS, "netepu": NETEPU_SETTINGS, "texture": TEXTURE_SETTINGS}
 
 
-def speed(kind: str, names: list[str], steps: int) -> None:
-    """Each setting in a fresh subprocess (independent peak RSS); run with nothing else running."""
+def speed(kind: str, names: list[str], steps: int, rounds: int = 1) -> None:
+    """Each setting in a fresh subprocess (independent peak RSS); run with nothing else running.
+
+    ``rounds`` > 1 times every setting once per round, round-robin, so that slow phases of
+    the machine hit all settings alike. Every timing session adds its measurements to
+    ``runs/tradeoff/speed_<kind>.json`` (``sessions``: one dict per measurement); the
+    report quotes the median over them (:func:`_median_session`).
+    """
     table = TABLES[kind]
     path = RESULTS / f"speed_{kind}.json"
     done = json.loads(path.read_text()) if path.is_file() else {}
-    for name in names or list(table):
-        proc = subprocess.run(
-            [sys.executable, __file__, "_child", kind, name, str(steps)],
-            capture_output=True,
-            text=True,
-            cwd=ROOT,
-        )
-        if proc.returncode != 0:
-            raise RuntimeError(f"{kind} {name} failed:\n{proc.stderr[-3000:]}")
-        done[name] = json.loads(proc.stdout.strip().splitlines()[-1])
-        print(kind, name, done[name], flush=True)
-        RESULTS.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(done, indent=1))
+    for _ in range(rounds):
+        for name in names or list(table):
+            proc = subprocess.run(
+                [sys.executable, __file__, "_child", kind, name, str(steps)],
+                capture_output=True,
+                text=True,
+                cwd=ROOT,
+            )
+            if proc.returncode != 0:
+                raise RuntimeError(f"{kind} {name} failed:\n{proc.stderr[-3000:]}")
+            res = json.loads(proc.stdout.strip().splitlines()[-1])
+            prev = done.get(name, {})
+            sessions = prev.get("sessions", [{k: v for k, v in prev.items()}] if prev else [])
+            done[name] = {"sessions": [*sessions, res]}
+            print(kind, name, res, flush=True)
+            RESULTS.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(done, indent=1))
+            tmp.replace(path)
+
+
+def _median_session(entry: dict) -> dict:
+    """The median of every numeric figure over a setting's timing sessions (plus their count)."""
+    import statistics
+
+    sessions = entry.get("sessions", [entry])
+    out = dict(sessions[-1])
+    for k, v in out.items():
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[k] = statistics.median(s[k] for s in sessions)
+    out["timing_sessions"] = len(sessions)
+    return out
 
 
 ACC_KEYS = [
@@ -519,7 +544,8 @@ def report() -> None:
 
     def load(kind: str) -> dict:
         path = RESULTS / f"speed_{kind}.json"
-        return json.loads(path.read_text()) if path.is_file() else {}
+        raw = json.loads(path.read_text()) if path.is_file() else {}
+        return {name: _median_session(entry) for name, entry in raw.items()}
 
     speed_nsd, speed_net, speed_tex = load("nsd"), load("netepu"), load("texture")
     # a later timing session of the presets next to the default (speed_nsd with its
@@ -584,6 +610,11 @@ def report() -> None:
             "median of 15 steps (batch 8 view pairs; frames/s counts both views), inference "
             "frames/s decomposes all 4 views of a held-out frame per call "
             "(`nsd.inference.decompose`), peak RSS of that process with the whole scene loaded. "
+            "`timing_sessions`: how many separate timing sessions (each a fresh process per "
+            "setting, settings round-robin) measured the setting; the figures are their "
+            "median. The machine is a shared VM: one session alone can be off by 30-40 % "
+            "(in the first session of this stamp, one decoder conv per stage timed slower "
+            "than three).\n\n"
             f"Accuracy: the same config trained for a fixed, **short** budget of "
             f"{BUDGET_MINUTES:g} minutes of training time on **one** core (1 thread, "
             "evaluation time excluded), evaluated on 20 held-out frames x 4 cameras at 1, 2, 3 "
@@ -655,6 +686,7 @@ def main() -> None:
         sp = sub.add_parser(f"speed_{kind}")
         sp.add_argument("settings", nargs="*")
         sp.add_argument("--steps", type=int, default=15)
+        sp.add_argument("--rounds", type=int, default=1)
     c = sub.add_parser("_child")
     c.add_argument("kind")
     c.add_argument("setting")
@@ -666,7 +698,7 @@ def main() -> None:
     elif args.what.startswith("accuracy_"):
         netepu_accuracy(args.what[9:], args.settings, args.minutes)
     elif args.what.startswith("speed_"):
-        speed(args.what[6:], args.settings, args.steps)
+        speed(args.what[6:], args.settings, args.steps, args.rounds)
     elif args.what == "_child":
         print(json.dumps(CHILDREN[args.kind](args.setting, args.steps)))
     elif args.what == "report":
