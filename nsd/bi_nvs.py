@@ -253,21 +253,12 @@ class BiNVS(nn.Module):
             masks = masks * (target.det.presence.detach() >= 0.5)[..., None, None].to(masks.dtype)
         if target.on is not None:  # inference: skip occlusion reasoning without overlaps
             masks = masks * target.on[..., None, None]
+        occlusion = True
         if not self.cfg.depth:
             comp = additive_composite(masks, target.det.depths)
         elif target.on is not None and not masks_overlap(masks).any():
             comp = separate_composite(masks, target.det.depths)
-            return Rendering(
-                blend(comp, layers, background),
-                comp,
-                layers,
-                masks,
-                A,
-                rgb,
-                mask,
-                occlusion_reasoning=False,
-                ungated_masks=ungated,
-            )
+            occlusion = False
         else:
             comp = erf_transmittance_composite(masks, target.det.depths)
         return Rendering(
@@ -278,6 +269,7 @@ class BiNVS(nn.Module):
             A,
             rgb,
             mask,
+            occlusion_reasoning=occlusion,
             ungated_masks=ungated,
         )
 

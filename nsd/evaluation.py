@@ -185,9 +185,9 @@ def score_frame(
     in_overlap = (gt_amodal.sum(0) >= 2) & (gt_lab >= 0)
     s.overlap_pixels += int(in_overlap.sum())
     if len(win) and in_overlap.any():
-        owner = np.full(G, -2)
-        for g, w in matched_gt.items():
-            owner[g] = int(np.flatnonzero(win == w)[0])
+        owner = np.full(G, -2)  # row of pred_lab's window per GT individual (-2: unmatched)
+        for p, g in pairs:
+            owner[g] = p
         s.overlap_owned += int((pred_lab[in_overlap] == owner[gt_lab[in_overlap]]).sum())
     return s
 

@@ -42,7 +42,7 @@ from netepu.data import build_geometry_data, sample_batch  # noqa: E402
 from netepu.evaluation import evaluate_views  # noqa: E402
 from netepu.maps import MapSettings, render_maps  # noqa: E402
 from netepu.model import build_geometry_model, load_geometry_model  # noqa: E402
-from tools.benchlib import median_time, peak_rss_mb, write_report  # noqa: E402
+from tools.benchlib import markdown_table, median_time, peak_rss_mb, write_report  # noqa: E402
 
 PAPER = {"nnopcs_mse": 1.6e-4, "depth_mae_mm": 17.8, "body_length_m": 2.2}
 REFERENCE_NOTES = {"mflops_per_pixel": 12.2, "ms_128": 3100.0}
@@ -298,17 +298,6 @@ def training(configs: list[tuple[str, int, int]], species: str) -> list[dict]:
 
 
 # ------------------------------------------------------------------ report
-def _table(rows: list[dict]) -> str:
-    from tools.benchlib import _fmt
-
-    cols: list[str] = []
-    for r in rows:
-        cols += [k for k in r if k not in cols]
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |" for r in rows]
-    return "\n".join(lines)
-
-
 def _equal_steps(curve: list[dict]) -> list[dict]:
     """Rows of the reference run's curve, each with our curve's row at the nearest step."""
     ours = [r for r in curve if r["model"] != "reference"]  # every run of our model
@@ -401,7 +390,7 @@ def main() -> None:
             f"{acc_extra.get('body_length_m', float('nan')):.2f} m (keypoint extent: length of "
             "a quadruped, height of a biped); `depth MAE % body` divides by it.",
             "## Cost per pixel and render time\n\n"
-            + _table(cost_rows)
+            + markdown_table(cost_rows)
             + "\n\nFLOPs are what `FlopCounterMode` counts (matrix products; element-wise maths "
             "such as sin/cos/exp is not counted, for both models alike). `MFLOPs/query` is one "
             "network evaluation at one pixel; `MFLOPs/image pixel` is a whole render (per-view "
@@ -409,7 +398,7 @@ def main() -> None:
             f"{REFERENCE_NOTES['mflops_per_pixel']} MFLOPs/pixel, ~{REFERENCE_NOTES['ms_128']:.0f} "
             "ms per 128x128 render.\n\n" + "\n".join(f"- {k}: {v:.1f}x" for k, v in ratios.items()),
             "## Training step\n\n"
-            + (_table(train_rows) if train_rows else "(skipped)")
+            + (markdown_table(train_rows) if train_rows else "(skipped)")
             + "\n\nOne step = sample the batch, forward 2000 points per view (1500 silhouette, "
             "500 in-mask), backward, clip, AdamW. Peak RSS of a fresh process holding the cached "
             "data set; `RSS over data` is the growth after loading the data.",
@@ -434,7 +423,7 @@ def main() -> None:
                         },
                     }
                 )
-        notes += "\n\n## Learning curves (evaluation subsets during training)\n\n" + _table(
+        notes += "\n\n## Learning curves (evaluation subsets during training)\n\n" + markdown_table(
             curve_lines
         )
         equal = _equal_steps(curve_lines)
@@ -444,7 +433,7 @@ def main() -> None:
                 "next to the evaluation of our run with the nearest step count, not the "
                 "same step count unless the runs allow it (the "
                 "training runs' own evaluation subsets, `netepu.eval.eval_views` views "
-                "per set).\n\n" + _table(equal)
+                "per set).\n\n" + markdown_table(equal)
             )
     if args.light:
         notes = (

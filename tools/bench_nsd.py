@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tools.benchlib import write_report
+from tools.benchlib import markdown_table, write_report
 
 KEYS = [
     "detection_rate",
@@ -209,7 +209,6 @@ def ablations_report(out_root: Path) -> None:
         raw[name] = res
     if not rows:
         raise SystemExit(f"no ablation results under {out_root}")
-    from tools.bench_netepu_geometry import _table
 
     curve = []
     for name, res in raw.items():
@@ -229,8 +228,10 @@ def ablations_report(out_root: Path) -> None:
         "triangulated depth prior and the geometric association term. 'merge_rate': "
         "camera-frames where one window covers half of two subjects; "
         "'overlap_ownership': visible pixels of amodal overlaps given to their owner's "
-        "window (nsd/evaluation.py).\n\n## Convergence (detection rate / mask mIoU)\n\n"
-        + _table(curve)
+        "window (nsd/evaluation.py). Each run trained with 1 thread on its own core "
+        "(the stamp gives the report process's threads)."
+        "\n\n## Convergence (detection rate / mask mIoU)\n\n"
+        + markdown_table(curve)
         + "\n\nHeld-out evaluations during training; minutes of training time, "
         "evaluation excluded.",
         extra={"runs": raw},

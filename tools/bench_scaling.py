@@ -282,7 +282,7 @@ def main() -> None:
     }
     if QUICK:
         return
-    from tools.bench_netepu_geometry import _table
+    from tools.benchlib import markdown_table
 
     s = sections
     n1, n8 = s["subjects"][0], s["subjects"][7]
@@ -292,7 +292,7 @@ def main() -> None:
             f"**{peak['gflops']:.0f} GFLOP/s** (2 threads).",
             "## Subjects N (batch 16, 128x128; training step: default config with "
             "model.num_windows=N)\n\n"
-            + _table(s["subjects"])
+            + markdown_table(s["subjects"])
             + f"\n\nThe (N, N) erf mixing is the O(N^2 HW) term: from N=1 to 8 its time grows "
             f"{n8['erf-mixing einsum ms (fwd)'] / n1['erf-mixing einsum ms (fwd)']:.0f}x "
             f"(N^2 grows 64x); the whole compositor grows "
@@ -302,18 +302,18 @@ def main() -> None:
             f"{n8['train step ms'] / n1['train step ms']:.1f}x (encoder and decoder run once "
             "per window: O(N)).",
             "## Cameras V (per-frame inference: decompose all views + associate)\n\n"
-            + _table(s["cameras"])
+            + markdown_table(s["cameras"])
             + "\n\nThe default scene's 4 views tiled to V. Untrained weights: the compositor's "
             "occlusion terms are skipped where masks do not overlap, so trained models can "
             "cost slightly more. Training cost does not depend on V: each step reads "
             "batch_size view pairs.",
             "## Resolution (square frames, default config otherwise)\n\n"
-            + _table(s["resolution"])
+            + markdown_table(s["resolution"])
             + "\n\nThe detector resamples frames to 64x64 and crops are 32x32 whatever the "
             "frame size, so only cropping, paste-back, compositing and the losses grow with "
             "the pixel count.",
             "## Hot loops against the GEMM peak\n\n"
-            + _table(s["hot_loops"])
+            + markdown_table(s["hot_loops"])
             + "\n\nFLOPs count matrix products and convolutions only "
             "(torch.utils.flop_counter); element-wise maths (exp, erf, sigmoid) is free in "
             "this count, so the compositor's rate is a lower bound on the work it does.",

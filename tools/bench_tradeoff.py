@@ -451,7 +451,7 @@ def _presets_note(presets: dict, session1: dict) -> str:
     """The presets' timing session, with the rows it repeated (run-to-run variation)."""
     if not presets:
         return ""
-    from tools.bench_netepu_geometry import _table
+    from tools.benchlib import markdown_table
 
     rows = [
         {
@@ -468,7 +468,7 @@ def _presets_note(presets: dict, session1: dict) -> str:
         for k, v in presets.items()
     ]
     return (
-        "## Presets (a second timing session)\n\n" + _table(rows) + "\n\nSettings timed "
+        "## Presets (a second timing session)\n\n" + markdown_table(rows) + "\n\nSettings timed "
         "again next to the presets moved by up to 30 % between the two sessions (same code, "
         "exclusive machine, 15-step medians): only speed differences of ~1.3x or more in "
         "the table above are real."
@@ -552,8 +552,7 @@ def report() -> None:
     import torch
 
     from nsd.atomic import atomic_write_text
-    from tools.bench_netepu_geometry import _table
-    from tools.benchlib import BENCH_DIR, write_report
+    from tools.benchlib import BENCH_DIR, markdown_table, write_report
 
     def load(kind: str) -> dict:
         path = RESULTS / f"speed_{kind}.json"
@@ -647,7 +646,7 @@ def report() -> None:
             "4-minute run cannot show one. Resolution changes evaluate against ground truth "
             "resized to that resolution.",
             "## NeTePu geometry knobs (speed, and accuracy after 4 minutes)\n\n"
-            + (_table(net_rows) if net_rows else "(not measured)")
+            + (markdown_table(net_rows) if net_rows else "(not measured)")
             + "\n\nTraining step = sample a batch of 16 views with their points, forward, "
             "backward, clip, AdamW (what netepu-train does). Render = encode + prepare + "
             "coarse-to-fine maps of one held-out view at the evaluation resolution. "
@@ -659,7 +658,7 @@ def report() -> None:
             "held-out poses (training cameras) and held-out cameras: silhouette IoU, NNOPCS "
             "MSE, depth MAE (mm). One run each; short runs, so only large differences count.",
             "## NeTePu texture-code size (speed, and accuracy after 4 minutes)\n\n"
-            + (_table(tex_rows) if tex_rows else "(not measured)")
+            + (markdown_table(tex_rows) if tex_rows else "(not measured)")
             + "\n\nTexture codes per second from 32 frames (256x192) with their visible masks "
             "and NNOPCS maps (`netepu.texture.encode_texture`: square crop around the mask, "
             "masked resampling, CNN encoder, mu); untrained weights. Accuracy columns "

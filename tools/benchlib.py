@@ -114,6 +114,16 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
+    """A Markdown table of ``rows``; columns are the union of keys, in first-seen order."""
+    cols: list[str] = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |" for r in rows]
+    return "\n".join(lines)
+
+
 def write_report(
     name: str,
     title: str,
@@ -136,9 +146,6 @@ def write_report(
         "commit": git_commit(),
         "machine": machine_info(),
     }
-    cols: list[str] = []
-    for r in rows:
-        cols += [k for k in r if k not in cols]
     lines = [f"# {title}", ""]
     m = stamp["machine"]
     lines.append(
@@ -148,11 +155,7 @@ def write_report(
     )
     lines.append("")
     if rows:
-        lines.append("| " + " | ".join(cols) + " |")
-        lines.append("|" + "---|" * len(cols))
-        for r in rows:
-            lines.append("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
-        lines.append("")
+        lines += [markdown_table(rows), ""]
     if extra:
         for k, v in extra.items():
             if not isinstance(v, (dict, list)):
