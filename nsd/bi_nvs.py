@@ -48,6 +48,7 @@ from nsd.encoder import Encoder, rotate_latent
 from nsd.errors import ConfigError
 from nsd.focal_st import crop, paste
 from nsd.triangulation import ray_distances, window_rays
+from nsd.window_masks import MASK_NORMALISATIONS, normalise_window_masks
 
 __all__ = ["BiNVS", "BiNVSConfig", "Rendering", "Windows"]
 
@@ -66,8 +67,11 @@ class BiNVSConfig:
     association_beta: float = 10.0  # softmax sharpness
     association_geometry: float = 0.0  # weight of the ray-distance term (0: appearance only, NSD)
     association_unit: float = 0.3  # metres of ray distance per unit of cosine similarity
-    mask_normalisation: str = "max"  # "max": divide each window's mask by its maximum
+    # "max": divide each window's mask by its maximum (reference code); "visible": by the
+    # maximum of its pooled, bump-weighted (pasted) mask (nsd/window_masks.py); "none"
+    mask_normalisation: str = "max"
     mask_floor: float = 1e-4  # floor of that maximum
+    mask_pool: int = 3  # averaging window of "visible" (odd)
     crop_padding: str = "zeros"  # grid_sample padding of crops reaching outside the frame
     # how presence acts on the pasted masks in training: "soft" scales them by it, "hard" keeps
     # only windows with presence >= 0.5 (a detached 0/1 gate), "none" leaves them ungated
@@ -78,10 +82,13 @@ class BiNVSConfig:
             raise ConfigError(f"model.num_windows must be >= 1, got {self.num_windows}")
         if self.mode not in ("bi_nvs", "autoencoder"):
             raise ConfigError(f"model.mode must be 'bi_nvs' or 'autoencoder', got {self.mode!r}")
-        if self.mask_normalisation not in ("max", "none"):
+        if self.mask_normalisation not in MASK_NORMALISATIONS:
             raise ConfigError(
-                f"model.mask_normalisation must be 'max' or 'none', got {self.mask_normalisation!r}"
+                f"model.mask_normalisation must be one of {MASK_NORMALISATIONS}, "
+                f"got {self.mask_normalisation!r}"
             )
+        if self.mask_pool < 1 or self.mask_pool % 2 == 0:
+            raise ConfigError(f"model.mask_pool must be an odd number >= 1, got {self.mask_pool}")
         if self.presence_gate not in ("soft", "hard", "none"):
             raise ConfigError(
                 f"model.presence_gate must be 'soft', 'hard' or 'none', got {self.presence_gate!r}"
@@ -233,8 +240,10 @@ class BiNVS(nn.Module):
                 b_idx, n_idx = torch.nonzero(source.on, as_tuple=True)
                 r_, l_ = self.decoder(latent[b_idx, n_idx], source.app[b_idx, n_idx])
                 rgb[b_idx, n_idx], mask[b_idx, n_idx] = r_, torch.sigmoid(l_)
-        if self.cfg.mask_normalisation == "max":
-            mask = mask / mask.amax((-2, -1), keepdim=True).clamp_min(self.cfg.mask_floor)
+        mask = normalise_window_masks(
+            mask, self.cfg.mask_normalisation, self.cfg.focal, self.cfg.mask_floor,
+            self.cfg.mask_pool,
+        )
         associate = self.cfg.association if associate is None else associate
         if associate:
             M = self.association_score(target.app, source.app, geometry_cost)

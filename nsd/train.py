@@ -33,6 +33,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from nsd import distributed
+from nsd.association import appearance_similarity, association_softmax
 from nsd.bi_nvs import BiNVS, BiNVSConfig
 from nsd.data import SceneData
 from nsd.decoder import Decoder
@@ -129,6 +130,11 @@ class NSDTask:
         if self.presence_target not in ("none", "marginal"):
             raise ConfigError(
                 f"prior_presence.target must be 'none' or 'marginal', got {self.presence_target!r}"
+            )
+        score = cfg.prior_association.get("score", "full")
+        if score not in ("appearance", "full"):
+            raise ConfigError(
+                f"prior_association.score must be 'appearance' or 'full', got {score!r}"
             )
         pp = cfg.prior_proposal
         if (
@@ -268,9 +274,10 @@ class NSDTask:
         if c.prior_association.weight > 0 and batch.proposal_depth_v is not None:
             B = batch.image_v.shape[0]
             mv, mw = matching[:B], matching[B:]
+            av, aw = self._prior_associations(rv, rw, wv, ww)
             out["prior_association"] = (
-                association_prior(rv.association, mv, batch.valid_v, mw, batch.valid_w)
-                + association_prior(rw.association, mw, batch.valid_w, mv, batch.valid_v)
+                association_prior(av, mv, batch.valid_v, mw, batch.valid_w)
+                + association_prior(aw, mw, batch.valid_w, mv, batch.valid_v)
             ) / 2
         weights = {
             "pixel": 1.0,
@@ -290,6 +297,26 @@ class NSDTask:
             total = total + weights[k] * v
         out["loss"] = total
         return out
+
+    def _prior_associations(self, rv, rw, wv, ww) -> tuple[torch.Tensor, torch.Tensor]:
+        """The soft associations (B, N, N) the association prior pulls on, for v and w.
+
+        ``prior_association.score=appearance``: the appearance-only softmax (eq. 4-5), the
+        part of the score the networks can change. ``full``: the association used for
+        re-synthesis, whose detached ray-distance term can contradict the proposals by far
+        more than the appearances can make up: its cross-entropy then stays large (up to
+        ~14 measured) and only pushes the encoder around (docs/nsd.md).
+        """
+        m = self.model.cfg
+        if self.cfg.prior_association.get("score", "full") == "full" or not (
+            m.association and m.mode == "bi_nvs"
+        ):
+            return rv.association, rw.association
+        sim = appearance_similarity(wv.app, ww.app, m.association_dims)
+        return (
+            association_softmax(sim, m.association_beta),
+            association_softmax(sim.transpose(-1, -2), m.association_beta),
+        )
 
     def _presence_target(self, evidence, rv, rw, wv, ww, size) -> dict[str, torch.Tensor]:
         """BCE of both views' presences against their marginal-gain targets (nsd.presence);

@@ -111,3 +111,29 @@ def test_build_model_rejects_bad_sizes():
     cfg = tiny_cfg("model.crop_size=18")
     with pytest.raises(ConfigError, match="divisible"):
         build_model(cfg.model)
+
+
+def test_association_prior_on_appearance_ignores_the_geometric_term(tiny_data):
+    """``prior_association.score=appearance`` pulls on the appearance-only softmax: the
+    prior's value does not change with the (detached) ray-distance weight, while the
+    ``full`` score, the association used for re-synthesis, does."""
+
+    def prior(score: str, geometry: float) -> float:
+        cfg = tiny_cfg(f"prior_association.score={score}", f"model.association_geometry={geometry}")
+        torch.manual_seed(0)
+        task = NSDTask(cfg, tiny_data)  # computes the proposals the batch carries
+        task.model.eval()
+        batch = tiny_data.sample(np.random.default_rng(5), 4)
+        with torch.no_grad():
+            return task.losses(batch)["prior_association"].item()
+
+    assert prior("appearance", 0.0) == pytest.approx(prior("appearance", 5.0), abs=1e-6)
+    assert prior("full", 0.0) == pytest.approx(prior("appearance", 0.0), abs=1e-6)
+    assert abs(prior("full", 5.0) - prior("full", 0.0)) > 1e-3
+
+
+def test_association_prior_score_is_validated(tiny_data):
+    from nsd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="prior_association.score"):
+        NSDTask(tiny_cfg("prior_association.score=geometry"), tiny_data)
