@@ -135,5 +135,5 @@ def test_association_prior_on_appearance_ignores_the_geometric_term(tiny_data):
 def test_association_prior_score_is_validated(tiny_data):
     from nsd.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="prior_association.score"):
+    with pytest.raises(ConfigError, match=r"prior_association\.score"):
         NSDTask(tiny_cfg("prior_association.score=geometry"), tiny_data)
