@@ -270,7 +270,7 @@ def collapse_report(runs: list[str], at: float) -> None:
         "`mask_miou_raw` scores the composited decoder masks without the residual "
         "refinement: 0 means the masks collapsed and the re-synthesis shows only the "
         "background. The labels name what differs from the default of the time; the "
-        "old-default runs are the 15-minute ablation runs of the previous commit, read at "
+        "old-default runs are the 15-minute ablation runs of commit 495c436, read at "
         "the same training time. docs/nsd.md interprets the table.",
         extra={"runs": runs, "at_minutes": at},
     )
