@@ -131,10 +131,11 @@ class NSDTask:
             raise ConfigError(
                 f"prior_presence.target must be 'none' or 'marginal', got {self.presence_target!r}"
             )
-        score = cfg.prior_association.get("score", "full")
-        if score not in ("appearance", "full"):
+        self.association_prior_score = str(cfg.prior_association.get("score", "full"))
+        if self.association_prior_score not in ("appearance", "full"):
             raise ConfigError(
-                f"prior_association.score must be 'appearance' or 'full', got {score!r}"
+                "prior_association.score must be 'appearance' or 'full', got "
+                f"{self.association_prior_score!r}"
             )
         pp = cfg.prior_proposal
         if (
@@ -308,9 +309,7 @@ class NSDTask:
         ~14 measured) and only pushes the encoder around (docs/nsd.md).
         """
         m = self.model.cfg
-        if self.cfg.prior_association.get("score", "full") == "full" or not (
-            m.association and m.mode == "bi_nvs"
-        ):
+        if self.association_prior_score == "full" or not (m.association and m.mode == "bi_nvs"):
             return rv.association, rw.association
         sim = appearance_similarity(wv.app, ww.app, m.association_dims)
         return (
