@@ -41,6 +41,7 @@ from netepu.texture import TextureEncoder
 __all__ = [
     "ReidCNN",
     "batch_hard_triplet_loss",
+    "nearest_candidates",
     "pairwise_distances",
     "reid_metrics",
     "separation_figure",
@@ -63,6 +64,32 @@ def pairwise_distances(a: np.ndarray, b: np.ndarray, metric: str = "cosine") -> 
         d = (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2 * a @ b.T
         return np.sqrt(np.maximum(d, 0))
     raise ValueError(f"metric must be 'cosine' or 'euclidean', got {metric!r}")
+
+
+def nearest_candidates(
+    embeddings: np.ndarray, candidates: np.ndarray, metric: str = "cosine", chunk: int = 1024
+) -> np.ndarray:
+    """For each row, the index of its nearest row among its candidates.
+
+    Args:
+        embeddings: (n, d).
+        candidates: (n, n) bool, row i may retrieve row j (e.g. another camera of the
+            same frame).
+
+    Returns:
+        (n,) int64 indices; -1 for rows without a candidate.
+    """
+    candidates = np.asarray(candidates, bool)
+    n = len(embeddings)
+    if candidates.shape != (n, n):
+        raise ValueError(f"candidates must be ({n}, {n}), got {candidates.shape}")
+    out = np.full(n, -1, np.int64)
+    for s in range(0, n, chunk):
+        q = slice(s, min(n, s + chunk))
+        d = np.where(candidates[q], pairwise_distances(embeddings[q], embeddings, metric), np.inf)
+        best = d.argmin(1)
+        out[q] = np.where(candidates[q].any(1), best, -1)
+    return out
 
 
 def reid_metrics(

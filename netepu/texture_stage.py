@@ -27,6 +27,8 @@ Contrastive codes (``contrast_weight`` > 0, ours): every sample also gets a
 partner, another view (pose, camera) of its texture, encoded the same way, and
 :func:`netepu.texture.code_contrast_loss` of the two batches' codes is added
 with that weight (the synthetic world's texture ids say which rows match).
+``batch_sampling=textures`` fills each batch with as many different textures as
+it can, so that look-alike textures meet in the contrastive loss.
 
 Evaluation: colour PSNR of the held-out sets and re-identification rank-1 /
 mAP of the held-out codes (:mod:`netepu.reid`).
@@ -62,6 +64,8 @@ __all__ = ["TextureStageConfig", "TextureTask", "build_texture_stage"]
 
 log = logging.getLogger(__name__)
 
+BATCH_SAMPLINGS = ("random", "textures")
+
 
 @dataclass
 class TextureStageConfig:
@@ -79,6 +83,7 @@ class TextureStageConfig:
     cross_view: float = 0.0
     contrast_weight: float = 0.0
     contrast_temperature: float = 0.1
+    batch_sampling: str = "random"
     eval_views: int = 8
 
     @classmethod
@@ -96,6 +101,11 @@ class TextureStageConfig:
             raise ConfigError(
                 "netepu.texture.optim: contrast_weight must be >= 0 and contrast_temperature > 0, "
                 f"got {c.contrast_weight}, {c.contrast_temperature}"
+            )
+        if c.batch_sampling not in BATCH_SAMPLINGS:
+            raise ConfigError(
+                f"netepu.texture.optim.batch_sampling must be one of {BATCH_SAMPLINGS}, "
+                f"got {c.batch_sampling!r}"
             )
         return c
 
@@ -191,10 +201,33 @@ class TextureTask:
         nn_ = torch.from_numpy(self.nnopcs_train[vs].astype(np.float32))
         return self.texture.encoder_input(rgb, inside, nn_)
 
-    def batch(self, rng: np.random.Generator) -> dict[str, Any]:
-        """Random samples: encoder input, render inputs and colour targets."""
+    def batch_samples(self, rng: np.random.Generator) -> np.ndarray:
+        """The training samples (B,) of one step.
+
+        ``random``: uniform over all samples. ``textures``: the batch's textures are
+        a random permutation of the pool (repeated when the batch is larger), each
+        with a random sample, so that a batch holds as many different textures as
+        it can -- every look-alike pair meets in every batch of >= T samples, where
+        the contrastive loss must tell them apart (P x K batches of re-id training,
+        with K views from the partners).
+        """
         c, tr = self.cfg, self.data.train
-        idx = rng.integers(0, len(tr["sample_view"]), c.batch_size)
+        if c.batch_sampling == "random":
+            return rng.integers(0, len(tr["sample_view"]), c.batch_size)
+        pool = np.array(sorted(self._by_texture))
+        reps = -(-c.batch_size // len(pool))
+        textures = np.concatenate([rng.permutation(pool) for _ in range(reps)])[: c.batch_size]
+        return np.array(
+            [
+                self._by_texture[int(t)][rng.integers(0, len(self._by_texture[int(t)]))]
+                for t in textures
+            ]
+        )
+
+    def batch(self, rng: np.random.Generator) -> dict[str, Any]:
+        """Samples of one step: encoder input, render inputs and colour targets."""
+        c, tr = self.cfg, self.data.train
+        idx = self.batch_samples(rng)
         v = tr["sample_view"][idx]
         src = self.cross_view_sources(idx, rng)
         x = self.encoder_input(src, rng)

@@ -434,3 +434,25 @@ def test_contrast_settings_are_checked():
 
     with pytest.raises(ConfigError, match="contrast_temperature"):
         TextureStageConfig.from_mapping({"contrast_temperature": 0.0})
+
+
+def test_texture_batches_hold_every_texture_of_the_pool():
+    """batch_sampling=textures: a batch of >= T samples holds every texture, each
+    texture at most ceil(B / T) times; random batches miss some."""
+    task = _task(textures=(0, 2, 5), per_view=2, batch_sampling="textures", batch_size=7)
+    tex = task.data.train["sample_texture"]
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        counts = np.bincount(tex[task.batch_samples(rng)], minlength=3)  # pool indices
+        assert counts.sum() == 7 and counts.min() >= 2 and counts.max() == 3
+    task.cfg.batch_sampling, task.cfg.batch_size = "random", 3
+    missed = [len(set(tex[task.batch_samples(rng)])) < 3 for _ in range(50)]
+    assert any(missed)
+
+
+def test_batch_sampling_is_checked():
+    from netepu.texture_stage import TextureStageConfig
+    from nsd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"batch_sampling.*'identity'"):
+        TextureStageConfig.from_mapping({"batch_sampling": "identity"})

@@ -9,6 +9,7 @@ import torch
 from netepu.reid import (
     ReidCNN,
     batch_hard_triplet_loss,
+    nearest_candidates,
     pairwise_distances,
     reid_metrics,
     separation_figure,
@@ -254,3 +255,24 @@ def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs):
     if use_nnopcs:
         with pytest.raises(ConfigError, match="keypoints"):
             embed_export(tmp_path, tmp_path / "tex.pt", column="t2")
+
+
+def test_nearest_candidates_matches_a_loop_and_respects_the_candidates():
+    rng = np.random.default_rng(3)
+    emb = rng.normal(size=(23, 5))
+    cand = rng.random((23, 23)) < 0.3
+    cand[4] = False  # a row without candidates
+    got = nearest_candidates(emb, cand, chunk=7)
+    d = pairwise_distances(emb, emb)
+    for i in range(23):
+        js = np.nonzero(cand[i])[0]
+        assert got[i] == (js[np.argmin(d[i, js])] if len(js) else -1)
+    assert got[4] == -1
+    # same-camera exclusion gives reid_metrics' rank-1 (every identity in every camera)
+    emb = rng.normal(size=(24, 5))
+    ids, cams = np.arange(24) % 4, (np.arange(24) // 4) % 3
+    nn = nearest_candidates(emb, cams[:, None] != cams[None])
+    assert (nn >= 0).all()
+    assert np.isclose((ids[nn] == ids).mean(), reid_metrics(emb, ids, cams)["rank1"])
+    with pytest.raises(ValueError, match="candidates must be"):
+        nearest_candidates(emb, cand[:5])

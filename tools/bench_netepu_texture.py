@@ -91,7 +91,7 @@ def _task_for(run: str):
 
 
 def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[str, float]:
-    from netepu.reid import reid_metrics
+    from netepu.reid import nearest_candidates, reid_metrics
 
     E, T = codes.shape[:2]
     ids = np.tile(np.arange(T), E)
@@ -99,7 +99,7 @@ def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[
     emb = codes.reshape(E * T, -1)
     out = reid_metrics(emb, ids, cams)
     look = np.isin(textures[ids], LOOK_ALIKES)
-    top = _top1(emb, ids, cams)
+    top = ids[nearest_candidates(emb, cams[:, None] != cams[None])]
     partner = {a: b for a, b in LOOK_ALIKE_PAIRS} | {b: a for a, b in LOOK_ALIKE_PAIRS}
     wrong = top != ids
     to_partner = np.array(
@@ -116,19 +116,6 @@ def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[
             float(to_partner[wrong].mean()) if wrong.any() else float("nan")
         ),
     }
-
-
-def _top1(emb, ids, cams, chunk: int = 1024) -> np.ndarray:
-    """The identity of each query's nearest embedding from another camera (cosine)."""
-    from netepu.reid import pairwise_distances
-
-    out = np.empty(len(ids), ids.dtype)
-    for s in range(0, len(ids), chunk):
-        q = np.arange(s, min(len(ids), s + chunk))
-        d = pairwise_distances(emb[q], emb)
-        d[cams[q][:, None] == cams[None]] = np.inf
-        out[q] = ids[d.argmin(1)]
-    return out
 
 
 def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = False) -> None:

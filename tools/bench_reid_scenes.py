@@ -58,23 +58,17 @@ TEXTURES = {  # texture models (netepu-train stage=texture), all trained on the 
 FIRST_UNSEEN_TEXTURE = 100  # ids >= the pool size are generated textures, never in the pool
 
 
-def _unit(x: np.ndarray) -> np.ndarray:
-    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
-
-
 def rank1(codes: np.ndarray, ident: np.ndarray, candidates: np.ndarray) -> float:
     """Share of rows whose nearest candidate (cosine) has their identity.
 
     Args:
         codes: (R, D); ident: (R,); candidates: (R, R) bool, row i may retrieve row j.
     """
-    sim = _unit(codes) @ _unit(codes).T
-    sim = np.where(candidates, sim, -np.inf)
-    has = candidates.any(1)
-    if not has.any():
-        return float("nan")
-    best = sim.argmax(1)
-    return float((ident[best] == ident)[has].mean())
+    from netepu.reid import nearest_candidates
+
+    best = nearest_candidates(codes, candidates)
+    has = best >= 0
+    return float((ident[best] == ident)[has].mean()) if has.any() else float("nan")
 
 
 def _gt_keypoints(export: Path, scene: Path, label_free: Path, out: Path) -> None:
