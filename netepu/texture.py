@@ -103,6 +103,7 @@ class TextureConfig:
     latent: int = 128
     features: int = 64
     use_nnopcs: bool = True
+    use_normals: bool = False
     local_features: bool = True
     crop_size: int = 64
     crop_margin: float = 0.1
@@ -125,7 +126,17 @@ class TextureConfig:
             raise ConfigError(
                 "netepu.texture.model: crop_size >= 16, latent and features >= 1, crop_margin >= 0"
             )
+        if c.use_normals and not c.use_nnopcs:
+            raise ConfigError(
+                "netepu.texture.model.use_normals needs use_nnopcs: the normals come from the "
+                "geometry model's depth, rendered with the NNOPCS map"
+            )
         return c
+
+    @property
+    def surface_channels(self) -> int:
+        """Channels of the rendered surface crop: NNOPCS (3) [+ world normals (3)]."""
+        return (3 if self.use_nnopcs else 0) + (3 if self.use_normals else 0)
 
 
 # ----------------------------------------------------------------------------- crops
@@ -405,7 +416,7 @@ class TextureModel(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.encoder = TextureEncoder(
-            7 if cfg.use_nnopcs else 4,
+            4 + cfg.surface_channels,
             cfg.latent,
             list(cfg.widths),
             cfg.blocks_per_stage,
@@ -425,7 +436,8 @@ class TextureModel(nn.Module):
             raise ConfigError(f"netepu.texture.model.renderer: {e}") from e
 
     def encoder_input(self, rgb: Tensor, inside: Tensor, nnopcs: Tensor | None) -> Tensor:
-        """Crops (B, S, S, 3), (B, S, S) bool, (B, S, S, 3) -> encoder input (B, C_in, S, S)."""
+        """Crops (B, S, S, 3), (B, S, S) bool, surface (B, S, S, C_s) -> encoder input
+        (B, C_in, S, S); C_s = ``cfg.surface_channels`` (NNOPCS [+ world normals])."""
         parts = [rgb, inside[..., None].to(rgb.dtype)]
         if self.cfg.use_nnopcs:
             if nnopcs is None:
@@ -529,6 +541,92 @@ def predicted_nnopcs(
     return out.clamp(0, 1)
 
 
+def surface_normals(depth: Tensor, uv: Tensor, inside: Tensor, K: Tensor, R: Tensor) -> Tensor:
+    r"""World-space unit normals of a depth crop on a regular pixel grid.
+
+    Each crop pixel :math:`(u, v)` with camera depth :math:`Z` is back-projected,
+    :math:`X = Z\, K^{-1} (u, v, 1)^\top` (lens distortion ignored: a crop spans a
+    few dozen pixels), its tangents are the finite differences of :math:`X` along
+    the crop's two axes (the mean of the forward and backward difference where
+    both neighbours are inside, the one that is otherwise, none at a pixel with
+    no inside neighbour on an axis), and the normal
+    :math:`n = \partial_y X \times \partial_x X / \lVert\cdot\rVert`, flipped
+    to face the camera (:math:`n \cdot X < 0`), is rotated to the world,
+    :math:`n_w = R^\top n` (``R`` world-to-camera). With a light fixed in the
+    world, Lambertian shading is a function of :math:`n_w` alone: what lets a
+    texture code tell albedo from shading.
+
+    Args:
+        depth: (B, S, S) camera depth Z at the crop pixels.
+        uv: (B, S, S, 2) their camera pixels (x, y).
+        inside: (B, S, S) bool, pixels with a depth.
+        K: (B, 3, 3) intrinsics; R: (B, 3, 3) world-to-camera rotation.
+
+    Returns:
+        (B, S, S, 3) unit normals; zeros outside or without a tangent on both axes.
+    """
+    ones = torch.ones_like(depth)
+    rays = torch.einsum("bij,bhwj->bhwi", torch.linalg.inv(K), torch.cat([uv, ones[..., None]], -1))
+    X = rays * depth[..., None]
+    m = inside.to(X.dtype)
+
+    def tangent(dim: int) -> tuple[Tensor, Tensor]:
+        """Tangent along grid axis ``dim`` (1: rows, 2: columns) and where it exists."""
+        n = X.shape[dim]
+        step = X.narrow(dim, 1, n - 1) - X.narrow(dim, 0, n - 1)
+        ok = m.narrow(dim, 1, n - 1) * m.narrow(dim, 0, n - 1)
+        step = step * ok[..., None]
+        zero, zero_ok = torch.zeros_like(X.narrow(dim, 0, 1)), torch.zeros_like(m.narrow(dim, 0, 1))
+        total = torch.cat([step, zero], dim) + torch.cat([zero, step], dim)  # forward + backward
+        count = torch.cat([ok, zero_ok], dim) + torch.cat([zero_ok, ok], dim)
+        return total / count.clamp_min(1)[..., None], count > 0
+
+    tx, okx = tangent(2)
+    ty, oky = tangent(1)
+    n = torch.cross(ty, tx, dim=-1)
+    n = n * torch.where((n * X).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(n.dtype)
+    n = torch.nn.functional.normalize(n, dim=-1, eps=1e-12)
+    world = torch.einsum("bji,bhwj->bhwi", R, n)
+    return world * (inside & okx & oky)[..., None].to(X.dtype)
+
+
+def predicted_surface(
+    geometry: GeometryModel,
+    keypoints: Tensor,
+    camera: dict[str, Tensor],
+    uv: Tensor,
+    keep: Tensor,
+    normals: bool,
+) -> Tensor:
+    """The geometry model's surface at kept crop pixels: NNOPCS [+ world normals].
+
+    Args:
+        keypoints: (B, K, 3) world; camera: batch B.
+        uv: (B, S, S, 2) crop pixels of the camera (a regular grid); keep: (B, S, S) bool.
+        normals: also :func:`surface_normals` of the rendered depth.
+
+    Returns:
+        (B, S, S, 3) or (B, S, S, 6), zeros where not kept.
+    """
+    B, S1, S2 = keep.shape
+    flat_uv, flat_keep = uv.reshape(B, S1 * S2, 2), keep.reshape(B, S1 * S2)
+    if not normals:
+        return predicted_nnopcs(geometry, keypoints, camera, flat_uv, flat_keep).reshape(
+            B, S1, S2, 3
+        )
+    code = geometry.encode(keypoints)
+    ctx = geometry.prepare(code, camera, keypoints=keypoints)
+
+    def both(q: Tensor) -> Tensor:
+        out = geometry.query(ctx, q)
+        return torch.cat([out["nnopcs"].clamp(0, 1), out["depth"][..., None]], -1)
+
+    out = query_masked(both, flat_uv, flat_keep).reshape(B, S1, S2, 4)
+    K, R = camera["K"].to(out.dtype), camera["R"].to(out.dtype)
+    n = surface_normals(out[..., 3], uv.to(out.dtype), keep, K, R)
+    return torch.cat([out[..., :3], n], -1)
+
+
 def encoder_crops(
     texture: TextureModel,
     image: Tensor,
@@ -542,15 +640,16 @@ def encoder_crops(
         texture: the model (crop size and margin).
         image: (B, H, W, 3) float in [0, 1] or uint8.
         mask: (B, H, W) bool visible pixels.
-        nnopcs: a map (B, H, W, 3) sampled like the image, or a function
-            ``(uv (B, N, 2) camera pixels, keep (B, N)) -> (B, N, 3)`` that renders
-            it at the crop pixels, or None (RGB-only models).
+        nnopcs: a map (B, H, W, C_s) sampled like the image, or a function
+            ``(uv (B, S, S, 2) camera pixels, keep (B, S, S)) -> (B, S, S, C_s)``
+            that renders it at the crop pixels (:func:`predicted_surface`), or None
+            (RGB-only models); C_s = ``cfg.surface_channels``.
         window: (B, 3) where ``image`` lies in the camera's native pixels
             (square crops); None: the image is the camera frame.
 
     Returns:
         ``(rgb, inside, nnopcs, grid)``: (B, S, S, 3), (B, S, S) bool,
-        (B, S, S, 3) or None, and the crop grid (B, S, S, 2) in image pixels.
+        (B, S, S, C_s) or None, and the crop grid (B, S, S, 2) in image pixels.
     """
     img = _as_float_image(image)
     if img.ndim != 4 or img.shape[-1] != 3 or mask.shape != img.shape[:3]:
@@ -569,7 +668,6 @@ def encoder_crops(
                 "this texture model reads NNOPCS: pass keypoints and cameras (or a map)"
             )
         if callable(nnopcs):
-            B = img.shape[0]
             cam_grid = grid
             if window is not None:
                 H, W = img.shape[1:3]
@@ -581,9 +679,7 @@ def encoder_crops(
                     ],
                     -1,
                 )
-            nn_crop = nnopcs(
-                cam_grid.reshape(B, S * S, 2).float(), inside.reshape(B, S * S)
-            ).reshape(B, S, S, 3)
+            nn_crop = nnopcs(cam_grid.float(), inside)
         else:
             nn_crop, _ = sample_masked(nnopcs.float(), mask, grid)
         nn_crop = nn_crop * inside[..., None]
@@ -641,7 +737,7 @@ def texture_codes(
         cam = {k: v.float() for k, v in camera.items()}
 
         def render(uv: Tensor, keep: Tensor) -> Tensor:
-            return predicted_nnopcs(geometry, kps, cam, uv, keep)
+            return predicted_surface(geometry, kps, cam, uv, keep, texture.cfg.use_normals)
 
     rgb, inside, nn_crop, _ = encoder_crops(texture, image, mask, render, window)
     texture.eval()

@@ -408,6 +408,7 @@ def predicted_nnopcs_crops(
     inside: np.ndarray,
     batch: int = 64,
     progress: Callable[[str], None] | None = None,
+    normals: bool = False,
 ) -> np.ndarray:
     """NNOPCS crops rendered by the frozen geometry model at the in-mask crop pixels.
 
@@ -419,23 +420,24 @@ def predicted_nnopcs_crops(
         keypoints: (n, K, 3) world keypoints.
         camera: per-view camera tensors (batch n).
         window: (n, 3) crop windows; inside: (n, S, S) bool in-mask crop pixels.
+        normals: append the world normals of the rendered depth
+            (:func:`netepu.texture.predicted_surface`).
 
     Returns:
-        (n, S, S, 3) float16, zeros outside.
+        (n, S, S, 3) or (n, S, S, 6) float16, zeros outside.
     """
-    from netepu.texture import predicted_nnopcs
+    from netepu.texture import predicted_surface
 
     geometry.eval()
     n, S = inside.shape[:2]
-    out = np.zeros((n, S, S, 3), np.float16)
+    out = np.zeros((n, S, S, 6 if normals else 3), np.float16)
     for s in range(0, n, batch):
         sl = slice(s, min(n, s + batch))
-        uv = crop_grid(torch.from_numpy(window[sl]).double(), S).float().reshape(-1, S * S, 2)
-        keep = torch.from_numpy(inside[sl]).reshape(-1, S * S)
+        uv = crop_grid(torch.from_numpy(window[sl]).double(), S).float()
+        keep = torch.from_numpy(inside[sl])
         kps = torch.from_numpy(keypoints[sl]).float()
         cam = {k: v[sl].float() for k, v in camera.items()}
-        nn = predicted_nnopcs(geometry, kps, cam, uv, keep)
-        out[sl] = nn.reshape(-1, S, S, 3).numpy().astype(np.float16)
+        out[sl] = predicted_surface(geometry, kps, cam, uv, keep, normals).numpy()
         if progress and (s // batch) % 10 == 0:
             progress(f"predicted NNOPCS crops {min(n, s + batch)}/{n}")
     return out

@@ -340,6 +340,8 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
         f"{_weights_key(path)}:{data.train['window'].sum():.6f}:"
         f"{len(data.train['window'])}:{len(data.heldout['window'])}".encode()
     ).hexdigest()[:12]
+    normals = texture.cfg.use_normals
+    key += "-normals" if normals else ""
     nn_path = root / f"texture-nnopcs-{key}.npz"
     if nn_path.is_file():
         with np.load(nn_path) as z:
@@ -348,7 +350,13 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
         tr, h = data.train, data.heldout
         cams = {k: v[torch.from_numpy(tr["camera"])] for k, v in data.train_camera.items()}
         nn_train = predicted_nnopcs_crops(
-            geometry, tr["keypoints"], cams, tr["window"], tr["inside"], progress=log.info
+            geometry,
+            tr["keypoints"],
+            cams,
+            tr["window"],
+            tr["inside"],
+            progress=log.info,
+            normals=normals,
         )
         nn_held = predicted_nnopcs_crops(
             geometry,
@@ -356,6 +364,7 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
             data.heldout_camera_tensors(np.arange(len(h["pose"]))),
             h["window"],
             h["inside"],
+            normals=normals,
         )
         atomic_save_npz(nn_path, train=nn_train, heldout=nn_held)
     task = TextureTask(

@@ -112,9 +112,10 @@ class SceneData:
         self.proposal_depths: Tensor | None = None
 
     def compute_multiview_proposals(
-        self, k: int, threshold: float, softness: float, resolution: int = 48
+        self, k: int, threshold: float, softness: float, resolution: int = 48, split: bool = True
     ) -> None:
-        """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.occupancy)."""
+        """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.occupancy);
+        ``split``: see :func:`nsd.occupancy.cluster_individuals`."""
         from nsd.losses import foreground_evidence
         from nsd.occupancy import multiview_proposals, voxel_grid
 
@@ -124,7 +125,7 @@ class SceneData:
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness
             )
-            b, d, ok, _ = multiview_proposals(ev, grid, k)
+            b, d, ok, _ = multiview_proposals(ev, grid, k, split=split)
             boxes.append(b)
             depths.append(d)
             valid.append(ok)

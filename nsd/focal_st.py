@@ -28,6 +28,8 @@ Paste-back pads images with their border and masks with zeros.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -59,11 +61,20 @@ def focal_bump_at(x: Tensor, y: Tensor) -> Tensor:
 def focal_bump(
     height: int, width: int, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"
 ) -> Tensor:
-    """``G`` sampled at the pixel centres of a (height, width) crop: shape (height, width)."""
+    """``G`` sampled at the pixel centres of a (height, width) crop: shape (height, width).
+
+    A new tensor each call (from a cached float64 grid: every crop, paste and
+    mask normalisation of a step asks for the same one).
+    """
+    return _bump_grid(int(height), int(width)).to(dtype=dtype, device=device, copy=True)
+
+
+@functools.lru_cache(maxsize=16)
+def _bump_grid(height: int, width: int) -> Tensor:
     ys = (2 * torch.arange(height, dtype=torch.float64) + 1) / height - 1
     xs = (2 * torch.arange(width, dtype=torch.float64) + 1) / width - 1
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-    return focal_bump_at(gx, gy).to(dtype=dtype, device=device)
+    return focal_bump_at(gx, gy)
 
 
 def box_to_theta(boxes: Tensor) -> Tensor:

@@ -193,14 +193,24 @@ def _kmeans_2d(x: Tensor, k: int, iterations: int = 12) -> Tensor:
 
 
 def cluster_individuals(
-    points: Tensor, up: Tensor, cell: float, k: int, min_column: int = 2
+    points: Tensor,
+    up: Tensor,
+    cell: float,
+    k: int,
+    min_column: int = 2,
+    split: bool = True,
+    ghost_ratio: float = 0.2,
 ) -> Tensor:
     """Individual labels (P,) in [0, k) or -1 (dropped) for occupied voxel centres (P, 3).
 
     Columns of the horizontal plane (side ``cell``) holding at least ``min_column``
     voxels are grouped into 4-connected components, ranked by the sum of their
-    squared column heights (tall bodies over low ghosts); the ``k`` first are kept,
-    and while fewer than ``k`` remain the largest is split in two by k-means.
+    squared column heights (tall bodies over low ghosts); the ``k`` first are kept.
+    With ``split`` (``k`` is the number of individuals), while fewer than ``k``
+    remain the largest is split in two by k-means. Without (``k`` is only an upper
+    bound), nothing is split and components scoring below ``ghost_ratio`` times
+    the heaviest are dropped as ghosts: the labels then say how many individuals
+    the hull holds, instead of cutting one individual into ``k`` parts.
     """
     from scipy import ndimage
 
@@ -215,8 +225,11 @@ def cluster_individuals(
     groups = [torch.nonzero(point_comp == c).flatten() for c in range(n)]
     # rank by sum of squared column heights: people are tall, ghosts are low and flat
     score = [float((counts[comp == c + 1] ** 2).sum()) for c in range(n)]
-    groups = [g for _, g in sorted(zip(score, groups, strict=True), key=lambda p: -p[0])][:k]
-    while 0 < len(groups) < k and len(groups[0]) >= 2:
+    ranked = sorted(zip(score, groups, strict=True), key=lambda p: -p[0])[:k]
+    if not split and ranked:
+        ranked = [(sc, g) for sc, g in ranked if sc >= ghost_ratio * ranked[0][0]]
+    groups = [g for _, g in ranked]
+    while split and 0 < len(groups) < k and len(groups[0]) >= 2:
         big = groups.pop(0)
         lab = _kmeans_2d(xy[big], 2)
         groups += [big[lab == 0], big[lab == 1]]
@@ -280,6 +293,7 @@ def multiview_proposals(
     min_scale: float = 0.2,
     max_scale: float = 1.0,
     min_views: int = 2,
+    split: bool = True,
 ) -> MultiviewProposals:
     """Proposals for all views of one frame from its occupancy.
 
@@ -291,6 +305,8 @@ def multiview_proposals(
         min_voxels: smaller clusters are invalid.
         min_scale, max_scale: bounds of proposal scales.
         min_views: as in :func:`occupied_voxels`.
+        split: :func:`cluster_individuals`' ``split`` (False: ``k`` is an upper bound
+            and slots without an individual are invalid).
 
     Returns:
         :class:`MultiviewProposals`. Slot ``j`` is the same cluster (individual) in
@@ -308,7 +324,7 @@ def multiview_proposals(
     owners = torch.full((V, H, W), -1, dtype=torch.long)
     if len(idx) < min_voxels:
         return MultiviewProposals(boxes, depths, valid, owners)
-    labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k)
+    labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split)
     keep = labels >= 0
     idx, labels = idx[keep], labels[keep]
     f = grid.uv.new_tensor([W, H]) / 2  # pixels per normalised unit

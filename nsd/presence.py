@@ -37,6 +37,10 @@ window that is on stays on while it explains its individual. Ordered by gain
 instead, the accepted one of several near-duplicates changed from step to step,
 every window's presence regressed to the mean of its 0/1 targets (below 0.5),
 and all were off (measured: 0.05 active windows per view for one individual).
+With a cap (``max_on``; ``prior_presence.cap=proposals``: the number of
+individuals the label-free visual hull finds in the frame and view,
+:mod:`nsd.occupancy`), no more windows than the cap are accepted, so windows
+on parts of one individual cannot all stay on.
 :math:`y` carries no gradient; the presence learns it by
 binary cross-entropy, :math:`L = \frac{1}{BN}\sum_{b,i} \mathrm{BCE}(p_{b,i}, y_{b,i})`.
 """
@@ -63,6 +67,7 @@ def marginal_presence_target(
     area: Tensor,
     margin: float = 0.1,
     order: Tensor | None = None,
+    max_on: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Greedy marginal-gain presence targets (detached).
 
@@ -73,6 +78,8 @@ def marginal_presence_target(
         margin: smallest newly explained foreground, as a fraction of the window's area.
         order: (B, N) the windows' current presences: evaluated most present first
             (None: by the largest gain).
+        max_on: (B,) at most this many windows are on (e.g. the individuals the
+            multi-view visual hull finds in the frame); None: no cap.
 
     Returns:
         target (B, N) in {0, 1} and gain (B, N), each window's area-normalised gain
@@ -110,6 +117,8 @@ def marginal_presence_target(
         best = key.masked_fill(~pending, -float("inf")).argmax(-1)  # (B,)
         g_best = g[rows, best]
         accept = g_best >= margin
+        if max_on is not None:
+            accept = accept & (target.sum(-1) < max_on)
         gain[rows, best] = g_best
         target[rows, best] = accept.to(m.dtype)
         pending[rows, best] = False

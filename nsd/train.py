@@ -127,6 +127,16 @@ class NSDTask:
             raise ConfigError(
                 f"prior_presence.normalise must be 'mask' or 'box', got {self.presence_normalise!r}"
             )
+        self.presence_cap = str(cfg.prior_presence.get("cap", "none"))
+        if self.presence_cap not in ("none", "proposals"):
+            raise ConfigError(
+                f"prior_presence.cap must be 'none' or 'proposals', got {self.presence_cap!r}"
+            )
+        if self.presence_cap == "proposals" and cfg.prior_proposal.source != "multiview":
+            raise ConfigError(
+                "prior_presence.cap=proposals needs prior_proposal.source=multiview (the "
+                "visual hull's individuals are the cap)"
+            )
         if self.presence_target not in ("none", "marginal"):
             raise ConfigError(
                 f"prior_presence.target must be 'none' or 'marginal', got {self.presence_target!r}"
@@ -145,7 +155,14 @@ class NSDTask:
         ):
             args = (cfg.model.num_windows, cfg.loss.evidence_threshold, cfg.loss.evidence_softness)
             if pp.source == "multiview":
-                data.compute_multiview_proposals(*args, resolution=pp.resolution)
+                split = pp.get("split", "auto")
+                if split not in ("auto", True, False):
+                    raise ConfigError(
+                        f"prior_proposal.split must be auto, true or false, got {split!r}"
+                    )
+                if split == "auto":  # num_windows is an upper bound when presence is learned
+                    split = not cfg.model.detector.presence
+                data.compute_multiview_proposals(*args, resolution=pp.resolution, split=split)
             elif pp.source == "single_view":
                 data.compute_proposals(*args)
             else:
@@ -245,14 +262,17 @@ class NSDTask:
         out["prior_scale"] = scale_prior(boxes, c.prior_scale.target)
         out["prior_aspect"] = aspect_prior(boxes, c.prior_aspect.ratio, (H, W))
         out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
-        if self.presence_target == "marginal" and self.model.detector.use_presence:
-            out.update(self._presence_target(evidence, rv, rw, wv, ww, (H, W)))
         matching = None
         if batch.proposals_v is not None:
             props = torch.cat([batch.proposals_v, batch.proposals_w])
             valid = torch.cat([batch.valid_v, batch.valid_w])
             matching = match_proposals(boxes, props, valid)
             out["prior_proposal"] = proposal_prior(boxes, props, valid, matching)
+        if self.presence_target == "marginal" and self.model.detector.use_presence:
+            caps = (None, None)
+            if self.presence_cap == "proposals":
+                caps = (batch.valid_v.sum(-1), batch.valid_w.sum(-1))
+            out.update(self._presence_target(evidence, rv, rw, wv, ww, (H, W), caps))
         if c.prior_depth.weight > 0:
             if c.prior_depth.source == "proposals" and batch.proposal_depth_v is not None:
                 target = torch.cat([batch.proposal_depth_v, batch.proposal_depth_w])
@@ -317,18 +337,19 @@ class NSDTask:
             association_softmax(sim.transpose(-1, -2), m.association_beta),
         )
 
-    def _presence_target(self, evidence, rv, rw, wv, ww, size) -> dict[str, torch.Tensor]:
+    def _presence_target(self, evidence, rv, rw, wv, ww, size, caps) -> dict[str, torch.Tensor]:
         """BCE of both views' presences against their marginal-gain targets (nsd.presence);
-        ``evidence``: the two views' foreground evidence (B, H, W), ``size``: (H, W)."""
+        ``evidence``: the two views' foreground evidence (B, H, W), ``size``: (H, W),
+        ``caps``: per view (B,) the most windows that may be on, or None."""
         pp = self.cfg.prior_presence
         loss, on = torch.zeros(()), torch.zeros(())
-        for r, win, ev in ((rv, wv, evidence[0]), (rw, ww, evidence[1])):
+        for r, win, ev, cap in ((rv, wv, evidence[0], caps[0]), (rw, ww, evidence[1], caps[1])):
             if self.presence_normalise == "box":
                 area = window_area(win.det.boxes, size)
             else:  # the window's own (ungated) mask area, at least min_area pixels
                 area = r.ungated_masks.flatten(2).sum(-1).clamp_min(pp.min_area)
             target, _ = marginal_presence_target(
-                r.ungated_masks, ev, area, pp.margin, win.det.presence
+                r.ungated_masks, ev, area, pp.margin, win.det.presence, cap
             )
             loss = loss + presence_target_loss(win.det.presence, target) / 2
             on = on + target.sum(-1).mean() / 2

@@ -22,6 +22,7 @@ from netepu.texture import (
     query_masked,
     reparameterise,
     sample_masked,
+    surface_normals,
     texture_codes,
     texture_loss,
 )
@@ -456,3 +457,87 @@ def test_batch_sampling_is_checked():
 
     with pytest.raises(ConfigError, match=r"batch_sampling.*'identity'"):
         TextureStageConfig.from_mapping({"batch_sampling": "identity"})
+
+
+# ----------------------------------------------------------------------------- normals
+def _rotation(axis, angle):
+    from scipy.spatial.transform import Rotation
+
+    return torch.from_numpy(Rotation.from_rotvec(np.asarray(axis) * angle).as_matrix())
+
+
+def test_surface_normals_of_a_tilted_plane_in_the_world():
+    """Depth of the plane n_c . X = d seen by a pinhole camera: every inside pixel gets
+    R^T n_c (facing the camera), pixels outside or without tangents get 0."""
+    S = 9
+    K = torch.tensor([[80.0, 0, 40], [0, 90.0, 30], [0, 0, 1]], dtype=torch.float64)
+    R = _rotation([0.3, 1.0, -0.2], 0.8)
+    n_c = torch.tensor([0.3, -0.2, -1.0], dtype=torch.float64)
+    n_c = n_c / n_c.norm()
+    d = -4.0  # n_c . X = d with X in front of the camera
+    ys, xs = torch.meshgrid(
+        torch.arange(S, dtype=torch.float64), torch.arange(S, dtype=torch.float64), indexing="ij"
+    )
+    uv = torch.stack([20 + 2.5 * xs, 10 + 2.5 * ys], -1)  # a crop grid with 2.5-pixel steps
+    rays = torch.einsum(
+        "ij,hwj->hwi",
+        torch.linalg.inv(K),
+        torch.cat([uv, torch.ones(S, S, 1, dtype=torch.float64)], -1),
+    )
+    depth = d / (rays @ n_c)
+    inside = torch.ones(S, S, dtype=torch.bool)
+    inside[0, 0] = inside[4, :] = False
+    inside[7, 3] = True
+    inside[8, :] = False
+    inside[8, 5] = True  # an isolated pixel: no row neighbour inside
+    got = surface_normals(depth[None], uv[None], inside[None], K[None], R[None])[0]
+    expect = R.T @ n_c
+    has = inside.clone()
+    has[8, 5] = False
+    torch.testing.assert_close(got[has], expect.expand(int(has.sum()), 3), rtol=0, atol=1e-9)
+    assert (got[~has] == 0).all()
+
+
+def test_surface_normals_of_a_sphere_are_radial():
+    """Camera-facing points of a sphere: the normal is (X - c) / r (up to O(step) error)."""
+    S, r = 33, 1.0
+    c = torch.tensor([0.1, -0.05, 5.0], dtype=torch.float64)
+    K = torch.tensor([[200.0, 0, 32], [0, 200.0, 32], [0, 0, 1]], dtype=torch.float64)
+    ys, xs = torch.meshgrid(
+        torch.arange(S, dtype=torch.float64), torch.arange(S, dtype=torch.float64), indexing="ij"
+    )
+    uv = torch.stack([16 + xs, 16 + ys], -1)
+    rays = torch.einsum(
+        "ij,hwj->hwi",
+        torch.linalg.inv(K),
+        torch.cat([uv, torch.ones(S, S, 1, dtype=torch.float64)], -1),
+    )
+    # nearest intersection of X = Z ray (ray's z = 1) with |X - c| = r
+    a, b, cc = (rays * rays).sum(-1), -2 * (rays @ c), c @ c - r * r
+    disc = b * b - 4 * a * cc
+    inside = disc > 1e-3
+    Z = (-b - disc.clamp_min(0).sqrt()) / (2 * a)
+    R = torch.eye(3, dtype=torch.float64)
+    got = surface_normals(Z[None], uv[None], inside[None], K[None], R[None])[0]
+    X = rays * Z[..., None]
+    expect = (X - c) / r
+    ok = (got.norm(dim=-1) > 0) & inside
+    ok[1:-1, 1:-1] &= inside[:-2, 1:-1] & inside[2:, 1:-1] & inside[1:-1, :-2] & inside[1:-1, 2:]
+    err = (got[ok] - expect[ok]).norm(dim=-1)
+    assert ok.sum() > 200 and float(err.median()) < 0.02
+
+
+def test_texture_model_with_normals_reads_ten_channels_and_codes_frames():
+    from nsd.errors import ConfigError
+
+    data = _tiny_data()
+    tex, geo = _models(use_normals=True)
+    assert tex.encoder.stem[0].in_channels == 10
+    image, mask, kps, cam = _frame_batch(data)
+    mu = texture_codes(tex, geo, image, mask, kps, cam)
+    assert mu.shape == (len(mask), tex.cfg.latent) and torch.isfinite(mu).all()
+    noise = torch.randint(0, 256, image.shape, dtype=torch.uint8)
+    garbled = torch.where(mask[..., None], image, noise)
+    torch.testing.assert_close(texture_codes(tex, geo, garbled, mask, kps, cam), mu, rtol=0, atol=0)
+    with pytest.raises(ConfigError, match="use_normals needs use_nnopcs"):
+        TextureConfig.from_mapping({"use_normals": True, "use_nnopcs": False})

@@ -94,3 +94,30 @@ def test_owned_pixels_front_wins():
     owner = owned_pixels(fg, uv, depth, labels, 2, radius=0.6, reach=1.5)
     # pixel 2 is covered by voxels of both at depths 5 (label 0) and 1 (label 1): 1 wins
     assert owner[0].tolist() == [0, 0, 1, 1, 1]
+
+
+def test_upper_bound_clusters_count_individuals_instead_of_cutting_them(two_people):
+    """k = 4 windows for 2 individuals: with split (k individuals) the hull is cut into
+    4 groups; as an upper bound (split=False) it keeps 2, and a low ghost is dropped."""
+    rig, _, _, out = two_people
+    ev = out["instance"].ge(0).float()
+    grid = voxel_grid(rig, ev.shape[-2:], 40)
+    pts = grid.centres[occupied_voxels(ev, grid)]
+    assert len(set(cluster_individuals(pts, grid.up, grid.size, 4).tolist()) - {-1}) == 4
+    bound = cluster_individuals(pts, grid.up, grid.size, 4, split=False)
+    assert set(bound.tolist()) - {-1} == {0, 1}
+    # a flat ghost away from both: two columns of two voxels each
+    far = pts[:, :2].max(0).values + 1.0
+    ghost = torch.stack(
+        [torch.cat([far + torch.tensor([0.0, d * grid.size]), torch.tensor([h * grid.size])])
+         for d in range(2) for h in range(2)]
+    )  # fmt: skip
+    both = torch.cat([pts, ghost])
+    labels = cluster_individuals(both, grid.up, grid.size, 4, split=False)
+    assert set(labels[: len(pts)].tolist()) - {-1} == {0, 1} and (labels[len(pts) :] == -1).all()
+    # without the ratio it is kept as an individual of its own
+    kept = cluster_individuals(both, grid.up, grid.size, 4, split=False, ghost_ratio=0.0)
+    assert len(set(kept[len(pts) :].tolist())) == 1 and (kept[len(pts) :] >= 0).all()
+    assert not set(kept[len(pts) :].tolist()) & set(kept[: len(pts)].tolist())
+    _, _, valid, _ = multiview_proposals(ev, grid, 4, split=False)
+    assert (valid.sum(1) == 2).all()

@@ -184,3 +184,56 @@ def test_unknown_presence_target_raises(tiny_scene):
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence.target=oracle")
     with pytest.raises(ConfigError, match=r"prior_presence\.target"):
         NSDTask(cfg, SceneData(tiny_scene, (32, 24), val_fraction=0.25))
+
+
+def test_cap_keeps_at_most_max_on_windows_in_presence_order():
+    """Two halves of one individual both explain new foreground; a cap of 1 (the hull's
+    count) keeps only the more present half on; a cap above the count changes nothing."""
+    evidence = _square(2, 2, size=8)[None]
+    left, right = torch.zeros(H, W), torch.zeros(H, W)
+    left[2:10, 2:6], right[2:10, 6:10] = 1, 1
+    masks, area = torch.stack([left, right])[None], torch.full((1, 2), 32.0)
+    presence = torch.tensor([[0.4, 0.7]])
+    free, _ = marginal_presence_target(masks, evidence, area, 0.2, presence)
+    assert free.tolist() == [[1.0, 1.0]]
+    capped, _ = marginal_presence_target(masks, evidence, area, 0.2, presence, torch.tensor([1]))
+    assert capped.tolist() == [[0.0, 1.0]]
+    loose, _ = marginal_presence_target(masks, evidence, area, 0.2, presence, torch.tensor([3]))
+    assert loose.tolist() == free.tolist()
+    none, _ = marginal_presence_target(masks, evidence, area, 0.2, presence, torch.tensor([0]))
+    assert none.sum() == 0
+
+
+def test_presence_cap_is_checked(tiny_scene):
+    from nsd.data import SceneData
+    from nsd.errors import ConfigError
+    from nsd.train import NSDTask
+
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    for bad, match in (
+        ("prior_presence.cap=hull", r"prior_presence\.cap must be"),
+        ("prior_proposal.source=single_view", r"cap=proposals needs"),
+    ):
+        cfg = tiny_cfg(
+            "model.detector.presence=true",
+            "prior_presence=marginal",
+            "prior_presence.cap=proposals",
+            bad,
+        )
+        with pytest.raises(ConfigError, match=match):
+            NSDTask(cfg, data)
+
+
+def test_capped_target_trains_and_never_exceeds_the_hull_count(tiny_scene):
+    from nsd.data import SceneData
+    from nsd.train import NSDTask
+
+    cfg = tiny_cfg(
+        "model.detector.presence=true", "prior_presence=marginal", "prior_presence.cap=proposals"
+    )
+    task = NSDTask(cfg, SceneData(tiny_scene, (32, 24), val_fraction=0.25))
+    assert task.data.proposal_valid is not None
+    losses = task.training_step(0, np.random.default_rng(0))
+    assert torch.isfinite(losses["presence_target"])
+    most = float(task.data.proposal_valid.sum(-1).max())
+    assert 0 <= float(losses["presence_target_on"]) <= most

@@ -157,7 +157,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
             **colour,
             **{f"reid_{k}": v for k, v in reid.items()},
         }
-        if task.texture.cfg.use_nnopcs:
+        if task.texture.cfg.use_nnopcs and not task.texture.cfg.use_normals:
             gt = heldout_codes(task.texture, task.data, h["nnopcs"].astype(np.float32))
             row |= {
                 f"reid_gt_nnopcs_{k}": v

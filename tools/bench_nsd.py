@@ -57,6 +57,13 @@ ABLATIONS = {
     "pixel loss only": ["experiment=pixel_only"],
     "NSD as published (no residual cues)": ["experiment=paper"],
     "no weak priors, seed 1": ["experiment=no_priors", "trainer.seed=1"],
+    "full (ours), seed 2": ["trainer.seed=2"],
+    "no priors of any kind": [
+        "experiment=no_priors",
+        "prior_proposal=off",
+        "prior_depth=off",
+        "prior_association=off",
+    ],
 }
 
 CHILD = r"""
