@@ -51,7 +51,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["marginal_presence_target", "presence_target_loss", "window_area"]
+__all__ = [
+    "marginal_presence_target",
+    "presence_target_loss",
+    "ranked_presence_target",
+    "window_area",
+]
 
 
 def window_area(boxes: Tensor, image_size: tuple[int, int]) -> Tensor:
@@ -125,6 +130,31 @@ def marginal_presence_target(
         picked = m[rows, best] * accept[:, None].to(m.dtype)  # (B, P)
         covered = covered + (1 - covered) * picked
     return target, gain
+
+
+@torch.no_grad()
+def ranked_presence_target(presence: Tensor, count: Tensor) -> Tensor:
+    """The ``count`` most present windows are on (``prior_presence.target=hull``).
+
+    Args:
+        presence: (B, N) in [0, 1].
+        count: (B,) how many windows to keep on (e.g. the individuals the label-free
+            visual hull finds in the frame and view, :mod:`nsd.occupancy`).
+
+    Returns:
+        (B, N) in {0, 1}, detached. Ties go to the lower window index.
+
+    Example:
+        >>> ranked_presence_target(torch.tensor([[0.2, 0.9, 0.5]]), torch.tensor([2])).tolist()
+        [[0.0, 1.0, 1.0]]
+    """
+    N = presence.shape[-1]
+    if count.shape != presence.shape[:1]:
+        raise ValueError(f"count must be ({presence.shape[0]},), got {tuple(count.shape)}")
+    order = torch.argsort(presence.detach(), dim=-1, descending=True, stable=True)
+    rank = torch.empty_like(order)
+    rank.scatter_(-1, order, torch.arange(N, device=order.device).expand_as(order))
+    return (rank < count[:, None]).to(presence.dtype)
 
 
 def presence_target_loss(presence: Tensor, target: Tensor) -> Tensor:

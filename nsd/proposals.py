@@ -95,17 +95,24 @@ def _cost(a: Tensor, b: Tensor) -> Tensor:
 
 
 @torch.no_grad()
-def match_proposals(boxes: Tensor, proposals: Tensor, valid: Tensor) -> Tensor:
+def match_proposals(
+    boxes: Tensor, proposals: Tensor, valid: Tensor, active: Tensor | None = None
+) -> Tensor:
     """Exact min-cost matching of windows to proposals (permutations; N is small).
 
     Args:
         boxes: (B, N, 4); proposals: (B, N, 4); valid: (B, N) bool.
+        active: (B, N) bool, windows that are on (None: all). A valid proposal goes
+            to a window that is off only when no active window is left for it.
 
     Returns:
         (B, N) long: the proposal of each window.
     """
     N = boxes.shape[1]
-    c = _cost(boxes, proposals) * valid[:, None, :]
+    c = _cost(boxes, proposals)
+    if active is not None:  # larger than any cost between bounded windows
+        c = c + 1e3 * (~active)[:, :, None].to(c.dtype)
+    c = c * valid[:, None, :]
     perms = torch.tensor(list(itertools.permutations(range(N))))  # (N!, N)
     total = c[:, torch.arange(N)[None], perms].sum(-1)  # (B, N!)
     return perms[total.argmin(1)]

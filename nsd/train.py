@@ -15,7 +15,10 @@ Loss per view pair (both directions of Bi-NVS):
   presence prior;
 * with ``prior_presence.target=marginal``, the presence learns a detached,
   label-free target, each window's marginal contribution to explaining the
-  foreground evidence (:mod:`nsd.presence`).
+  foreground evidence (:mod:`nsd.presence`); with ``target=hull``, in each frame
+  and view the windows ranked first by presence are on, as many as the
+  label-free visual hull finds individuals (:mod:`nsd.occupancy`), and the
+  proposal prior matches those individuals to the windows that are on.
 """
 
 from __future__ import annotations
@@ -42,7 +45,12 @@ from nsd.encoder import Encoder
 from nsd.errors import ConfigError
 from nsd.evaluation import evaluate_model
 from nsd.losses import foreground_evidence, total_image_loss
-from nsd.presence import marginal_presence_target, presence_target_loss, window_area
+from nsd.presence import (
+    marginal_presence_target,
+    presence_target_loss,
+    ranked_presence_target,
+    window_area,
+)
 from nsd.priors import aspect_prior, position_prior, presence_prior, scale_prior
 from nsd.proposals import association_prior, match_proposals, proposal_prior
 from nsd.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
@@ -137,9 +145,15 @@ class NSDTask:
                 "prior_presence.cap=proposals needs prior_proposal.source=multiview (the "
                 "visual hull's individuals are the cap)"
             )
-        if self.presence_target not in ("none", "marginal"):
+        if self.presence_target not in ("none", "marginal", "hull"):
             raise ConfigError(
-                f"prior_presence.target must be 'none' or 'marginal', got {self.presence_target!r}"
+                "prior_presence.target must be 'none', 'marginal' or 'hull', got "
+                f"{self.presence_target!r}"
+            )
+        if self.presence_target == "hull" and cfg.prior_proposal.source != "multiview":
+            raise ConfigError(
+                "prior_presence.target=hull needs prior_proposal.source=multiview (the visual "
+                "hull's individuals say how many windows are on)"
             )
         self.association_prior_score = str(cfg.prior_association.get("score", "full"))
         if self.association_prior_score not in ("appearance", "full"):
@@ -262,13 +276,21 @@ class NSDTask:
         out["prior_scale"] = scale_prior(boxes, c.prior_scale.target)
         out["prior_aspect"] = aspect_prior(boxes, c.prior_aspect.ratio, (H, W))
         out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
-        matching = None
+        matching, active = None, None
+        learn_presence = self.model.detector.use_presence
+        if self.presence_target == "hull" and learn_presence:
+            presence = torch.cat([wv.det.presence, ww.det.presence])
+            counts = torch.cat([batch.valid_v, batch.valid_w]).sum(-1)
+            hull_target = ranked_presence_target(presence, counts)
+            out["presence_target"] = presence_target_loss(presence, hull_target)
+            out["presence_target_on"] = hull_target.sum(-1).mean()
+            active = hull_target > 0.5
         if batch.proposals_v is not None:
             props = torch.cat([batch.proposals_v, batch.proposals_w])
             valid = torch.cat([batch.valid_v, batch.valid_w])
-            matching = match_proposals(boxes, props, valid)
+            matching = match_proposals(boxes, props, valid, active)
             out["prior_proposal"] = proposal_prior(boxes, props, valid, matching)
-        if self.presence_target == "marginal" and self.model.detector.use_presence:
+        if self.presence_target == "marginal" and learn_presence:
             caps = (None, None)
             if self.presence_cap == "proposals":
                 caps = (batch.valid_v.sum(-1), batch.valid_w.sum(-1))

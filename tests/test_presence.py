@@ -237,3 +237,53 @@ def test_capped_target_trains_and_never_exceeds_the_hull_count(tiny_scene):
     assert torch.isfinite(losses["presence_target"])
     most = float(task.data.proposal_valid.sum(-1).max())
     assert 0 <= float(losses["presence_target_on"]) <= most
+
+
+def test_ranked_target_keeps_the_count_most_present_windows():
+    from nsd.presence import ranked_presence_target
+
+    p = torch.tensor([[0.2, 0.9, 0.5, 0.7], [0.1, 0.1, 0.3, 0.2], [0.6, 0.4, 0.8, 0.1]])
+    got = ranked_presence_target(p, torch.tensor([2, 0, 4]))
+    assert got.tolist() == [[0, 1, 0, 1], [0, 0, 0, 0], [1, 1, 1, 1]]
+    # invariant: exactly min(count, N) on, and every on window is at least as present as any off
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        p = torch.rand(5, 4, generator=g)
+        c = torch.randint(0, 6, (5,), generator=g)
+        t = ranked_presence_target(p, c).bool()
+        assert (t.sum(-1) == c.clamp(max=4)).all()
+        lo = torch.where(t, p, torch.inf).min(-1).values
+        hi = torch.where(~t, p, -torch.inf).max(-1).values
+        assert (lo >= hi).all()
+    with pytest.raises(ValueError, match="count must be"):
+        ranked_presence_target(p, torch.tensor([1]))
+
+
+def test_matching_gives_valid_proposals_to_active_windows():
+    from nsd.proposals import match_proposals
+
+    boxes = torch.tensor([[[0.3, 0.3, 0.0, 0.0], [0.3, 0.3, 0.8, 0.0]]])
+    props = torch.tensor([[[0.3, 0.3, 0.05, 0.0], [0.3, 0.3, -0.5, 0.5]]])
+    valid = torch.tensor([[True, False]])
+    assert match_proposals(boxes, props, valid).tolist() == [[0, 1]]  # the nearer window
+    active = torch.tensor([[False, True]])
+    assert match_proposals(boxes, props, valid, active).tolist() == [[1, 0]]
+
+
+def test_hull_target_trains_the_most_present_windows(tiny_scene):
+    from nsd.data import SceneData
+    from nsd.errors import ConfigError
+    from nsd.train import NSDTask
+
+    cfg = tiny_cfg("model.detector.presence=true", "prior_presence=hull")
+    assert cfg.model.presence_gate == "hard"
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    task = NSDTask(cfg, data)
+    losses = task.training_step(0, np.random.default_rng(0))
+    assert torch.isfinite(losses["presence_target"])
+    assert 0 <= float(losses["presence_target_on"]) <= float(data.proposal_valid.sum(-1).max())
+    single = tiny_cfg(
+        "model.detector.presence=true", "prior_presence=hull", "prior_proposal.source=single_view"
+    )
+    with pytest.raises(ConfigError, match="target=hull needs"):
+        NSDTask(single, data)

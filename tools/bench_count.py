@@ -1,16 +1,15 @@
 """Count accuracy: does NSD with an upper bound of 4 windows find how many individuals there are?
 
-    python tools/bench_count.py one --n 2 --minutes 5     # scene + training + count metrics
+    python tools/bench_count.py one --n 2 --minutes 5 --presence hull   # scene + training + counts
     python tools/bench_count.py report                     # docs/benchmarks/count.{md,json}
 
 For N = 1..4 individuals, a synthetic scene (4 studio cameras, 96 x 96, 300
 frames, close interaction) is written with nsd-synth and nsd-train trains on it
 with ``model.num_windows=4``, the learned window presence on
-(``model.detector.presence=true``) and presence learned from its label-free
-marginal-contribution target, only the windows that are on in the image loss
-(``prior_presence=marginal``, :mod:`nsd.presence`), everything else at the
-defaults. Earlier variants (``--extra prior_presence=sparse ...``: presence
-gating the masks, a mean-presence prior) are kept in the table when present.
+(``model.detector.presence=true``) and presence learned from a label-free target
+(``--presence``: the ``prior_presence`` group, ``hull`` or ``marginal``,
+:mod:`nsd.presence`), only the windows that are on in the image loss,
+everything else at the defaults (``--extra`` overrides are in the variant column).
 Counts are measured on 30 frames spread over the sequence (the transductive
 use; no labels are used in training):
 
@@ -22,6 +21,9 @@ use; no labels are used in training):
 * ``mean_active_windows`` per camera-frame, ``scene_count`` (median frame count),
   the mean presence of the windows sorted from most to least present;
 * ``detection_rate`` and ``mask_miou`` (nsd-eval's definitions) on the same frames;
+* ``hull frame count accuracy (no training)``: the same, for the individuals the
+  label-free multi-view visual hull alone finds per frame (:mod:`nsd.occupancy`,
+  ``split=False``): what the count would be without NSD;
 * ``background ghost %``: per camera, the share of pixels where the median
   background differs from the true backdrop (an individual that stood still long
   enough stays in the median, and there the foreground evidence is lost);
@@ -53,7 +55,6 @@ TRAIN = [
     "data.image_size=[96,96]",
     "model.num_windows=4",
     "model.detector.presence=true",
-    "prior_presence=marginal",
     "trainer.max_steps=0",
     "trainer.checkpoint_every=0",
     "trainer.progress=false",
@@ -117,6 +118,35 @@ def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -
     }
 
 
+def hull_count(scene: Path, n: int, frames: int = FRAMES) -> dict:
+    """The label-free count of the multi-view visual hull alone (no training): per frame,
+    the individuals :func:`nsd.occupancy.multiview_proposals` finds with an upper bound
+    of 4 (``split=False``), on the same frames as :func:`count_metrics`."""
+    import torch
+    from hydra import compose, initialize_config_module
+
+    from nsd.data import SceneData
+
+    with initialize_config_module("nsd.conf", version_base="1.3"):
+        cfg = compose("train", overrides=[f"data.scene={scene}", *TRAIN])
+    H, W = cfg.data.image_size[1], cfg.data.image_size[0]
+    data = SceneData(scene, (W, H), val_fraction=0.0)
+    idx = np.linspace(0, len(data.frames) - 1, frames).round().astype(int)
+    data.frames = data.frames[torch.from_numpy(idx)]
+    data.compute_multiview_proposals(
+        4,
+        cfg.loss.evidence_threshold,
+        cfg.loss.evidence_softness,
+        resolution=cfg.prior_proposal.resolution,
+        split=False,
+    )
+    counts = data.proposal_valid.any(1).sum(-1).numpy()
+    return {
+        "hull_frame_count_accuracy": float((counts == n).mean()),
+        "hull_scene_count": float(np.median(counts)),
+    }
+
+
 def background_ghosts(data, gt) -> list[float]:
     """Per camera, the % of pixels where the median background the model uses differs
     from the true backdrop by more than 30/255 in a channel (individuals that stood
@@ -156,7 +186,7 @@ def identities(checkpoint: Path, scene: Path, out: Path) -> dict:
     }
 
 
-def one(n: int, minutes: float, extra: list[str]) -> dict:
+def one(n: int, minutes: float, extra: list[str], presence: str = "marginal") -> dict:
     """Write the N-individual scene (once), train on it, measure counts; saves result.json."""
     import torch
     from hydra import compose, initialize_config_module
@@ -175,17 +205,30 @@ def one(n: int, minutes: float, extra: list[str]) -> dict:
                 **{k: json.loads(v) for k, v in (s.split("=", 1) for s in SCENE)},
             }
         )
-    tag = f"n{n}-marginal" + ("-" + "-".join(e.replace("=", "_") for e in extra) if extra else "")
+    tag = f"n{n}-{presence}" + ("-" + "-".join(e.replace("=", "_") for e in extra) if extra else "")
     run_dir = WORK / tag
     with initialize_config_module("nsd.conf", version_base="1.3"):
         cfg = compose(
             "train",
-            overrides=[f"data.scene={scene}", f"trainer.max_minutes={minutes}", *TRAIN, *extra],
+            overrides=[
+                f"data.scene={scene}",
+                f"trainer.max_minutes={minutes}",
+                *TRAIN,
+                f"prior_presence={presence}",
+                *extra,
+            ],
         )
     t0 = time.perf_counter()
     train(cfg, run_dir)
     res = count_metrics(run_dir / "checkpoint.pt", scene, n)
-    res.update({"minutes": minutes, "overrides": extra, "wall_seconds": time.perf_counter() - t0})
+    res.update(
+        {
+            "minutes": minutes,
+            "presence": presence,
+            "overrides": extra,
+            "wall_seconds": time.perf_counter() - t0,
+        }
+    )
     (run_dir / "result.json").write_text(json.dumps(res, indent=2))
     try:
         res.update(identities(run_dir / "checkpoint.pt", scene, run_dir / "export"))
@@ -198,11 +241,16 @@ def one(n: int, minutes: float, extra: list[str]) -> dict:
 
 def report() -> None:
     rows = []
+    hull = {}
     for f in sorted(WORK.glob("n*/result.json")):
         r = json.loads(f.read_text())
-        # runs before the marginal target (tag without "-marginal") trained prior_presence=sparse
-        marginal = "-marginal" in f.parent.name
-        base = "prior_presence=marginal" if marginal else "prior_presence=sparse"
+        n = r["individuals"]
+        if n not in hull:  # the scene's hull count, kept next to the scene
+            cached = WORK / f"scene{n}" / "hull_count.json"
+            if not cached.is_file():
+                cached.write_text(json.dumps(hull_count(WORK / f"scene{n}", n)))
+            hull[n] = json.loads(cached.read_text())
+        base = "prior_presence=" + r.get("presence", "marginal")
         rows.append(
             {
                 "individuals": r["individuals"],
@@ -210,6 +258,9 @@ def report() -> None:
                 "minutes": r["minutes"],
                 "steps": r["steps"],
                 "frame_count_accuracy": round(r["frame_count_accuracy"], 3),
+                "hull frame count accuracy (no training)": round(
+                    hull[n]["hull_frame_count_accuracy"], 3
+                ),
                 "frame_count_mae": round(r["frame_count_mae"], 3),
                 "scene_count": r["scene_count"],
                 "view_count_accuracy": round(r["view_count_accuracy"], 3),
@@ -246,9 +297,10 @@ def main() -> None:
     p.add_argument("--n", type=int, default=2)
     p.add_argument("--minutes", type=float, default=5.0)
     p.add_argument("--extra", nargs="*", default=[])
+    p.add_argument("--presence", default="marginal", help="the prior_presence group")
     a = p.parse_args()
     if a.what == "one":
-        one(a.n, a.minutes, a.extra)
+        one(a.n, a.minutes, a.extra, a.presence)
     elif a.what == "all":
         for n in (1, 2, 3, 4):
             subprocess.run(
