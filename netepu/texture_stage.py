@@ -336,9 +336,10 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
     from netepu.texture_data import _cache_root
 
     root = cache or _cache_root(data.config)
-    key = hashlib.sha1(
+    key = hashlib.sha1(  # the crops' size is part of the key: windows alone do not fix it
         f"{_weights_key(path)}:{data.train['window'].sum():.6f}:"
-        f"{len(data.train['window'])}:{len(data.heldout['window'])}".encode()
+        f"{len(data.train['window'])}:{len(data.heldout['window'])}:"
+        f"{data.train['inside'].shape[1:]}".encode()
     ).hexdigest()[:12]
     normals = texture.cfg.use_normals
     key += "-normals" if normals else ""

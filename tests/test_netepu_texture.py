@@ -368,6 +368,15 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
         geo2.state_dict()["renderer.down.weight"], geo.state_dict()["renderer.down.weight"]
     )
     assert sorted((tmp_path / "run" / "grids").glob("texture_heldout_cameras_*.png"))
+    # the same cache with other crops (size, normals): the predicted crops are not reused
+    from netepu.texture_stage import build_texture_stage
+
+    for extra in (["netepu.texture.model.crop_size=24"], ["netepu.texture.model.use_normals=true"]):
+        with initialize_config_module("nsd.conf", version_base="1.3"):
+            task, _ = build_texture_stage(compose("netepu_train", overrides=ov + extra))
+        S, C = task.texture.cfg.crop_size, task.texture.cfg.surface_channels
+        assert task.nnopcs_train.shape[1:] == (S, S, C)
+        assert task.nnopcs_heldout.shape[1:] == (S, S, C)
 
 
 def test_texture_config_rejects_unknown_keys():

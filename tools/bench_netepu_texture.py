@@ -67,6 +67,19 @@ TITLES = {
     "texture_default": "NeTePu texture code, default training (cross-view + contrastive; mu, "
     "predicted NNOPCS): contours = training cameras, dots = held-out cameras",
 }
+ROW_NOTES = {  # what each evaluated run is (netepu-train stage=texture overrides)
+    "full": "NeTePu's recipe (reconstruction only)",
+    "no_nnopcs": "NeTePu's recipe, RGB-only encoder (use_nnopcs=false)",
+    "no_local": "NeTePu's recipe, no per-keypoint texture features (local_features=false)",
+    "full_xv": "+ cross-view training (cross_view=0.5)",
+    "full_xv_contrast": "+ contrastive codes (contrast_weight=0.05)",
+    "contrast_w02_14min": "contrast_weight=0.2, 2083 steps",
+    "contrast_w02_textures": "as contrast_w02_14min, every batch a permutation of the 16 "
+    "textures (batch_sampling=textures)",
+    "contrast_w02_normals": "as contrast_w02_14min, the encoder also reads world normals of the "
+    "rendered depth (use_normals=true)",
+    "contrast_w02_normals_crop96": "as contrast_w02_normals, 96 x 96 encoder crops (crop_size=96)",
+}
 DEFAULT_RUN = "full_xv_contrast"  # the run trained with conf/netepu/texture/default.yaml
 
 
@@ -370,7 +383,9 @@ def report() -> None:
             "train min": round(b["train_minutes"], 1),
         }
     )
-    notes = []
+    notes = ["Rows:\n"]
+    notes += [f"* `{k}`: {ROW_NOTES.get(k, '')}" for k in ev["runs"]]
+    notes.append("")
     if sp:
         notes.append(
             "Texture-code encodings per second, geometry render included, 2 threads "
