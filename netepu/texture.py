@@ -129,7 +129,8 @@ class TextureConfig:
         if c.use_normals and not c.use_nnopcs:
             raise ConfigError(
                 "netepu.texture.model.use_normals needs use_nnopcs: the normals come from the "
-                "geometry model's depth, rendered with the NNOPCS map"
+                "geometry model's depth, rendered with the NNOPCS map (an RGB-only model: "
+                "use_nnopcs=false use_normals=false)"
             )
         return c
 

@@ -39,6 +39,15 @@ class TestBump(BaseTester):
         )
         assert (row[1:] <= row[:-1]).all() and row[-1] < 1e-100
 
+    def test_cached_grid_matches_the_formula_and_is_not_shared(self):
+        g = focal_bump(6, 10, dtype=torch.float64)
+        ys = (2 * torch.arange(6, dtype=torch.float64) + 1) / 6 - 1
+        xs = (2 * torch.arange(10, dtype=torch.float64) + 1) / 10 - 1
+        gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+        assert torch.equal(g, focal_bump_at(gx, gy))
+        g.zero_()  # the caller owns its tensor: the cache is untouched
+        assert torch.equal(focal_bump(6, 10, dtype=torch.float64), focal_bump_at(gx, gy))
+
     def test_gradient_finite_at_edge(self):
         x = torch.tensor([0.999, 1.0, 1.5, 0.0], dtype=torch.float64, requires_grad=True)
         focal_bump_at(x, torch.zeros(4, dtype=torch.float64)).sum().backward()

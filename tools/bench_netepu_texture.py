@@ -9,7 +9,8 @@ Steps (each its own process, so that each can run under the machine's CPU protoc
     .venv/bin/netepu-train stage=texture \\
         init_from=runs/netepu/geometry_biped/checkpoint.pt \\
         trainer.max_minutes=10 trainer.max_steps=0 hydra.run.dir=runs/netepu/texture_full
-    ... netepu.texture.model.use_nnopcs=false      hydra.run.dir=runs/netepu/texture_no_nnopcs
+    ... netepu.texture.model.use_nnopcs=false netepu.texture.model.use_normals=false \\
+        hydra.run.dir=runs/netepu/texture_no_nnopcs
     ... netepu.texture.model.local_features=false  hydra.run.dir=runs/netepu/texture_no_local
 
     .venv/bin/python tools/bench_netepu_texture.py evaluate --baseline-minutes 5

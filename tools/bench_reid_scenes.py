@@ -54,6 +54,7 @@ GEOMETRY = ROOT / "runs/netepu/geometry_biped/checkpoint.pt"
 TEXTURES = {  # texture models (netepu-train stage=texture), all trained on the 16 pool textures
     "cross-view": ROOT / "runs/netepu/texture_full_xv/checkpoint.pt",
     "cross-view + contrastive": ROOT / "runs/netepu/texture_full_xv_contrast/checkpoint.pt",
+    "cross-view + contrastive + normals": ROOT / "runs/netepu/texture_w02_normals/checkpoint.pt",
 }
 FIRST_UNSEEN_TEXTURE = 100  # ids >= the pool size are generated textures, never in the pool
 
