@@ -386,7 +386,12 @@ def report() -> None:
     )
     notes = ["Rows:\n"]
     notes += [f"* `{k}`: {ROW_NOTES.get(k, '')}" for k in ev["runs"]]
-    notes.append("")
+    notes.append(
+        "\nEach row was evaluated when its run was added (`evaluate`, `evaluate --add-only`); "
+        "the stamp above is this report's. The speed table comes from the last `speed` run "
+        "(the `full` model, which reads NNOPCS only; normals add the rendered depth, from "
+        "the same query, and finite differences).\n"
+    )
     if sp:
         notes.append(
             "Texture-code encodings per second, geometry render included, 2 threads "
