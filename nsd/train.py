@@ -278,16 +278,15 @@ class NSDTask:
         out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
         matching, active = None, None
         learn_presence = self.model.detector.use_presence
+        valid = None if batch.valid_v is None else torch.cat([batch.valid_v, batch.valid_w])
         if self.presence_target == "hull" and learn_presence:
             presence = torch.cat([wv.det.presence, ww.det.presence])
-            counts = torch.cat([batch.valid_v, batch.valid_w]).sum(-1)
-            hull_target = ranked_presence_target(presence, counts)
+            hull_target = ranked_presence_target(presence, valid.sum(-1))
             out["presence_target"] = presence_target_loss(presence, hull_target)
             out["presence_target_on"] = hull_target.sum(-1).mean()
             active = hull_target > 0.5
         if batch.proposals_v is not None:
             props = torch.cat([batch.proposals_v, batch.proposals_w])
-            valid = torch.cat([batch.valid_v, batch.valid_w])
             matching = match_proposals(boxes, props, valid, active)
             out["prior_proposal"] = proposal_prior(boxes, props, valid, matching)
         if self.presence_target == "marginal" and learn_presence:
