@@ -536,10 +536,14 @@ def predicted_nnopcs(
     Returns:
         (B, N, 3), zeros where not kept.
     """
-    code = geometry.encode(keypoints)
-    ctx = geometry.prepare(code, camera, keypoints=keypoints)
+    ctx = _posed_context(geometry, keypoints, camera)
     out = query_masked(lambda q: geometry.query(ctx, q)["nnopcs"], uv, keep)
     return out.clamp(0, 1)
+
+
+def _posed_context(geometry: GeometryModel, keypoints: Tensor, camera: dict[str, Tensor]):
+    """The geometry model's query context for keypoints (B, K, 3) seen by cameras (batch B)."""
+    return geometry.prepare(geometry.encode(keypoints), camera, keypoints=keypoints)
 
 
 def surface_normals(depth: Tensor, uv: Tensor, inside: Tensor, K: Tensor, R: Tensor) -> Tensor:
@@ -615,8 +619,7 @@ def predicted_surface(
         return predicted_nnopcs(geometry, keypoints, camera, flat_uv, flat_keep).reshape(
             B, S1, S2, 3
         )
-    code = geometry.encode(keypoints)
-    ctx = geometry.prepare(code, camera, keypoints=keypoints)
+    ctx = _posed_context(geometry, keypoints, camera)
 
     def both(q: Tensor) -> Tensor:
         out = geometry.query(ctx, q)

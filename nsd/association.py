@@ -15,6 +15,17 @@ the softmax is replaced by the one-hot argmax. Zero appearance vectors give
 magnitude are compared without overflow (each is divided by its largest entry
 first, which leaves :math:`M` unchanged); the softmax is computed stably for any
 ``beta``.
+
+With an upper bound of windows (learned presence), a source window that is switched
+off (presence below 0.5 under the hard gate, or not encoded at inference) must not
+supply any target slot: its score is lowered by a constant :math:`c` far beyond any
+score's range,
+
+.. math::
+    M'_{j,i} = M_{j,i} - c\,[\,i \text{ off}\,], \qquad c = 10^4,
+
+so that it gets zero weight whenever a source window is on; a frame whose source
+windows are all off keeps its association unchanged.
 """
 
 from __future__ import annotations
@@ -27,8 +38,11 @@ __all__ = [
     "appearance_similarity",
     "apply_association",
     "association_softmax",
+    "exclude_absent",
     "hard_association",
 ]
+
+ABSENT_PENALTY = 1e4  # c above: beyond any cosine similarity plus geometry cost
 
 
 def appearance_similarity(
@@ -56,6 +70,22 @@ def appearance_similarity(
     dot = torch.einsum("bjd,bid->bji", a, b)
     norms = a.norm(dim=-1).unsqueeze(-1) * b.norm(dim=-1).unsqueeze(-2)
     return dot / (norms + eps / (s_a * s_b.transpose(-1, -2)))
+
+
+def exclude_absent(score: Tensor, present: Tensor | None) -> Tensor:
+    """Lower the scores of switched-off source windows by ``ABSENT_PENALTY``.
+
+    Args:
+        score: association scores (B, N, M) (target window j, source window i).
+        present: (B, M) bool, the source windows that are on; None keeps ``score``.
+
+    Returns:
+        (B, N, M), with the same gradient as ``score``.
+    """
+    if present is None:
+        return score
+    absent = ~present & present.any(-1, keepdim=True)  # rows with no source on: unchanged
+    return score - ABSENT_PENALTY * absent[:, None, :].to(score.dtype)
 
 
 def association_softmax(similarity: Tensor, beta: float = 10.0) -> Tensor:

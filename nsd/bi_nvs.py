@@ -32,6 +32,7 @@ from nsd.association import (
     appearance_similarity,
     apply_association,
     association_softmax,
+    exclude_absent,
     hard_association,
 )
 from nsd.compositor import (
@@ -195,6 +196,19 @@ class BiNVS(nn.Module):
             crops[b_idx, n_idx], app[b_idx, n_idx], latent[b_idx, n_idx] = c, a, lat
         return Windows(det, crops, app, latent, on)
 
+    def present(self, windows: Windows) -> Tensor | None:
+        """(B, N) bool: the windows that may supply content (None: all of them).
+
+        At inference the windows that were encoded; in training under the hard presence
+        gate the windows with presence >= 0.5 (an off window's mask is gated out in its
+        own view, so its decoding must not fill another view's slot either).
+        """
+        if windows.on is not None:
+            return windows.on
+        if self.cfg.presence_gate == "hard":
+            return windows.det.presence.detach() >= 0.5
+        return None
+
     def association_score(
         self, app_target: Tensor, app_source: Tensor, geometry_cost: Tensor | None = None
     ) -> Tensor:
@@ -246,7 +260,10 @@ class BiNVS(nn.Module):
         )
         associate = self.cfg.association if associate is None else associate
         if associate:
-            M = self.association_score(target.app, source.app, geometry_cost)
+            M = exclude_absent(
+                self.association_score(target.app, source.app, geometry_cost),
+                self.present(source),
+            )
             A = hard_association(M) if hard else association_softmax(M, self.cfg.association_beta)
             rgb, mask = apply_association(A, rgb), apply_association(A, mask)
         else:

@@ -36,7 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from nsd import distributed
-from nsd.association import appearance_similarity, association_softmax
+from nsd.association import appearance_similarity, association_softmax, exclude_absent
 from nsd.bi_nvs import BiNVS, BiNVSConfig
 from nsd.data import SceneData
 from nsd.decoder import Decoder
@@ -353,9 +353,12 @@ class NSDTask:
         if self.association_prior_score == "full" or not (m.association and m.mode == "bi_nvs"):
             return rv.association, rw.association
         sim = appearance_similarity(wv.app, ww.app, m.association_dims)
+        model = self.model
         return (
-            association_softmax(sim, m.association_beta),
-            association_softmax(sim.transpose(-1, -2), m.association_beta),
+            association_softmax(exclude_absent(sim, model.present(ww)), m.association_beta),
+            association_softmax(
+                exclude_absent(sim.transpose(-1, -2), model.present(wv)), m.association_beta
+            ),
         )
 
     def _presence_target(self, evidence, rv, rw, wv, ww, size, caps) -> dict[str, torch.Tensor]:

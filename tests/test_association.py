@@ -11,6 +11,7 @@ from nsd.association import (
     appearance_similarity,
     apply_association,
     association_softmax,
+    exclude_absent,
     hard_association,
 )
 from tests.base import BaseTester
@@ -75,3 +76,32 @@ class TestAssociation(BaseTester):
             lambda a, b, x: apply_association(association_softmax(appearance_similarity(a, b)), x),
             [a, b, x],
         )
+
+    @pytest.mark.parametrize("beta", [1.0, 10.0, 1e3])
+    def test_absent_sources_get_no_weight(self, beta):
+        """A switched-off source window supplies no target slot, however similar it is."""
+        g = torch.Generator().manual_seed(1)
+        app = torch.randn(2, 4, 128, generator=g)
+        M = appearance_similarity(app, app)  # each target window is its own best source
+        present = torch.tensor([[True, False, True, False], [False, False, False, True]])
+        A = association_softmax(exclude_absent(M, present), beta)
+        off = A[~present[:, None, :].expand_as(A)]
+        assert off.numel() == 4 * 5 and torch.equal(off, torch.zeros(20))
+        self.assert_close(A.sum(-1), torch.ones(2, 4))
+        H = hard_association(exclude_absent(M, present))
+        assert present.gather(1, H.argmax(-1)).all()
+        # the present windows keep their softmax among themselves (a slow reference)
+        ref = torch.softmax(beta * M[0][:, [0, 2]], -1)
+        self.assert_close(A[0][:, [0, 2]], ref)
+
+    def test_all_absent_or_none_leaves_the_association_unchanged(self):
+        M = appearance_similarity(torch.randn(1, 3, 128), torch.randn(1, 3, 128))
+        A = association_softmax(M)
+        self.assert_close(association_softmax(exclude_absent(M, torch.zeros(1, 3, dtype=bool))), A)
+        assert exclude_absent(M, None) is M
+
+    def test_exclusion_keeps_the_gradient(self):
+        M = torch.randn(1, 3, 3, dtype=torch.float64, requires_grad=True)
+        present = torch.tensor([[True, False, True]])
+        (g,) = torch.autograd.grad(exclude_absent(M, present).pow(2).sum(), M)
+        self.assert_close(g, 2 * (M - 1e4 * (~present)[:, None, :].double()).detach())

@@ -145,6 +145,26 @@ def test_hard_gate_keeps_only_present_windows_without_gradient():
     assert g is None or g.abs().max() == 0
 
 
+def test_hard_gate_keeps_off_windows_out_of_the_other_view():
+    """Bi-NVS under the hard gate: an off window of w fills no slot of v (and vice versa),
+    so an on window is never rendered from an off window's decoding."""
+    torch.manual_seed(0)
+    model = build_model(tiny_cfg("model.detector.presence=true", "model.presence_gate=hard").model)
+    with torch.no_grad():
+        model.detector.head.bias.view(-1, 6)[0, 5] = -2.0  # window 0 off
+        model.detector.head.bias.view(-1, 6)[1, 5] = 2.0  # window 1 on
+    images, bgs = torch.rand(4, 3, 24, 32), torch.rand(4, 3, 24, 32)
+    rv, rw, wv, ww = model(images[:2], images[2:], bgs[:2], bgs[2:], torch.eye(3).expand(2, 3, 3))
+    assert (wv.det.presence[:, 0] < 0.5).all() and (ww.det.presence[:, 1] >= 0.5).all()
+    for r in (rv, rw):
+        assert r.association[..., 0].abs().max() == 0
+        assert torch.allclose(r.association[..., 1], torch.ones(2, 2))
+    soft = build_model(tiny_cfg("model.detector.presence=true", "model.presence_gate=soft").model)
+    soft.load_state_dict(model.state_dict())
+    rs, _, _, _ = soft(images[:2], images[2:], bgs[:2], bgs[2:], torch.eye(3).expand(2, 3, 3))
+    assert rs.association[..., 0].min() > 0  # the soft gate keeps every source
+
+
 def test_bad_presence_gate_raises():
     from nsd.errors import ConfigError
 

@@ -53,6 +53,7 @@ RUNS = {
     "full_xv": "runs/netepu/texture_full_xv",
     "no_nnopcs": "runs/netepu/texture_no_nnopcs",
     "no_local": "runs/netepu/texture_no_local",
+    "contrast_w02_normals": "runs/netepu/texture_w02_normals",
 }
 WORK = ROOT / "runs" / "netepu" / "texture_bench"
 IMAGES = ROOT / "docs" / "images"
@@ -65,7 +66,7 @@ TITLES = {
     "dots = held-out cameras",
     "texture_xv": "NeTePu texture code, cross-view training (mu, predicted NNOPCS): contours = "
     "training cameras, dots = held-out cameras",
-    "texture_default": "NeTePu texture code, default training (cross-view + contrastive; mu, "
+    "texture_default": "NeTePu texture code, default (cross-view + contrastive + normals; mu, "
     "predicted NNOPCS): contours = training cameras, dots = held-out cameras",
 }
 ROW_NOTES = {  # what each evaluated run is (netepu-train stage=texture overrides)
@@ -81,7 +82,7 @@ ROW_NOTES = {  # what each evaluated run is (netepu-train stage=texture override
     "rendered depth (use_normals=true)",
     "contrast_w02_normals_crop96": "as contrast_w02_normals, 96 x 96 encoder crops (crop_size=96)",
 }
-DEFAULT_RUN = "full_xv_contrast"  # the run trained with conf/netepu/texture/default.yaml
+DEFAULT_RUN = "contrast_w02_normals"  # the run trained with conf/netepu/texture/default.yaml
 
 
 def _load(run: str):
@@ -275,7 +276,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
 def _speed_fns(texture, geometry, image, mask, kps, cam, size: int) -> dict:
     """The two ways of encoding a batch of frames, as callables (see the module docstring)."""
     from netepu.maps import MapSettings, render_maps
-    from netepu.texture import encode_texture, texture_codes
+    from netepu.texture import encode_texture, surface_normals, texture_codes
 
     def visible_mode():
         texture_codes(texture, geometry, image, mask, kps, cam)
@@ -285,7 +286,24 @@ def _speed_fns(texture, geometry, image, mask, kps, cam, size: int) -> dict:
             code = geometry.encode(kps)
             ctx = geometry.prepare(code, cam, keypoints=kps)
             maps = render_maps(geometry.query, ctx, (size, size), MapSettings())
-        encode_texture(texture, image, maps.silhouette, maps.nnopcs)
+            surface = maps.nnopcs
+            if texture.cfg.use_normals:  # world normals of the depth map, in the silhouettes' box
+                sil = maps.silhouette
+                rows, cols = sil.any(0).any(1).nonzero(), sil.any(0).any(0).nonzero()
+                y0, y1 = int(rows.min()), int(rows.max()) + 1
+                x0, x1 = int(cols.min()), int(cols.max()) + 1
+                ys, xs = torch.meshgrid(
+                    torch.arange(y0, y1, dtype=torch.float32),
+                    torch.arange(x0, x1, dtype=torch.float32),
+                    indexing="ij",
+                )
+                uv = torch.stack([xs, ys], -1).expand(len(kps), -1, -1, -1)
+                n = torch.zeros_like(surface)
+                n[:, y0:y1, x0:x1] = surface_normals(
+                    maps.depth[:, y0:y1, x0:x1], uv, sil[:, y0:y1, x0:x1], cam["K"], cam["R"]
+                )
+                surface = torch.cat([surface, n], -1)
+        encode_texture(texture, image, maps.silhouette, surface)
 
     return {"visible mask (pipeline)": visible_mode, "full frame render (NeTePu)": frame_mode}
 
@@ -335,8 +353,16 @@ def _speed_rows(run: str, repeats: int, threads: int) -> list[dict]:
     return rows
 
 
+SPEED_MODELS = {  # the speed table's models: NeTePu's recipe and the shipped default
+    "full (NNOPCS)": RUNS["full"],
+    "default (NNOPCS + normals)": RUNS[DEFAULT_RUN],
+}
+
+
 def speed(repeats: int) -> None:
-    rows = _speed_rows(RUNS["full"], repeats, threads=2)
+    rows = []
+    for label, run in SPEED_MODELS.items():
+        rows += [{"model": label, **r} for r in _speed_rows(run, repeats, threads=2)]
     WORK.mkdir(parents=True, exist_ok=True)
     (WORK / "speed.json").write_text(json.dumps({"rows": rows, "threads": 2}, indent=1))
 
@@ -388,9 +414,8 @@ def report() -> None:
     notes += [f"* `{k}`: {ROW_NOTES.get(k, '')}" for k in ev["runs"]]
     notes.append(
         "\nEach row was evaluated when its run was added (`evaluate`, `evaluate --add-only`); "
-        "the stamp above is this report's. The speed table comes from the last `speed` run "
-        "(the `full` model, which reads NNOPCS only; normals add the rendered depth, from "
-        "the same query, and finite differences).\n"
+        "the stamp above is this report's. The speed table comes from the last `speed` run, "
+        "both models timed in the same process.\n"
     )
     if sp:
         notes.append(
@@ -406,11 +431,14 @@ def report() -> None:
             "before the deadline):\n"
         )
     if sp:
-        notes.append("| frame | mode | batch | ms per call | encodings/s |\n|---|---|---|---|---|")
+        notes.append(
+            "| model | frame | mode | batch | ms per call | encodings/s |\n"
+            "|---|---|---|---|---|---|"
+        )
         for r in sp["rows"]:
             notes.append(
-                f"| {r['frame']} | {r['mode']} | {r['batch']} | {r['ms_per_call']:.1f} "
-                f"| {r['encodings_per_s']:.1f} |"
+                f"| {r.get('model', 'full (NNOPCS)')} | {r['frame']} | {r['mode']} "
+                f"| {r['batch']} | {r['ms_per_call']:.1f} | {r['encodings_per_s']:.1f} |"
             )
         notes.append("")
     full = ev["runs"].get("full", {})

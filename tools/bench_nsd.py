@@ -64,6 +64,15 @@ ABLATIONS = {
         "prior_depth=off",
         "prior_association=off",
     ],
+    "upper bound 4, hull presence": [
+        "model.num_windows=4",
+        "model.detector.presence=true",
+        "prior_presence=hull",
+    ],
+    "upper bound 2, hull presence": [
+        "model.detector.presence=true",
+        "prior_presence=hull",
+    ],
 }
 
 CHILD = r"""
