@@ -29,6 +29,7 @@ Baseline (:class:`ReidCNN`, :func:`train_reid_baseline`)
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Callable
 
 import numpy as np
@@ -185,7 +186,7 @@ def tsne_kde_figure(
             )
         d = (ids == i) & dots
         ax.scatter(y[d, 0], y[d, 1], s=6, color=c, label=(names or {}).get(int(i), str(int(i))))
-    ax.set_title(title, fontsize=10)
+    ax.set_title("\n".join(textwrap.wrap(title, 80)), fontsize=10)  # long titles fit
     ax.set_xticks([])
     ax.set_yticks([])
     ax.legend(fontsize=6, ncol=2, loc="best", markerscale=2)

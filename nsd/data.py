@@ -37,6 +37,8 @@ class PairBatch:
             :mod:`nsd.proposals`), with validity (B, N), when computed; multi-view
             proposals (:mod:`nsd.occupancy`) also carry camera-space depths (B, N)
             and share slots across views.
+        count_v, count_w: (B,) the individuals in view per frame (the hull's count,
+            smoothed over time, :func:`nsd.presence.smoothed_counts`), when computed.
     """
 
     image_v: Tensor
@@ -53,6 +55,8 @@ class PairBatch:
     valid_w: Tensor | None = None
     proposal_depth_v: Tensor | None = None
     proposal_depth_w: Tensor | None = None
+    count_v: Tensor | None = None
+    count_w: Tensor | None = None
 
 
 def split_frames(num_frames: int, val_fraction: float) -> tuple[np.ndarray, np.ndarray]:
@@ -110,6 +114,7 @@ class SceneData:
         self.proposals: Tensor | None = None
         self.proposal_valid: Tensor | None = None
         self.proposal_depths: Tensor | None = None
+        self.counts: Tensor | None = None  # (T, V) individuals in view, see smooth_counts
 
     def compute_multiview_proposals(
         self, k: int, threshold: float, softness: float, resolution: int = 48, split: bool = True
@@ -131,6 +136,15 @@ class SceneData:
             valid.append(ok)
         self.proposals, self.proposal_valid = torch.stack(boxes), torch.stack(valid)
         self.proposal_depths = torch.stack(depths)
+
+    def smooth_counts(self, window: int, scene_population: bool = False) -> None:
+        """Individuals in view per frame: the multi-view proposals' count, median over
+        ``window`` frames (:func:`nsd.presence.smoothed_counts`)."""
+        from nsd.presence import smoothed_counts
+
+        if self.proposal_valid is None:
+            raise ConfigError("counts need the multi-view proposals (compute them first)")
+        self.counts = smoothed_counts(self.proposal_valid, window, scene_population)
 
     def compute_proposals(self, k: int, threshold: float, softness: float) -> None:
         """Single-view residual-evidence window proposals for every frame and view."""
@@ -182,6 +196,8 @@ class SceneData:
         if self.proposal_depths is not None:
             batch.proposal_depth_v = self.proposal_depths[t_, v_]
             batch.proposal_depth_w = self.proposal_depths[t_, w_]
+        if self.counts is not None:
+            batch.count_v, batch.count_w = self.counts[t_, v_], self.counts[t_, w_]
         return batch
 
     def sample(

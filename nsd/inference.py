@@ -16,8 +16,10 @@ the silhouettes. ``refine="none"`` returns the raw masks.
 
 Cross-view identities come from the appearance association: in each frame,
 the windows of every view are matched one-to-one (Hungarian on the cosine
-similarity of their association dims) to the windows of the first view that
-shows any subject; unmatched windows open new identities.
+similarity of their association dims) to the windows of the reference view, the
+view with the most active windows (the first of them on ties), so that every window
+of a view that shows fewer subjects finds a partner; unmatched windows (only where
+the reference's windows are too few) open new identities.
 """
 
 from __future__ import annotations
@@ -176,15 +178,16 @@ def associate_views(
     """
     V, N = active.shape
     ids = np.full((V, N), -1, dtype=np.int64)
-    ref, ref_act, next_id = None, None, 0
+    on = active.cpu().numpy()
+    ref = int(np.argmax(on.sum(1)))  # the view showing the most subjects, first on ties
+    ref_act = np.flatnonzero(on[ref])
+    if ref_act.size == 0:
+        return ids
+    ids[ref, ref_act] = np.arange(ref_act.size)
+    next_id = ref_act.size
     for v in range(V):
-        act = np.flatnonzero(active[v].cpu().numpy())
-        if act.size == 0:
-            continue
-        if ref is None:
-            ids[v, act] = np.arange(next_id, next_id + act.size)
-            next_id += act.size
-            ref, ref_act = v, act
+        act = np.flatnonzero(on[v])
+        if v == ref or act.size == 0:
             continue
         if score is None:
             full = appearance_similarity(app[v][None], app[ref][None], dims)[0]

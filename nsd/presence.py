@@ -47,6 +47,7 @@ binary cross-entropy, :math:`L = \frac{1}{BN}\sum_{b,i} \mathrm{BCE}(p_{b,i}, y_
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -155,6 +156,54 @@ def ranked_presence_target(presence: Tensor, count: Tensor) -> Tensor:
     rank = torch.empty_like(order)
     rank.scatter_(-1, order, torch.arange(N, device=order.device).expand_as(order))
     return (rank < count[:, None]).to(presence.dtype)
+
+
+def smoothed_counts(valid: Tensor, window: int, scene_population: bool = False) -> Tensor:
+    r"""Individuals in view per frame and view, from the visual hull's proposals.
+
+    The hull's per-frame count flickers: a ghost component appears for a frame, and
+    individuals that touch merge into one component. The number of individuals in view
+    changes slowly, so per view the count is the running median over a centred window
+    of ``window`` frames (edges: the nearest frame repeated), which removes changes
+    shorter than half the window; ``window=1`` keeps the per-frame count.
+
+    Individuals in close interaction can stay merged for longer than any window. With
+    ``scene_population`` the scene is assumed to hold a constant population, the median
+    over all frames of the frame's count :math:`n_t` (hull components in any view), and
+    a view's count is raised by what the frame misses,
+    :math:`c_{t,v} \leftarrow c_{t,v} + \max(0, \operatorname{median}_t n_t - \tilde n_t)`
+    (:math:`\tilde n_t` the running median of :math:`n_t`). Do not use it for footage
+    where individuals leave the scene for long.
+
+    Args:
+        valid: (T, V, k) bool, the valid hull proposals of every frame and view (slots
+            shared across views: slot j is the same individual in every view).
+        window: odd number of frames.
+        scene_population: add the merged individuals back (see above).
+
+    Returns:
+        (T, V) int64.
+
+    Example:
+        >>> v = torch.tensor([2, 2, 1, 2, 2])[:, None, None] > torch.arange(3)
+        >>> smoothed_counts(v, 3)[:, 0].tolist()
+        [2, 2, 2, 2, 2]
+    """
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"the count window must be an odd number of frames >= 1, got {window}")
+    from scipy.ndimage import median_filter
+
+    per_view = valid.sum(-1).cpu().numpy()
+    frame = valid.any(1).sum(-1).cpu().numpy()
+    if window > 1:
+        per_view = median_filter(per_view, size=(window, 1), mode="nearest")
+        frame_local = median_filter(frame, size=window, mode="nearest")
+    else:
+        frame_local = frame
+    if scene_population:
+        population = int(np.floor(np.median(frame) + 0.5))
+        per_view = per_view + np.clip(population - frame_local, 0, None)[:, None]
+    return torch.from_numpy(np.ascontiguousarray(per_view)).to(valid.device)
 
 
 def presence_target_loss(presence: Tensor, target: Tensor) -> Tensor:

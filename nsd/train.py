@@ -177,6 +177,20 @@ class NSDTask:
                 if split == "auto":  # num_windows is an upper bound when presence is learned
                     split = not cfg.model.detector.presence
                 data.compute_multiview_proposals(*args, resolution=pp.resolution, split=split)
+                if self.presence_target == "hull":
+                    window = cfg.prior_presence.get("count_window", 1)
+                    if not isinstance(window, int) or window < 1 or window % 2 == 0:
+                        raise ConfigError(
+                            "prior_presence.count_window must be an odd number of frames "
+                            f">= 1, got {window!r}"
+                        )
+                    population = cfg.prior_presence.get("count_population", "frame")
+                    if population not in ("frame", "scene"):
+                        raise ConfigError(
+                            "prior_presence.count_population must be 'frame' or 'scene', got "
+                            f"{population!r}"
+                        )
+                    data.smooth_counts(window, population == "scene")
             elif pp.source == "single_view":
                 data.compute_proposals(*args)
             else:
@@ -281,7 +295,10 @@ class NSDTask:
         valid = None if batch.valid_v is None else torch.cat([batch.valid_v, batch.valid_w])
         if self.presence_target == "hull" and learn_presence:
             presence = torch.cat([wv.det.presence, ww.det.presence])
-            hull_target = ranked_presence_target(presence, valid.sum(-1))
+            count = valid.sum(-1) if batch.count_v is None else torch.cat(
+                [batch.count_v, batch.count_w]
+            )
+            hull_target = ranked_presence_target(presence, count)
             out["presence_target"] = presence_target_loss(presence, hull_target)
             out["presence_target_on"] = hull_target.sum(-1).mean()
             active = hull_target > 0.5

@@ -148,3 +148,23 @@ def test_associate_views_hungarian():
     assert ids[1].tolist() == [2, 0, 1] and ids[2].tolist() == [1, 2, 0]
     active[1, 0] = False
     assert associate_views(app, active)[1, 0] == -1
+
+
+def test_associate_views_references_the_view_with_most_subjects():
+    """A view showing fewer subjects than another does not open new identities for the
+    others' extra windows: every frame gets as many ids as its fullest view."""
+    g = torch.Generator().manual_seed(1)
+    app0 = torch.randn(4, 32, generator=g)
+    app = torch.stack([app0, app0[[3, 1, 0, 2]], app0[[2, 3, 1, 0]]])
+    active = torch.ones(3, 4, dtype=torch.bool)
+    active[0, 3] = False  # the first view misses subject 3
+    active[2, 0] = False  # the last view misses subject 2 (its window 0)
+    ids = associate_views(app, active)
+    assert len(set(ids[ids >= 0].tolist())) == 4
+    subject = torch.stack([torch.arange(4), torch.tensor([3, 1, 0, 2]), torch.tensor([2, 3, 1, 0])])
+    for v in range(3):  # one id per true subject, the same in every view
+        for n in range(4):
+            if active[v, n]:
+                partners = ids[subject == subject[v, n]]
+                assert set(partners[partners >= 0].tolist()) == {ids[v, n]}
+    assert (associate_views(app, torch.zeros(3, 4, dtype=torch.bool)) == -1).all()

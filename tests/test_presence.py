@@ -307,3 +307,70 @@ def test_hull_target_trains_the_most_present_windows(tiny_scene):
     )
     with pytest.raises(ConfigError, match="target=hull needs"):
         NSDTask(single, data)
+
+
+def test_smoothed_counts_match_a_slow_running_median():
+    from nsd.presence import smoothed_counts
+
+    g = torch.Generator().manual_seed(3)
+    counts = torch.randint(0, 4, (23, 3), generator=g)
+    valid = counts[..., None] > torch.arange(4)  # (T, V, k): the first `count` slots valid
+    assert torch.equal(smoothed_counts(valid, 1), counts)
+    for window in (3, 7, 15):
+        h = window // 2
+        padded = np.pad(counts.numpy(), ((h, h), (0, 0)), mode="edge")
+        slow = np.stack([np.median(padded[t : t + window], 0) for t in range(len(counts))])
+        assert np.array_equal(smoothed_counts(valid, window).numpy(), slow.astype(np.int64))
+    # a merge lasting 3 frames in one view is removed by a 7-frame median, not by 5 frames
+    dip = torch.tensor([4] * 6 + [3] * 3 + [4] * 6)[:, None]
+    v = dip[..., None] > torch.arange(4)
+    assert smoothed_counts(v, 7)[:, 0].eq(4).all()
+    assert smoothed_counts(v, 5)[:, 0].eq(3).sum() == 3  # as long as half the window: kept
+    for bad in (0, 2, -1):
+        with pytest.raises(ValueError, match="odd number"):
+            smoothed_counts(v, bad)
+
+
+def test_scene_population_adds_back_individuals_merged_for_long():
+    from nsd.presence import smoothed_counts
+
+    # 4 individuals in 2 views; in frames 10-29 two of them merge into one hull component
+    # (slot 3 empty everywhere), and view 1 does not see slot 0 in frames 0-39
+    T = 60
+    valid = torch.ones(T, 2, 4, dtype=torch.bool)
+    valid[10:30, :, 3] = False
+    valid[:40, 1, 0] = False
+    frame_only = smoothed_counts(valid, 5)
+    assert frame_only[20].tolist() == [3, 2]  # longer than the window: the merge stays
+    scene = smoothed_counts(valid, 5, scene_population=True)
+    assert scene[20].tolist() == [4, 3]  # the merged individual is added back in each view
+    assert scene[50].tolist() == [4, 4] and scene[0].tolist() == [4, 3]
+    assert torch.equal(smoothed_counts(valid, 1, True)[5], frame_only[5])
+
+
+def test_hull_target_uses_the_smoothed_count(tiny_scene):
+    from nsd.data import SceneData
+    from nsd.errors import ConfigError
+    from nsd.presence import smoothed_counts
+    from nsd.train import NSDTask
+
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    cfg = tiny_cfg("model.detector.presence=true", "prior_presence=hull",
+                   "prior_presence.count_window=3")
+    task = NSDTask(cfg, data)
+    assert torch.equal(data.counts, smoothed_counts(data.proposal_valid, 3))
+    batch = data.pairs(np.array([0, 1]), np.array([0, 1]), np.array([1, 0]))
+    assert batch.count_v.tolist() == [int(data.counts[0, 0]), int(data.counts[1, 1])]
+    losses = task.training_step(0, np.random.default_rng(0))
+    assert 0 <= float(losses["presence_target_on"]) <= float(data.counts.max())
+    scene = tiny_cfg("model.detector.presence=true", "prior_presence=hull",
+                     "prior_presence.count_population=scene")
+    NSDTask(scene, data)
+    assert torch.equal(data.counts, smoothed_counts(data.proposal_valid, 31, True))
+    with pytest.raises(ConfigError, match="count_population"):
+        NSDTask(tiny_cfg("model.detector.presence=true", "prior_presence=hull",
+                         "prior_presence.count_population=everyone"), data)
+    for bad in (2, 0):
+        with pytest.raises(ConfigError, match="count_window"):
+            NSDTask(tiny_cfg("model.detector.presence=true", "prior_presence=hull",
+                             f"prior_presence.count_window={bad}"), data)
