@@ -166,6 +166,7 @@ class NSDTask:
             pp.weight > 0
             or cfg.prior_association.weight > 0
             or cfg.prior_depth.source == "proposals"
+            or self.presence_target == "hull"  # the hull's count is the presence target
         ):
             args = (cfg.model.num_windows, cfg.loss.evidence_threshold, cfg.loss.evidence_softness)
             if pp.source == "multiview":

@@ -374,3 +374,18 @@ def test_hull_target_uses_the_smoothed_count(tiny_scene):
         with pytest.raises(ConfigError, match="count_window"):
             NSDTask(tiny_cfg("model.detector.presence=true", "prior_presence=hull",
                              f"prior_presence.count_window={bad}"), data)
+
+
+def test_hull_target_needs_no_other_proposal_prior(tiny_scene):
+    """The hull's count is computed for the presence target even when every prior that
+    reads the proposals is off."""
+    from nsd.data import SceneData
+    from nsd.train import NSDTask
+
+    cfg = tiny_cfg("model.detector.presence=true", "prior_presence=hull",
+                   "prior_proposal.weight=0", "prior_association.weight=0", "prior_depth=off")
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    task = NSDTask(cfg, data)
+    assert data.counts is not None
+    losses = task.training_step(0, np.random.default_rng(0))
+    assert 0 <= float(losses["presence_target_on"]) <= float(data.counts.max())
