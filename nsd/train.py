@@ -179,19 +179,7 @@ class NSDTask:
                     split = not cfg.model.detector.presence
                 data.compute_multiview_proposals(*args, resolution=pp.resolution, split=split)
                 if self.presence_target == "hull":
-                    window = cfg.prior_presence.get("count_window", 1)
-                    if not isinstance(window, int) or window < 1 or window % 2 == 0:
-                        raise ConfigError(
-                            "prior_presence.count_window must be an odd number of frames "
-                            f">= 1, got {window!r}"
-                        )
-                    population = cfg.prior_presence.get("count_population", "frame")
-                    if population not in ("frame", "scene"):
-                        raise ConfigError(
-                            "prior_presence.count_population must be 'frame' or 'scene', got "
-                            f"{population!r}"
-                        )
-                    data.smooth_counts(window, population == "scene")
+                    self._hull_counts(cfg.prior_presence, data)
             elif pp.source == "single_view":
                 data.compute_proposals(*args)
             else:
@@ -199,6 +187,22 @@ class NSDTask:
                     f"prior_proposal.source must be 'multiview' or 'single_view' when proposal, "
                     f"association or proposal-depth priors are on, got {pp.source!r}"
                 )
+
+    @staticmethod
+    def _hull_counts(pp: DictConfig, data: SceneData) -> None:
+        """The presence target's count per frame and view (``prior_presence.count_*``)."""
+        window = pp.get("count_window", 1)
+        population = pp.get("count_population", "frame")
+        if population not in ("frame", "scene"):
+            raise ConfigError(
+                f"prior_presence.count_population must be 'frame' or 'scene', got {population!r}"
+            )
+        try:
+            if not isinstance(window, int):
+                raise ValueError(f"got {window!r}")
+            data.smooth_counts(window, population == "scene")
+        except ValueError as e:
+            raise ConfigError(f"prior_presence.count_window: {e}") from None
 
     def _make_optimizer(self) -> None:
         o = self.cfg.optim
@@ -296,9 +300,7 @@ class NSDTask:
         valid = None if batch.valid_v is None else torch.cat([batch.valid_v, batch.valid_w])
         if self.presence_target == "hull" and learn_presence:
             presence = torch.cat([wv.det.presence, ww.det.presence])
-            count = valid.sum(-1) if batch.count_v is None else torch.cat(
-                [batch.count_v, batch.count_w]
-            )
+            count = torch.cat([batch.count_v, batch.count_w])  # NSDTask._hull_counts
             hull_target = ranked_presence_target(presence, count)
             out["presence_target"] = presence_target_loss(presence, hull_target)
             out["presence_target_on"] = hull_target.sum(-1).mean()
@@ -371,12 +373,10 @@ class NSDTask:
         if self.association_prior_score == "full" or not (m.association and m.mode == "bi_nvs"):
             return rv.association, rw.association
         sim = appearance_similarity(wv.app, ww.app, m.association_dims)
-        model = self.model
+        present = self.model.present
         return (
-            association_softmax(exclude_absent(sim, model.present(ww)), m.association_beta),
-            association_softmax(
-                exclude_absent(sim.transpose(-1, -2), model.present(wv)), m.association_beta
-            ),
+            association_softmax(exclude_absent(sim, present(ww)), m.association_beta),
+            association_softmax(exclude_absent(sim.mT, present(wv)), m.association_beta),
         )
 
     def _presence_target(self, evidence, rv, rw, wv, ww, size, caps) -> dict[str, torch.Tensor]:

@@ -96,8 +96,7 @@ def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -
         ids = associate_views(dec.app, dec.active, dims, score)
         frame_counts.append(len(set(ids[ids >= 0].tolist())))
         for v, cam in enumerate(data.rig.names):
-            g = gt.frame(cam, t, (H, W))
-            visible = int((g.visible.reshape(len(g.visible), -1).sum(1) >= 4).sum())
+            visible = visible_count(gt, cam, t, (H, W))
             act = int(dec.active[v].sum())
             view_ok.append(act == visible)
             active_n.append(act)
@@ -120,10 +119,16 @@ def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -
     }
 
 
-def hull_count(scene: Path, n: int, frames: int = FRAMES) -> dict:
-    """The label-free count of the multi-view visual hull alone (no training): per frame,
-    the individuals :func:`nsd.occupancy.multiview_proposals` finds with an upper bound
-    of 4 (``split=False``), on the same frames as :func:`count_metrics`."""
+def visible_count(gt, cam: str, t: int, size: tuple[int, int]) -> int:
+    """Individuals visible in a camera-frame of the ground truth (visible area >= 4 px)."""
+    g = gt.frame(cam, t, size)
+    return int((g.visible.reshape(len(g.visible), -1).sum(1) >= 4).sum())
+
+
+def _hull_data(scene: Path, frames: int = 0):
+    """The scene at the benchmark's size (``frames`` spread over it, as in
+    :func:`count_metrics`; 0: all) with its multi-view hull proposals for an upper bound
+    of 4, not split (``split=False``)."""
     import torch
     from hydra import compose, initialize_config_module
 
@@ -133,8 +138,9 @@ def hull_count(scene: Path, n: int, frames: int = FRAMES) -> dict:
         cfg = compose("train", overrides=[f"data.scene={scene}", *TRAIN])
     H, W = cfg.data.image_size[1], cfg.data.image_size[0]
     data = SceneData(scene, (W, H), val_fraction=0.0)
-    idx = np.linspace(0, len(data.frames) - 1, frames).round().astype(int)
-    data.frames = data.frames[torch.from_numpy(idx)]
+    if frames:
+        idx = np.linspace(0, len(data.frames) - 1, frames).round().astype(int)
+        data.frames = data.frames[torch.from_numpy(idx)]
     data.compute_multiview_proposals(
         4,
         cfg.loss.evidence_threshold,
@@ -142,6 +148,14 @@ def hull_count(scene: Path, n: int, frames: int = FRAMES) -> dict:
         resolution=cfg.prior_proposal.resolution,
         split=False,
     )
+    return data
+
+
+def hull_count(scene: Path, n: int, frames: int = FRAMES) -> dict:
+    """The label-free count of the multi-view visual hull alone (no training): per frame,
+    the individuals :func:`nsd.occupancy.multiview_proposals` finds with an upper bound
+    of 4 (``split=False``), on the same frames as :func:`count_metrics`."""
+    data = _hull_data(scene, frames)
     counts = data.proposal_valid.any(1).sum(-1).numpy()
     return {
         "hull_frame_count_accuracy": float((counts == n).mean()),
@@ -160,30 +174,17 @@ def hull_target_accuracy(scene: Path) -> dict:
     """Per count setting, the share of camera-frames (all frames) where the hull target's
     count (:func:`nsd.presence.smoothed_counts`) equals the individuals visible in the
     ground truth (visible area >= 4 pixels): how right the label-free target is."""
-    from hydra import compose, initialize_config_module
-
-    from nsd.data import SceneData
     from nsd.ground_truth import GroundTruth
     from nsd.presence import smoothed_counts
 
-    with initialize_config_module("nsd.conf", version_base="1.3"):
-        cfg = compose("train", overrides=[f"data.scene={scene}", *TRAIN])
-    H, W = cfg.data.image_size[1], cfg.data.image_size[0]
-    data = SceneData(scene, (W, H), val_fraction=0.0)
+    data = _hull_data(scene)
     gt = GroundTruth.load(scene)
-    data.compute_multiview_proposals(
-        4,
-        cfg.loss.evidence_threshold,
-        cfg.loss.evidence_softness,
-        resolution=cfg.prior_proposal.resolution,
-        split=False,
+    visible = np.array(
+        [
+            [visible_count(gt, cam, t, data.image_size) for cam in data.rig.names]
+            for t in range(len(data.frames))
+        ]
     )
-    T, V = data.proposal_valid.shape[:2]
-    visible = np.zeros((T, V), dtype=np.int64)
-    for t in range(T):
-        for v, cam in enumerate(data.rig.names):
-            g = gt.frame(cam, t, (H, W))
-            visible[t, v] = int((g.visible.reshape(len(g.visible), -1).sum(1) >= 4).sum())
     out = {}
     for name, (window, population) in COUNT_SETTINGS.items():
         c = smoothed_counts(data.proposal_valid, window, population == "scene").numpy()
@@ -265,22 +266,25 @@ def one(n: int, minutes: float, extra: list[str], presence: str = "marginal") ->
         )
     t0 = time.perf_counter()
     train(cfg, run_dir)
-    res = count_metrics(run_dir / "checkpoint.pt", scene, n)
-    res.update(
-        {
-            "minutes": minutes,
-            "presence": presence,
-            "overrides": extra,
-            "wall_seconds": time.perf_counter() - t0,
-        }
-    )
-    (run_dir / "result.json").write_text(json.dumps(res, indent=2))
+    info = {"minutes": minutes, "presence": presence, "overrides": extra}
+    return score_run(run_dir, n, {**info, "wall_seconds": time.perf_counter() - t0})
+
+
+def score_run(run_dir: Path, n: int, info: dict, overwrite: bool = False) -> dict:
+    """Count and identity figures of a trained run, written to its result.json (the count
+    figures first, so that they survive a failing export)."""
+    scene = WORK / f"scene{n}"
+    res = {**count_metrics(run_dir / "checkpoint.pt", scene, n), **info}
+    path = run_dir / "result.json"
+    path.write_text(json.dumps(res, indent=2))
     try:
-        res.update(identities(run_dir / "checkpoint.pt", scene, run_dir / "export"))
+        res.update(identities(run_dir / "checkpoint.pt", scene, run_dir / "export", overwrite))
     except Exception as e:  # the count figures above are kept
         res["identities_error"] = repr(e)
-    (run_dir / "result.json").write_text(json.dumps(res, indent=2))
-    print(json.dumps(res))
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(res, indent=2))
+    tmp.replace(path)
+    print(run_dir.name, json.dumps(res), flush=True)
     return res
 
 
@@ -293,20 +297,8 @@ def rescore(only: list[str]) -> None:
         if only and f.parent.name not in only:
             continue
         old = json.loads(f.read_text())
-        n, run = old["individuals"], f.parent
-        res = count_metrics(run / "checkpoint.pt", WORK / f"scene{n}", n)
         keep = ("minutes", "presence", "overrides", "wall_seconds")
-        res.update({k: old[k] for k in keep if k in old})
-        try:
-            res.update(
-                identities(run / "checkpoint.pt", WORK / f"scene{n}", run / "export", True)
-            )
-        except Exception as e:  # the count figures above are kept
-            res["identities_error"] = repr(e)
-        tmp = f.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(res, indent=2))
-        tmp.replace(f)
-        print(run.name, json.dumps(res), flush=True)
+        score_run(f.parent, old["individuals"], {k: old[k] for k in keep if k in old}, True)
 
 
 def report() -> None:
