@@ -2,22 +2,37 @@
 
 ``nsd-export`` gives every subject a track id (``subject_id``: the cross-view
 association of a frame, linked over time by box overlap and appearance). A
-track can break (an occlusion, a subject leaving the view) and two tracks can
-be the same individual. Here each track is described by the mean of its rows'
-unit texture codes (NeTePu's :math:`\\mu` from the visible pixels only, see
-``netepu-embed``), and tracks are grouped into ``k`` identities by average-
-linkage agglomerative clustering on the cosine distance that never joins two
-tracks seen in the same frame (so more than ``k`` identities remain when the
-tracks do not allow fewer). ``k`` is
-the number of individuals the export shows at once (the median over frames of
-the distinct subjects per frame) unless given. With one subject (k = 1) no
-association is needed and every track is identity 0.
+track can break (an occlusion, a subject leaving the view), two tracks can be
+the same individual, and a track can swap individuals when they cross. Every
+row's identity is therefore decided from its own texture code (NeTePu's
+:math:`\\mu` from the visible pixels only, see ``netepu-embed``), in two steps:
+
+1. **Tracks** (:func:`constrained_average_linkage`): each track is described
+   by the mean of its rows' unit codes, and tracks are grouped into ``k``
+   clusters by average-linkage agglomerative clustering on the cosine
+   distance that never joins two tracks seen in the same frame (so more than
+   ``k`` clusters remain when the tracks do not allow fewer).
+2. **Rows** (:func:`constrained_kmeans`, ``method="rows"``, the default): a
+   spherical k-means over the coded rows in which the rows of one camera-frame
+   take distinct identities (a Hungarian assignment per camera-frame on the
+   cosine distance to the prototypes); prototypes are the normalised means of
+   their rows. It starts from the ``k`` largest clusters' mean unit codes and
+   from ``restarts`` sets of ``k`` random rows (seeded), and the run whose rows
+   are closest to their prototypes in total is kept. A row whose
+   track swapped individuals follows its own code, not its track. Rows without
+   a code take the most frequent identity of their track's coded rows (-1
+   when the track has none).
+
+``method="tracks"`` stops after step 1: every row takes its track's cluster.
+``k`` is the number of individuals the export shows at once (the median over
+frames of the distinct subjects per frame) unless given. With one subject
+(k = 1) no association is needed and every row is identity 0.
 
 Accuracy (:func:`identity_accuracy`, synthetic scenes with ``gt/``): every
 exported row is matched to a ground-truth visible mask of its camera-frame
 (Hungarian on mask IoU, IoU >= 0.5); then
 
-* ``identity_accuracy``: rows whose identity maps to their ground-truth
+* ``identity_accuracy``: rows (those given an identity) whose identity maps to their ground-truth
   individual under the best one-to-one mapping of identities to individuals;
 * ``cross_view_accuracy``: pairs of rows of the same frame and different
   cameras whose "same identity" agrees with "same individual";
@@ -27,18 +42,22 @@ exported row is matched to a ground-truth visible mask of its camera-frame
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 __all__ = [
+    "IDENTITY_METHODS",
     "assign_identities",
     "constrained_average_linkage",
+    "constrained_kmeans",
     "ground_truth_identities",
     "identity_accuracy",
 ]
+
+IDENTITY_METHODS = ("rows", "tracks")
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -72,21 +91,79 @@ def constrained_average_linkage(dist: np.ndarray, apart: np.ndarray, k: int) -> 
     return labels
 
 
+def constrained_kmeans(
+    codes: np.ndarray, groups: np.ndarray, prototypes: np.ndarray, max_iter: int = 100
+) -> np.ndarray:
+    """Spherical k-means in which the rows of one group take distinct clusters.
+
+    Each iteration assigns every group's rows to the prototypes by a Hungarian
+    assignment on the cosine distance (rows beyond the k of a group, if any,
+    take their nearest prototype), then sets each prototype to the normalised
+    mean of its rows (a prototype without rows stays). It stops when no label
+    changes; the assignment cost never increases.
+
+    Args:
+        codes: (R, D) row codes (normalised here).
+        groups: (R,) int, rows of one group (a camera-frame) are kept apart.
+        prototypes: (k, D) starting prototypes.
+        max_iter: iteration cap.
+
+    Returns:
+        ``(labels (R,) in [0, k), cost)``: the total cosine distance of the rows to
+        their prototypes.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    u = _unit(np.asarray(codes, np.float64))
+    proto = _unit(np.asarray(prototypes, np.float64))
+    members = [np.flatnonzero(groups == g) for g in np.unique(groups)]
+    labels = np.full(len(u), -1, np.int64)
+    for _ in range(max_iter):
+        new = np.empty_like(labels)
+        for rows in members:
+            cost = 1 - u[rows] @ proto.T
+            r, c = linear_sum_assignment(cost)
+            new[rows] = cost.argmin(1)
+            new[rows[r]] = c
+        if np.array_equal(new, labels):
+            break
+        labels = new
+        proto = np.stack(
+            [
+                _unit(u[labels == j].mean(0)) if (labels == j).any() else proto[j]
+                for j in range(len(proto))
+            ]
+        )
+    return labels, float((1 - (u * proto[labels]).sum(1)).sum())
+
+
 def assign_identities(
-    table: dict[str, np.ndarray], column: str = "texture", k: int = 0
-) -> tuple[dict[int, int], dict[str, Any]]:
-    """Identity of every track of an export's embedding table.
+    table: dict[str, np.ndarray],
+    column: str = "texture",
+    k: int = 0,
+    method: str = "rows",
+    restarts: int = 10,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Identity of every row of an export's embedding table.
 
     Args:
         table: columns ``subject_id``, ``frame`` and ``column`` (rows, D), optionally
-            ``<column>_valid``.
+            ``<column>_valid``; ``method="rows"`` also needs ``camera``.
         column: the texture-code column.
         k: identities (0: the median number of subjects per frame).
+        method: ``rows`` (each coded row by its own code) or ``tracks`` (each row its
+            track's cluster); see the module.
+        restarts: ``rows``: k-means runs from ``k`` random rows (seeded) besides the
+            one from the track clusters; the run of least cost is kept.
 
     Returns:
-        ``({subject_id: identity}, summary)``. Tracks without a valid code are
-        identity -1.
+        ``(identity (rows,) int64, summary)``; -1 for rows of tracks without a valid code.
+
+    Raises:
+        ValueError: an unknown ``method``.
     """
+    if method not in IDENTITY_METHODS:
+        raise ValueError(f"identities: method must be one of {IDENTITY_METHODS}, got {method!r}")
     sid = np.asarray(table["subject_id"], np.int64)
     frame = np.asarray(table["frame"], np.int64)
     codes = np.asarray(table[column], np.float64)
@@ -99,18 +176,16 @@ def assign_identities(
             1, round(float(np.median([len(v) for v in per_frame.values()]))) if per_frame else 1
         )
     tracks = sorted({int(s) for s in sid[valid]})
-    out = {int(s): -1 for s in np.unique(sid)}
+    identity = np.full(len(sid), -1, np.int64)
+    summary: dict[str, Any] = {"tracks": len(tracks), "k": k, "method": method}
     if not tracks:
-        return out, {"identities": 0, "tracks": 0, "k": k, "association": "no texture codes"}
+        return identity, summary | {"identities": 0, "association": "no texture codes"}
+    coded = np.isin(sid, tracks)
     if k == 1 or len(tracks) == 1:
-        out.update({s: 0 for s in tracks})
-        return out, {
-            "identities": 1,
-            "tracks": len(tracks),
-            "k": k,
-            "association": "skipped: one subject",
-        }
-    desc = np.stack([_unit(_unit(codes[valid & (sid == s)]).mean(0)) for s in tracks])
+        identity[coded] = 0
+        return identity, summary | {"identities": 1, "association": "skipped: one subject"}
+    unit = _unit(codes[valid])
+    desc = np.stack([_unit(unit[sid[valid] == s].mean(0)) for s in tracks])
     dist = np.clip(1 - desc @ desc.T, 0, 2)
     index = {s: i for i, s in enumerate(tracks)}
     apart = np.zeros(dist.shape, bool)
@@ -118,13 +193,35 @@ def assign_identities(
         m = [index[s] for s in members if s in index]
         apart[np.ix_(m, m)] = True
     np.fill_diagonal(apart, False)
-    labels = constrained_average_linkage(dist, apart, k)
-    out.update({s: int(labels[i]) for s, i in index.items()})
-    return out, {
-        "identities": len(set(labels.tolist())),
-        "tracks": len(tracks),
-        "k": k,
-        "association": f"clustered by {column}",
+    track_label = constrained_average_linkage(dist, apart, k)
+    of_track = {s: int(track_label[i]) for s, i in index.items()}
+    if method == "tracks":
+        identity[coded] = [of_track[int(s)] for s in sid[coded]]
+        return identity, summary | {
+            "identities": len(set(track_label.tolist())),
+            "association": f"tracks clustered by {column}",
+        }
+    # rows: the k largest track clusters start a k-means over the coded rows
+    row_track = np.array([of_track[int(s)] for s in sid[valid]])
+    sizes = np.bincount(row_track)
+    start = np.argsort(-sizes, kind="stable")[:k]
+    proto = np.stack([_unit(unit[row_track == j].mean(0)) for j in start])
+    cams = np.unique(np.asarray(table["camera"])[valid], return_inverse=True)[1]
+    groups = frame[valid] * (cams.max() + 1) + cams
+    rng = np.random.default_rng(0)
+    starts = [proto] + [
+        unit[rng.choice(len(unit), k, replace=False)] for _ in range(restarts) if len(unit) >= k
+    ]
+    runs = [constrained_kmeans(unit, groups, p) for p in starts]
+    identity[valid] = min(runs, key=lambda r: r[1])[0]
+    for s in tracks:  # uncoded rows of a coded track: the track's most frequent identity
+        rows = sid == s
+        fill = rows & ~valid
+        if fill.any():
+            identity[fill] = Counter(identity[rows & valid].tolist()).most_common(1)[0][0]
+    return identity, summary | {
+        "identities": len(set(identity[valid].tolist())),
+        "association": f"rows clustered by {column}",
     }
 
 
@@ -171,15 +268,22 @@ def ground_truth_identities(
 def identity_accuracy(
     export: str | Path,
     scene: str | Path,
-    identities: dict[int, int],
+    row_ids: np.ndarray,
+    identity: np.ndarray,
     min_iou: float = 0.5,
     seed: int = 0,
 ) -> dict[str, float]:
-    """Identity accuracy of an export's rows against a synthetic scene (see the module)."""
+    """Identity accuracy of an export's rows against a synthetic scene (see the module).
+
+    Args:
+        row_ids: (R,) annotation ``id`` of the rows to score (others are not scored).
+        identity: (R,) their identities.
+    """
     from scipy.optimize import linear_sum_assignment
 
     matched = ground_truth_identities(export, scene, min_iou)
-    rows = [(cam, t, identities.get(sid, -1), true) for cam, t, sid, true in matched.values()]
+    given = dict(zip(np.asarray(row_ids).tolist(), np.asarray(identity).tolist(), strict=True))
+    rows = [(cam, t, given[a], true) for a, (cam, t, _, true) in matched.items() if a in given]
     if not rows:
         return {"matched_rows": 0.0}
     pred_id = np.array([r[2] for r in rows])

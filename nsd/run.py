@@ -240,16 +240,25 @@ def _identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) -
         if not have_texture:
             log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
         source = up["texture"].folder if have_texture else up["export"].folder
+        keys = ["id", "camera", "frame", "subject_id"]
         table = read_embeddings(
-            source, ["subject_id", "frame", column] + ([f"{column}_valid"] if have_texture else [])
+            source, keys + [column] + ([f"{column}_valid"] if have_texture else [])
         )
-        ids, summary = assign_identities(table, column, int(i.k))
-        lines = ["subject_id,identity"] + [f"{s},{d}" for s, d in sorted(ids.items())]
+        identity, summary = assign_identities(
+            table, column, int(i.k), str(i.method), int(i.restarts)
+        )
+        lines = [",".join([*keys, "identity"])] + [
+            ",".join(map(str, row))
+            for row in zip(*(table[c].tolist() for c in keys), identity.tolist(), strict=True)
+        ]
         atomic_write_text(out / "identities.csv", "\n".join(lines) + "\n")
         summary["column"] = column
         if ground_truth:
             summary["accuracy"] = identity_accuracy(
-                up["export"].folder, up["scene"].summary["path"], ids
+                up["export"].folder,
+                up["scene"].summary["path"],
+                table["id"],
+                identity,
             )
         return summary
 
@@ -378,7 +387,18 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
 
 
 def run_pipeline(cfg: DictConfig) -> dict[str, StageResult]:
-    """Run (or resume) every stage into ``cfg.out``; returns the stage results by name."""
+    """Run (or resume) every stage into ``cfg.out``; returns the stage results by name.
+
+    Raises:
+        ConfigError: an unknown ``netepu.identities.method`` (checked before any stage runs).
+    """
+    from netepu.identities import IDENTITY_METHODS
+
+    if cfg.netepu.identities.method not in IDENTITY_METHODS:
+        raise ConfigError(
+            f"netepu.identities.method must be one of {IDENTITY_METHODS}, "
+            f"got {cfg.netepu.identities.method!r}"
+        )
     out = _out_folder(cfg)
     out.mkdir(parents=True, exist_ok=True)
     runner = StageRunner(out)

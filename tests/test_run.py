@@ -92,6 +92,14 @@ def test_missing_scene_is_a_clear_error(tmp_path):
         run_pipeline(_cfg(tmp_path / "nope", tmp_path / "run"))
 
 
+def test_unknown_identity_method_fails_before_any_stage(tmp_path):
+    from nsd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"netepu\.identities\.method"):
+        run_pipeline(_cfg(FIXTURES / "tiny_scene", tmp_path / "run", "netepu.identities.method=x"))
+    assert not (tmp_path / "run").exists()
+
+
 def test_switched_off_windows_get_no_export_rows(tmp_path):
     """Upper bound 3 windows, 1 individual: windows whose presence is off are not exported.
 
@@ -195,46 +203,127 @@ def test_netepu_stages_with_tiny_models(tmp_path):
     assert np.array_equal(valid, np.isin(table["id"], kp["id"]))  # codes need keypoints
     assert table["texture"].shape == (len(table["id"]), TINY_TEXTURE["latent"])
     assert not (out / "texture" / "crops").exists()
-    ids = (out / "identities" / "identities.csv").read_text().split()[1:]
-    assert {int(r.split(",")[0]) for r in ids} == set(export["subject_id"].tolist())
+    head, *lines = (out / "identities" / "identities.csv").read_text().split()
+    assert head == "id,camera,frame,subject_id,identity"
+    assert [int(r.split(",")[0]) for r in lines] == export["id"].tolist()  # one line per row
+    assert [int(r.split(",")[3]) for r in lines] == export["subject_id"].tolist()
     acc = res["identities"].summary["accuracy"]
     assert res["identities"].summary["column"] == "texture"
     assert acc["matched_rows"] == 0 or 0 <= acc["identity_accuracy"] <= 1
     assert res["keypoints"].summary["accuracy"]["inverted"] == len(kp["subject_frame"])
 
 
-def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart():
+def _track_table(spec, rng, cameras=("a",)):
+    """Embedding table of tracks ``(subject_id, frames, code)``, one row per camera and frame."""
+    rows = [
+        (s, t, cam, c + 0.05 * rng.normal(size=len(c)))
+        for s, frames, c in spec
+        for t in frames
+        for cam in cameras
+    ]
+    return {
+        "id": np.arange(len(rows)),
+        "subject_id": np.array([r[0] for r in rows]),
+        "frame": np.array([r[1] for r in rows]),
+        "camera": np.array([r[2] for r in rows]),
+        "texture": np.stack([r[3] for r in rows]),
+    }
+
+
+@pytest.mark.parametrize("method", ["rows", "tracks"])
+def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(method):
     from netepu.identities import assign_identities
 
     rng = np.random.default_rng(0)
     a, b = np.eye(8)[0], np.eye(8)[1]
     # tracks 1 and 2 are individual A before and after a break, 3 is B, 4 is B after a break
-    spec = [
-        (1, range(0, 10), a),
-        (2, range(12, 20), a),
-        (3, range(0, 15), b),
-        (4, range(16, 20), b),
-    ]
-    rows = [(s, t, c + 0.05 * rng.normal(size=8)) for s, frames, c in spec for t in frames]
-    table = {
-        "subject_id": np.array([r[0] for r in rows]),
-        "frame": np.array([r[1] for r in rows]),
-        "texture": np.stack([r[2] for r in rows]),
-    }
-    ids, summary = assign_identities(table)
+    spec = [(1, range(10), a), (2, range(12, 20), a), (3, range(15), b), (4, range(16, 20), b)]
+    table = _track_table(spec, rng, cameras=("a", "b"))
+    identity, summary = assign_identities(table, k=0, method=method)
     assert summary["k"] == 2 and summary["identities"] == 2
-    assert ids[1] == ids[2] != ids[3] == ids[4]
-    # one texture for everyone: co-visible tracks still get different identities
-    table["texture"] = np.tile(a, (len(rows), 1))
-    ids, _ = assign_identities(table)
-    assert ids[1] != ids[3] and ids[2] != ids[4]
-    ids, summary = assign_identities(table, k=1)
-    assert set(ids.values()) == {0} and summary["association"] == "skipped: one subject"
+    of = {s: set(identity[table["subject_id"] == s].tolist()) for s in (1, 2, 3, 4)}
+    assert of[1] == of[2] and of[3] == of[4] and len(of[1]) == 1 and of[1] != of[3]
+    # one texture for everyone: individuals seen together still get different identities
+    table["texture"] = np.tile(a, (len(identity), 1))
+    identity, _ = assign_identities(table, method=method)
+    for t in range(20):
+        for cam in ("a", "b"):
+            here = identity[(table["frame"] == t) & (table["camera"] == cam)]
+            assert len(set(here.tolist())) == len(here)
+    identity, summary = assign_identities(table, k=1, method=method)
+    assert set(identity.tolist()) == {0} and summary["association"] == "skipped: one subject"
+
+
+def test_row_identities_follow_the_codes_when_tracks_swap_individuals():
+    """Two tracks swap individuals at frame 10 (a crossing): each track is one identity under
+    ``tracks``, which is then wrong for half the rows; ``rows`` follows every row's code."""
+    from netepu.identities import assign_identities
+
+    rng = np.random.default_rng(1)
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    spec = [(1, range(10), a), (1, range(10, 20), b), (2, range(10), b), (2, range(10, 20), a)]
+    table = _track_table(spec, rng, cameras=("a", "b", "c"))
+    truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
+    by_rows, summary = assign_identities(table, method="rows")
+    assert summary["identities"] == 2
+    assert (by_rows == truth).all() or (by_rows == 1 - truth).all()
+    by_tracks, _ = assign_identities(table, method="tracks")
+    assert max((by_tracks == truth).mean(), (by_tracks == 1 - truth).mean()) == 0.5
+    with pytest.raises(ValueError, match="method"):
+        assign_identities(table, method="frames")
+
+
+def test_rows_without_a_code_take_their_tracks_identity():
+    from netepu.identities import assign_identities
+
+    rng = np.random.default_rng(2)
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    table = _track_table([(1, range(0, 12), a), (2, range(0, 12), b), (3, range(12, 14), b)], rng)
+    table["texture_valid"] = (table["frame"] % 3 == 0) & (table["subject_id"] != 3)
+    identity, summary = assign_identities(table)
+    assert summary["tracks"] == 2
+    for s in (1, 2):  # every row of a coded track, coded or not, has the track's identity
+        assert len(set(identity[table["subject_id"] == s].tolist())) == 1
+    assert identity[table["subject_id"] == 1][0] != identity[table["subject_id"] == 2][0]
+    assert (identity[table["subject_id"] == 3] == -1).all()  # a track without codes
+
+
+def test_constrained_kmeans_against_exhaustive_search():
+    """On small problems with separated clusters, the constrained k-means reaches the
+    assignment of least total cosine distance among all that keep each group's rows apart."""
+    import itertools
+
+    from netepu.identities import constrained_kmeans
+
+    rng = np.random.default_rng(3)
+    centres = np.eye(6)[:3]
+    for trial in range(5):
+        groups = np.repeat(np.arange(4), 3)
+        truth = np.concatenate([rng.permutation(3) for _ in range(4)])
+        codes = centres[truth] + 0.2 * rng.normal(size=(12, 6))
+        start = centres + 0.3 * rng.normal(size=(3, 6))
+        labels, found = constrained_kmeans(codes, groups, start)
+        u = codes / np.linalg.norm(codes, axis=1, keepdims=True)
+
+        def cost(lab, u=u):  # total cosine distance of the rows to their cluster's mean direction
+            total = 0.0
+            for j in np.unique(lab):
+                m = u[lab == j].mean(0)
+                total += (1 - u[lab == j] @ (m / np.linalg.norm(m))).sum()
+            return total
+
+        perms = list(itertools.permutations(range(3)))
+        best = min(cost(np.concatenate(p)) for p in itertools.product(perms, repeat=4))
+        assert cost(labels) == pytest.approx(best, abs=1e-9), trial
+        assert found == pytest.approx(best, abs=1e-9)  # the cost it reports
+        for g in range(4):
+            assert sorted(labels[groups == g].tolist()) == [0, 1, 2]
 
 
 def test_identity_accuracy_of_ground_truth_rows(tmp_path):
     """An 'export' made of the ground-truth masks: the true identities score 1, a mapping
-    that swaps identities in later frames is wrong there in time but not across views."""
+    that swaps identities in later frames is wrong there in time but not across views;
+    only the rows given an identity are scored."""
     from netepu.identities import identity_accuracy
     from nsd.synth import tiny_config, write_scene
 
@@ -243,22 +332,24 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
     images = {im["id"]: im for im in gt["images"]}
     export = tmp_path / "export"
     export.mkdir()
-    anns = []
-    for a in gt["annotations"]:
-        late = images[a["image_id"]]["frame"] >= 10  # a new track id after frame 10
-        sid = a["identity_id"] + (100 if late else 0)
-        anns.append({**a, "subject_id": sid})
+    anns = [{**a, "subject_id": a["identity_id"]} for a in gt["annotations"]]
     (export / "subjects.coco.json").write_text(json.dumps({**gt, "annotations": anns}))
-    right = {s: s % 100 for s in {a["subject_id"] for a in anns}}
-    acc = identity_accuracy(export, scene, right)
+    ids = [a["id"] for a in anns]
+    right = {a["id"]: a["identity_id"] for a in anns}
+    acc = identity_accuracy(export, scene, ids, [right[i] for i in ids])
     assert acc["matched_rows"] == len(anns)
     assert acc["identity_accuracy"] == acc["cross_view_accuracy"] == acc["cross_time_accuracy"] == 1
-    swapped = {s: (1 - s % 100) if s >= 100 else s for s in right}
-    acc = identity_accuracy(export, scene, swapped)
+    late = {a["id"] for a in anns if images[a["image_id"]]["frame"] >= 10}
+    acc = identity_accuracy(
+        export, scene, ids, [1 - right[i] if i in late else right[i] for i in ids]
+    )
     assert acc["cross_view_accuracy"] == 1  # within a frame, identities still agree
     assert acc["cross_time_accuracy"] < 0.8
-    late = sum(images[a["image_id"]]["frame"] >= 10 for a in anns)
-    assert acc["identity_accuracy"] == pytest.approx(max(late, len(anns) - late) / len(anns))
+    share = max(len(late), len(anns) - len(late)) / len(anns)
+    assert acc["identity_accuracy"] == pytest.approx(share)
+    early = [i for i in ids if i not in late]
+    acc = identity_accuracy(export, scene, early, [right[i] for i in early])
+    assert acc["matched_rows"] == len(early) and acc["identity_accuracy"] == 1
 
 
 def test_presence_is_one_until_its_start_step(tiny_scene):

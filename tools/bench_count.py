@@ -222,9 +222,9 @@ def identities(checkpoint: Path, scene: Path, out: Path, overwrite: bool = False
         **{"views.tensorboard": False, "views.tsne": False, "progress": False},
     )
     export_subjects(cfg)
-    table = read_embeddings(out, ["subject_id", "frame", "app"])
-    ids, summary = assign_identities(table, "app")
-    acc = identity_accuracy(out, scene, ids)
+    table = read_embeddings(out, ["id", "subject_id", "frame", "app"])
+    identity, summary = assign_identities(table, "app", method="tracks")
+    acc = identity_accuracy(out, scene, table["id"], identity)
     return {
         "identity_k": summary["k"],
         "tracks": summary["tracks"],

@@ -2,6 +2,7 @@
 
     .venv/bin/python tools/bench_reid_scenes.py one --n 2 --minutes 10   # scene + nsd-run + scores
     .venv/bin/python tools/bench_reid_scenes.py one --n 3 --minutes 10
+    .venv/bin/python tools/bench_reid_scenes.py rescore     # score the stored runs again
     .venv/bin/python tools/bench_reid_scenes.py report      # docs/benchmarks/reid_scenes.{md,json}
 
 For N = 2 and 3 bipeds in close interaction (4 studio cameras, 300 frames at
@@ -26,8 +27,9 @@ variants that match a ground-truth visible mask at IoU >= 0.5):
   same individual; ``cross_time_rank1``: the same among rows of the same camera
   ten or more frames away; ``chance``: 1 / N;
 * ``identity_accuracy`` and its cross-view / cross-time pair accuracies: the
-  pipeline's identities (tracks grouped by their mean texture code,
-  :mod:`netepu.identities`) scored on those rows.
+  pipeline's identities (each row by its own texture code, :mod:`netepu.identities`)
+  scored on those rows; ``tracks_identity_accuracy``: each row its track's identity
+  (tracks grouped by their mean texture code), on the same rows.
 """
 
 from __future__ import annotations
@@ -87,11 +89,16 @@ def _gt_keypoints(export: Path, scene: Path, label_free: Path, out: Path) -> Non
 
 def _scores(export: Path, scene: Path, tables: dict[str, Path], n: int) -> dict[str, dict]:
     """Row-level rank-1 and pipeline identity accuracy of each texture column, on common rows."""
-    from netepu.identities import assign_identities, ground_truth_identities, identity_accuracy
+    from netepu.identities import (
+        IDENTITY_METHODS,
+        assign_identities,
+        ground_truth_identities,
+        identity_accuracy,
+    )
     from nsd.embeddings_io import read_embeddings
 
     matched = ground_truth_identities(export, scene)
-    cols = ["id", "subject_id", "frame", "texture", "texture_valid"]
+    cols = ["id", "camera", "subject_id", "frame", "texture", "texture_valid"]
     read = {k: read_embeddings(p, cols) for k, p in tables.items()}
     ids = next(iter(read.values()))["id"]
     common = np.isin(ids, list(matched))
@@ -107,17 +114,18 @@ def _scores(export: Path, scene: Path, tables: dict[str, Path], n: int) -> dict[
     out = {}
     for name, t in read.items():
         codes = t["texture"][common].astype(np.float64)
-        sub = {k: t[k][common] for k in ("subject_id", "frame", "texture")}
-        identities, summary = assign_identities(sub, "texture", n)
-        acc = identity_accuracy(export, scene, identities)
-        # scores every matched row of the export; rows of tracks without codes are identity -1
+        sub = {k: t[k][common] for k in ("id", "camera", "subject_id", "frame", "texture")}
         out[name] = {
             "rows": int(common.sum()),
             "cross_view_rank1": rank1(codes, ident, cross_view),
             "cross_time_rank1": rank1(codes, ident, cross_time),
-            "tracks": summary["tracks"],
-            **{k: v for k, v in acc.items() if k != "matched_rows"},
         }
+        for method in IDENTITY_METHODS:  # both scored on the same rows
+            identity, summary = assign_identities(sub, "texture", n, method)
+            acc = identity_accuracy(export, scene, rows, identity)
+            tag = "" if method == "rows" else "tracks_"
+            out[name] |= {f"{tag}{k}": v for k, v in acc.items() if k != "matched_rows"}
+            out[name]["tracks"] = summary["tracks"]
     return out
 
 
@@ -143,16 +151,28 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
     textures = [FIRST_UNSEEN_TEXTURE + 7 * n + i for i in range(n)]
     if not (scene / "gt").is_dir():  # an existing scene is kept: nsd-run then reuses its stages
         subprocess.run(
-            [str(ROOT / ".venv/bin/nsd-synth"), f"out={scene}", f"num_individuals={n}",
-             f"texture_ids={textures}".replace(" ", ""), f"seed={n}", "overwrite=true"],
+            [
+                str(ROOT / ".venv/bin/nsd-synth"),
+                f"out={scene}",
+                f"num_individuals={n}",
+                f"texture_ids={textures}".replace(" ", ""),
+                f"seed={n}",
+                "overwrite=true",
+            ],
             check=True,
         )
     cfg = load_run_config(
-        f"scene={scene}", f"out={run}", f"threads={threads}",
-        "train.trainer.progress=false", "+export.progress=false",
-        f"train.model.num_windows={n}", f"train.trainer.max_minutes={minutes}",
-        f"netepu.geometry={GEOMETRY}", f"netepu.texture={texture}",
-        f"netepu.keypoints.frame_step={frame_step}", f"netepu.identities.k={n}",
+        f"scene={scene}",
+        f"out={run}",
+        f"threads={threads}",
+        "train.trainer.progress=false",
+        "+export.progress=false",
+        f"train.model.num_windows={n}",
+        f"train.trainer.max_minutes={minutes}",
+        f"netepu.geometry={GEOMETRY}",
+        f"netepu.texture={texture}",
+        f"netepu.keypoints.frame_step={frame_step}",
+        f"netepu.identities.k={n}",
     )
     t0 = time.perf_counter()
     results = run_pipeline(cfg)
@@ -193,6 +213,22 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
     print(json.dumps(record, indent=1, default=float))
 
 
+def rescore() -> None:
+    """Recompute the scores of every result file from its stored export and tables."""
+    from nsd.embeddings_io import embeddings_path
+
+    for path in sorted(WORK.glob("result*.json")):
+        r = json.loads(path.read_text())
+        n = r["individuals"]
+        tables = {
+            "label-free keypoints": embeddings_path(WORK / f"run{n}" / "texture"),
+            "ground-truth keypoints": embeddings_path(WORK / f"texture_gt{n}"),
+        }
+        r["scores"] = _scores(WORK / f"run{n}" / "export", WORK / f"scene{n}", tables, n)
+        path.write_text(json.dumps(r, indent=1, default=float))
+        print(path.name, json.dumps(r["scores"], indent=1, default=float))
+
+
 def report() -> None:
     import torch
 
@@ -202,31 +238,39 @@ def report() -> None:
         r = json.loads(path.read_text())
         records.append(r)
         for variant, s in r["scores"].items():
-            rows.append({
-                "individuals": r["individuals"],
-                "texture model": r.get("texture_model", "cross-view"),
-                "keypoints": variant,
-                "mask mIoU": r["mask_miou"],
-                "detection rate": r["detection_rate"],
-                "count accuracy": r["count_accuracy"],
-                "MPJPE mm": r["keypoints"].get("mpjpe_mm") if variant.startswith("label") else "",
-                "rows": s["rows"],
-                "cross-view rank-1": s["cross_view_rank1"],
-                "cross-time rank-1": s["cross_time_rank1"],
-                "chance": 1 / r["individuals"],
-                "identity accuracy": s.get("identity_accuracy"),
-                "cross-view pairs": s.get("cross_view_accuracy"),
-                "cross-time pairs": s.get("cross_time_accuracy"),
-                "train steps": r["training_steps"],
-            })
+            rows.append(
+                {
+                    "individuals": r["individuals"],
+                    "texture model": r.get("texture_model", "cross-view"),
+                    "keypoints": variant,
+                    "mask mIoU": r["mask_miou"],
+                    "detection rate": r["detection_rate"],
+                    "count accuracy": r["count_accuracy"],
+                    "MPJPE mm": r["keypoints"].get("mpjpe_mm")
+                    if variant.startswith("label")
+                    else "",
+                    "rows": s["rows"],
+                    "cross-view rank-1": s["cross_view_rank1"],
+                    "cross-time rank-1": s["cross_time_rank1"],
+                    "chance": 1 / r["individuals"],
+                    "identity accuracy": s.get("identity_accuracy"),
+                    "cross-view pairs": s.get("cross_view_accuracy"),
+                    "cross-time pairs": s.get("cross_time_accuracy"),
+                    "identity accuracy, per track": s.get("tracks_identity_accuracy"),
+                    "train steps": r["training_steps"],
+                }
+            )
     notes = (ROOT / "tools/bench_reid_scenes.notes.md").read_text()
     write_report(
         "reid_scenes",
         "Identities from texture codes on synthetic scenes with occlusion",
         rows,
         notes,
-        extra={"runs": records, "geometry": str(GEOMETRY.relative_to(ROOT)),
-               "textures": {k: str(v.relative_to(ROOT)) for k, v in TEXTURES.items()}},
+        extra={
+            "runs": records,
+            "geometry": str(GEOMETRY.relative_to(ROOT)),
+            "textures": {k: str(v.relative_to(ROOT)) for k, v in TEXTURES.items()},
+        },
     )
 
 
@@ -239,11 +283,14 @@ def main() -> None:
     o.add_argument("--frame-step", type=int, default=15, help="invert every this many frames")
     o.add_argument("--threads", type=int, default=1)
     o.add_argument("--texture", choices=sorted(TEXTURES), default="cross-view")
+    sub.add_parser("rescore", help="score the stored runs again (e.g. new identity code)")
     sub.add_parser("report")
     args = ap.parse_args()
     if args.cmd == "one":
         WORK.mkdir(parents=True, exist_ok=True)
         one(args.n, args.minutes, args.frame_step, args.threads, args.texture)
+    elif args.cmd == "rescore":
+        rescore()
     else:
         report()
 
