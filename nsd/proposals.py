@@ -26,6 +26,8 @@ from torch import Tensor
 
 __all__ = ["association_prior", "evidence_proposals", "match_proposals", "proposal_prior"]
 
+OFF_WINDOW_COST = 1e3  # added to a window that is off: above any cost between bounded boxes
+
 
 def evidence_proposals(
     evidence: Tensor,
@@ -110,8 +112,8 @@ def match_proposals(
     """
     N = boxes.shape[1]
     c = _cost(boxes, proposals)
-    if active is not None:  # larger than any cost between bounded windows
-        c = c + 1e3 * (~active)[:, :, None].to(c.dtype)
+    if active is not None:
+        c = c + OFF_WINDOW_COST * (~active)[:, :, None].to(c.dtype)
     c = c * valid[:, None, :]
     perms = torch.tensor(list(itertools.permutations(range(N))))  # (N!, N)
     total = c[:, torch.arange(N)[None], perms].sum(-1)  # (B, N!)
