@@ -14,7 +14,10 @@ the multi-view masks), and ``calibration`` the scene's calibration file or
 folder; the NNOPCS map is rendered at the crop pixels through the crop
 window in native pixels. RGB-only models (``use_nnopcs: false``) need
 neither. Rows without a crop or keypoints get NaN codes and a ``False`` in
-``<column>_valid``.
+``<column>_valid``. A third column, ``<column>_reid``, holds each code's
+re-identification embedding (:meth:`netepu.texture.TextureModel.reid_embedding`:
+the model's within-class whitening; the code itself for models without one):
+compare individuals with it, render with ``<column>``.
 
 Examples::
 
@@ -107,6 +110,7 @@ def embed_export(
     index = {r["id"]: r for r in read_crop_index(crops)}
     row_ids = read_embeddings(table, columns=["id"])["id"].astype(np.int64)
     codes = np.full((len(row_ids), texture.cfg.latent), np.nan, np.float32)
+    reid = codes.copy()
     todo = [k for k, i in enumerate(row_ids) if int(i) in index and (kps is None or int(i) in kps)]
     skipped = len(row_ids) - len(todo)
     if skipped:
@@ -150,8 +154,9 @@ def embed_export(
             window=window,
         )
         codes[rows] = mu.numpy()
+        reid[rows] = texture.reid_embedding(mu).numpy()
     valid = ~np.isnan(codes).any(1)
-    path = add_columns(table, {column: codes, f"{column}_valid": valid})
+    path = add_columns(table, {column: codes, f"{column}_valid": valid, f"{column}_reid": reid})
     return {"rows": len(row_ids), "encoded": int(valid.sum()), "path": str(path)}
 
 

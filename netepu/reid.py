@@ -19,6 +19,24 @@ Figures
     each identity's margin (nearest other identity's centroid distance over
     its own spread).
 
+Within-class whitening (:func:`within_class_whitening`)
+    A linear map fitted on labelled training codes that equalises the
+    directions in which one identity's codes vary (pose, camera, shading):
+    with the within-class scatter
+    :math:`S_w = \frac1N \sum_i (x_i - m_{y_i})(x_i - m_{y_i})^\top`
+    (:math:`m_c` the mean of identity c), its eigen-decomposition
+    :math:`S_w = V \Lambda V^\top` and shrinkage
+    :math:`\lambda' = \lambda \operatorname{tr}(S_w) / D`,
+
+    .. math::
+        e = (x - m) P, \qquad P = V (\Lambda + \lambda' I)^{-1/2},
+
+    with m the mean of all training codes, so that
+    :math:`P^\top (S_w + \lambda' I) P = I` (WCCN, as in speaker
+    verification). Directions that identities share are scaled up, the
+    within-identity spread down; no dimension is dropped, so it also serves
+    identities never seen in the fit (unlike LDA, which keeps C - 1 directions).
+
 Baseline (:class:`ReidCNN`, :func:`train_reid_baseline`)
     The texture encoder's CNN on the masked RGB crops (no NNOPCS), a BN-neck
     and an identity classifier, trained with identity cross-entropy +
@@ -48,7 +66,46 @@ __all__ = [
     "separation_figure",
     "train_reid_baseline",
     "tsne_kde_figure",
+    "within_class_whitening",
 ]
+
+
+def within_class_whitening(
+    codes: np.ndarray, labels: np.ndarray, shrinkage: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fit the within-class whitening (module docstring) on labelled codes.
+
+    Args:
+        codes: (N, D) training codes; labels: (N,) their identities (>= 2 distinct).
+        shrinkage: lambda >= 0, relative to the mean eigenvalue of S_w.
+
+    Returns:
+        ``(m (D,), P (D, D))`` float64: the embedding of x is ``(x - m) @ P``.
+
+    Raises:
+        ValueError: fewer than two identities, a negative shrinkage, non-finite codes,
+            or a singular scatter with no shrinkage.
+    """
+    x = np.asarray(codes, np.float64)
+    y = np.asarray(labels)
+    if x.ndim != 2 or len(x) != len(y):
+        raise ValueError(f"whitening: codes (N, D) and labels (N,), got {x.shape}, {y.shape}")
+    if shrinkage < 0 or not np.isfinite(x).all():
+        raise ValueError("whitening: shrinkage must be >= 0 and the codes finite")
+    classes, index = np.unique(y, return_inverse=True)
+    if len(classes) < 2:
+        raise ValueError(f"whitening: needs >= 2 identities, got {len(classes)}")
+    means = np.stack([x[index == c].mean(0) for c in range(len(classes))])
+    centred = x - means[index]
+    scatter = centred.T @ centred / len(x)
+    ev, vec = np.linalg.eigh(scatter)
+    ev = ev + shrinkage * max(float(np.trace(scatter)), 0.0) / x.shape[1]
+    if ev.min() <= 1e-12 * max(float(ev.max()), 1e-300):
+        raise ValueError(
+            "whitening: the within-class scatter is singular (too few codes per dimension); "
+            "give a shrinkage > 0"
+        )
+    return x.mean(0), vec / np.sqrt(ev)
 
 
 def pairwise_distances(a: np.ndarray, b: np.ndarray, metric: str = "cosine") -> np.ndarray:

@@ -50,6 +50,13 @@ Decoder and renderer (:class:`TextureDecoder`, :class:`ColourRenderer`)
     keeps only :math:`f`, so the texture reaches the renderer through the
     global token alone. Only foreground pixels are ever rendered.
 
+Re-identification embedding (:meth:`TextureModel.reid_embedding`)
+    :math:`\mu` renders; for retrieval it is mapped by a within-class
+    whitening :math:`e = (\mu - m) P` (:func:`netepu.reid.within_class_whitening`)
+    that the texture stage fits on its training codes after training and
+    stores in the model (buffers ``reid_mean``, ``reid_projection``; the
+    identity for models without it).
+
 Loss (:func:`texture_loss`): :math:`\lambda_{col}` MSE of colour on in-mask
 points + :math:`\lambda_{KLD}` KLD (eq. 8; defaults 5 and 1e-8), with
 :math:`\mathrm{KLD} = -\tfrac12 \sum_d (1 + \log\sigma_d^2 - \mu_d^2 - \sigma_d^2)`
@@ -435,6 +442,35 @@ class TextureModel(nn.Module):
             )
         except TypeError as e:
             raise ConfigError(f"netepu.texture.model.renderer: {e}") from e
+        # re-identification embedding (mu - reid_mean) @ reid_projection (netepu.reid's
+        # within-class whitening, fitted after training); the identity until then
+        self.register_buffer("reid_mean", torch.zeros(cfg.latent))
+        self.register_buffer("reid_projection", torch.eye(cfg.latent))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        d = self.cfg.latent  # checkpoints from before the whitening: the identity map
+        state_dict.setdefault(prefix + "reid_mean", torch.zeros(d))
+        state_dict.setdefault(prefix + "reid_projection", torch.eye(d))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def reid_embedding(self, mu: Tensor) -> Tensor:
+        """Re-identification embedding of texture codes: (B, d_z) -> (B, d_z)."""
+        return (mu - self.reid_mean.to(mu.dtype)) @ self.reid_projection.to(mu.dtype)
+
+    def set_reid_whitening(self, mean: Tensor | Any, projection: Tensor | Any) -> None:
+        """Store a whitening ``(m (d_z,), P (d_z, d_z))``.
+
+        See :func:`netepu.reid.within_class_whitening`.
+        """
+        m = torch.as_tensor(mean, dtype=self.reid_mean.dtype)
+        p = torch.as_tensor(projection, dtype=self.reid_projection.dtype)
+        if m.shape != self.reid_mean.shape or p.shape != self.reid_projection.shape:
+            raise ValueError(
+                f"reid whitening: want shapes {tuple(self.reid_mean.shape)} and "
+                f"{tuple(self.reid_projection.shape)}, got {tuple(m.shape)} and {tuple(p.shape)}"
+            )
+        self.reid_mean.copy_(m)
+        self.reid_projection.copy_(p)
 
     def encoder_input(self, rgb: Tensor, inside: Tensor, nnopcs: Tensor | None) -> Tensor:
         """Crops (B, S, S, 3), (B, S, S) bool, surface (B, S, S, C_s) -> encoder input

@@ -30,8 +30,16 @@ with that weight (the synthetic world's texture ids say which rows match).
 ``batch_sampling=textures`` fills each batch with as many different textures as
 it can, so that look-alike textures meet in the contrastive loss.
 
+Re-identification whitening (ours; ``reid_whitening_samples`` > 0): when
+training ends, the codes of that many training samples (evenly spaced, no
+occlusion) and their texture ids fit :func:`netepu.reid.within_class_whitening`
+(shrinkage ``reid_shrinkage``), stored in the model before the final checkpoint
+(:meth:`TextureTask.finish`); :func:`add_reid_whitening` adds it to a finished
+checkpoint.
+
 Evaluation: colour PSNR of the held-out sets and re-identification rank-1 /
-mAP of the held-out codes (:mod:`netepu.reid`).
+mAP of the held-out codes' re-identification embeddings (:mod:`netepu.reid`;
+before the whitening is fitted, the codes themselves).
 """
 
 from __future__ import annotations
@@ -60,7 +68,7 @@ from netepu.texture_data import TextureData, build_texture_data, predicted_nnopc
 from netepu.texture_evaluation import evaluate_colour, heldout_codes, synthesis_grid
 from nsd.errors import ConfigError
 
-__all__ = ["TextureStageConfig", "TextureTask", "build_texture_stage"]
+__all__ = ["TextureStageConfig", "TextureTask", "add_reid_whitening", "build_texture_stage"]
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +93,8 @@ class TextureStageConfig:
     contrast_temperature: float = 0.1
     batch_sampling: str = "random"
     eval_views: int = 8
+    reid_whitening_samples: int = 0
+    reid_shrinkage: float = 0.01
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> TextureStageConfig:
@@ -101,6 +111,11 @@ class TextureStageConfig:
             raise ConfigError(
                 "netepu.texture.optim: contrast_weight must be >= 0 and contrast_temperature > 0, "
                 f"got {c.contrast_weight}, {c.contrast_temperature}"
+            )
+        if c.reid_whitening_samples < 0 or c.reid_shrinkage < 0:
+            raise ConfigError(
+                "netepu.texture.optim: reid_whitening_samples and reid_shrinkage must be >= 0, "
+                f"got {c.reid_whitening_samples}, {c.reid_shrinkage}"
             )
         if c.batch_sampling not in BATCH_SAMPLINGS:
             raise ConfigError(
@@ -269,7 +284,52 @@ class TextureTask:
         return terms
 
     def codes(self) -> np.ndarray:
+        """mu of every held-out crop and texture, (E, T, d_z)."""
         return heldout_codes(self.texture, self.data, self.nnopcs_heldout)
+
+    def reid_embeddings(self, codes: np.ndarray) -> np.ndarray:
+        """The model's re-identification embeddings of codes (..., d_z)."""
+        with torch.no_grad():
+            flat = torch.from_numpy(codes.reshape(-1, codes.shape[-1]))
+            return self.texture.reid_embedding(flat).numpy().reshape(codes.shape)
+
+    @torch.no_grad()
+    def training_codes(self, n: int, batch: int = 256) -> tuple[np.ndarray, np.ndarray]:
+        """mu and texture id of ``n`` training samples evenly spaced (all when fewer), no
+        occlusion: ((n, d_z), (n,))."""
+        tr = self.data.train
+        total = len(tr["sample_view"])
+        idx = np.unique(np.linspace(0, total - 1, min(n, total)).round().astype(np.int64))
+        was = self.texture.training
+        self.texture.eval()
+        out = []
+        for s in range(0, len(idx), batch):
+            src = idx[s : s + batch]
+            vs = tr["sample_view"][src]
+            inside = torch.from_numpy(tr["inside"][vs])
+            rgb = torch.from_numpy(tr["rgb"][src]).float() / 255 * inside[..., None]
+            surface = torch.from_numpy(self.nnopcs_train[vs].astype(np.float32))
+            out.append(self.texture.encode(self.texture.encoder_input(rgb, inside, surface))[0])
+        self.texture.train(was)
+        return torch.cat(out).numpy(), tr["sample_texture"][idx]
+
+    def fit_reid_whitening(self) -> None:
+        """Fit the re-identification whitening on training codes and store it in the model."""
+        from netepu.reid import within_class_whitening
+
+        codes, ids = self.training_codes(self.cfg.reid_whitening_samples)
+        mean, projection = within_class_whitening(codes, ids, self.cfg.reid_shrinkage)
+        self.texture.set_reid_whitening(mean, projection)
+        log.info(
+            "re-identification whitening fitted on %d training codes of %d textures",
+            len(codes),
+            len(np.unique(ids)),
+        )
+
+    def finish(self, step: int) -> None:
+        """After the last step (before the final checkpoint): fit the whitening if enabled."""
+        if self.cfg.reid_whitening_samples > 0:
+            self.fit_reid_whitening()
 
     def evaluate(self, step: int) -> dict[str, float]:
         from netepu.reid import reid_metrics
@@ -282,9 +342,8 @@ class TextureTask:
         E, T = codes.shape[:2]
         ids = np.tile(np.arange(T), E)
         cams = np.repeat(h["camera"], T)
-        out.update(
-            {f"reid/{k}": v for k, v in reid_metrics(codes.reshape(E * T, -1), ids, cams).items()}
-        )
+        emb = self.reid_embeddings(codes).reshape(E * T, -1)
+        out.update({f"reid/{k}": v for k, v in reid_metrics(emb, ids, cams).items()})
         return out
 
     def image_grids(self, step: int) -> dict[str, np.ndarray]:
@@ -374,3 +433,24 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
     # the run's netepu.model / netepu.data become the geometry checkpoint's (netepu.train.run)
     found = {"model": geo_config["netepu"]["model"], **geo_data}
     return task, found
+
+
+def add_reid_whitening(checkpoint: str | Path, samples: int, shrinkage: float) -> dict[str, Any]:
+    """Fit the re-identification whitening into a finished texture checkpoint (in place,
+    atomically); everything else in the checkpoint is kept. Returns the fit's summary."""
+    from nsd.atomic import atomic_save_torch
+    from nsd.trainer import load_checkpoint
+
+    if samples < 1:
+        raise ConfigError(f"add_reid_whitening: samples must be >= 1, got {samples}")
+    state = load_checkpoint(checkpoint)
+    cfg = OmegaConf.create(state["config"])
+    cfg.netepu.texture.optim.reid_whitening_samples = samples
+    cfg.netepu.texture.optim.reid_shrinkage = shrinkage
+    task, _ = build_texture_stage(cfg)
+    task.texture.load_state_dict(state["modules"]["texture"])
+    task.fit_reid_whitening()
+    state["modules"]["texture"] = task.texture.state_dict()
+    state["config"] = OmegaConf.to_container(cfg, resolve=True)
+    atomic_save_torch(state, Path(checkpoint))
+    return {"samples": samples, "shrinkage": shrinkage}

@@ -241,9 +241,7 @@ def _identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) -
             log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
         source = up["texture"].folder if have_texture else up["export"].folder
         keys = ["id", "camera", "frame", "subject_id"]
-        table = read_embeddings(
-            source, keys + [column] + ([f"{column}_valid"] if have_texture else [])
-        )
+        table = read_embeddings(source, [*keys, column])  # rows without a code hold NaN
         identity, summary = assign_identities(
             table, column, int(i.k), str(i.method), int(i.restarts)
         )

@@ -69,7 +69,12 @@ def is_main_process() -> bool:
 
 
 class TrainTask(Protocol):
-    """What the :class:`Trainer` needs from a model + data + losses bundle."""
+    """What the :class:`Trainer` needs from a model + data + losses bundle.
+
+    Optional members the trainer uses when present: ``schedulers()``,
+    ``extra_state()`` / ``load_extra_state(state)`` (saved in the checkpoint) and
+    ``finish(step)`` (called once after the last step, before the final checkpoint).
+    """
 
     def modules(self) -> Mapping[str, nn.Module]:
         """Every module whose weights go into the checkpoint."""
@@ -443,6 +448,9 @@ class Trainer:
                 ctx.__exit__(None, None, None)
             if bar is not None:
                 bar.close()
+        finish = getattr(self.task, "finish", None)
+        if finish is not None:  # optional: work after the last step that the checkpoint keeps
+            finish(self.step)
         self.save()
         metrics = self._evaluate()
         self._grids()

@@ -370,9 +370,21 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
         geo2.state_dict()["renderer.down.weight"], geo.state_dict()["renderer.down.weight"]
     )
     assert sorted((tmp_path / "run" / "grids").glob("texture_heldout_cameras_*.png"))
-    # the same cache with other crops (size, normals): the predicted crops are not reused
+    # the final checkpoint holds the re-id whitening, fitted on the trained model's codes
+    from netepu.reid import within_class_whitening
     from netepu.texture_stage import build_texture_stage
 
+    tex2 = load_texture_model(tmp_path / "run" / "checkpoint.pt")[0]
+    assert not torch.equal(tex2.reid_projection, torch.eye(tex2.cfg.latent))
+    with initialize_config_module("nsd.conf", version_base="1.3"):
+        task, _ = build_texture_stage(compose("netepu_train", overrides=ov))
+    task.texture.load_state_dict(tex2.state_dict())
+    codes, ids = task.training_codes(task.cfg.reid_whitening_samples)
+    assert len(np.unique(ids)) == 2
+    m, p = within_class_whitening(codes, ids, task.cfg.reid_shrinkage)
+    torch.testing.assert_close(tex2.reid_mean, torch.from_numpy(m).float())
+    torch.testing.assert_close(tex2.reid_projection, torch.from_numpy(p).float())
+    # the same cache with other crops (size, normals): the predicted crops are not reused
     for extra in (["netepu.texture.model.crop_size=24"], ["netepu.texture.model.use_normals=true"]):
         with initialize_config_module("nsd.conf", version_base="1.3"):
             task, _ = build_texture_stage(compose("netepu_train", overrides=ov + extra))

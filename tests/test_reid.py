@@ -14,6 +14,7 @@ from netepu.reid import (
     reid_metrics,
     separation_figure,
     tsne_kde_figure,
+    within_class_whitening,
 )
 
 
@@ -157,6 +158,9 @@ def _texture_checkpoint(path, use_nnopcs: bool):
     from tests.test_netepu_texture import K_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE, _models
 
     tex, geo = _models(use_nnopcs=use_nnopcs)
+    g = torch.Generator().manual_seed(1)  # a whitening the embeddings must carry
+    d = tex.cfg.latent
+    tex.set_reid_whitening(torch.randn(d, generator=g), torch.randn(d, d, generator=g))
     atomic_save_torch({
         "format": "nsd-netepu-checkpoint-v1",
         "modules": {"geometry": geo.state_dict(), "texture": tex.state_dict()},
@@ -225,7 +229,8 @@ def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs):
     kw = {"keypoints": tmp_path / "keypoints.npz", "calibration": tmp_path} if use_nnopcs else {}
     out = embed_export(tmp_path, tmp_path / "tex.pt", **kw)
     table = read_embeddings(tmp_path)
-    assert out["rows"] == len(ids) and set(table) == {"id", "app", "texture", "texture_valid"}
+    assert out["rows"] == len(ids)
+    assert set(table) == {"id", "app", "texture", "texture_valid", "texture_reid"}
     index = {r["id"]: r for r in read_crop_index(tmp_path / "crops")}
     enc = ids[:-1] if use_nnopcs else ids  # the last crop has no keypoints
     assert out["encoded"] == len(enc)
@@ -248,8 +253,11 @@ def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs):
             np.testing.assert_allclose(table["texture"][k], expected[enc.index(i)], rtol=1e-5,
                                        atol=1e-6)  # fmt: skip
             assert table["texture_valid"][k]
+            reid = tex.reid_embedding(torch.tensor(table["texture"][k][None]))[0]
+            np.testing.assert_allclose(table["texture_reid"][k], reid.numpy(), rtol=1e-5, atol=1e-5)
         else:
             assert np.isnan(table["texture"][k]).all() and not table["texture_valid"][k]
+            assert np.isnan(table["texture_reid"][k]).all()
     with pytest.raises(ValueError, match="exists already"):
         embed_export(tmp_path, tmp_path / "tex.pt", **kw)
     if use_nnopcs:
@@ -276,3 +284,71 @@ def test_nearest_candidates_matches_a_loop_and_respects_the_candidates():
     assert np.isclose((ids[nn] == ids).mean(), reid_metrics(emb, ids, cams)["rank1"])
     with pytest.raises(ValueError, match="candidates must be"):
         nearest_candidates(emb, cand[:5])
+
+
+# ----------------------------------------------------------------------------- whitening
+def test_within_class_whitening_known_values():
+    """1-D codes: two identities {-1, 1} and {9, 11}: within-class variance 1, mean 5."""
+    x = np.array([[-1.0], [1.0], [9.0], [11.0]])
+    y = np.array([0, 0, 1, 1])
+    m, p = within_class_whitening(x, y, shrinkage=0.0)
+    assert m.tolist() == [5.0] and p.shape == (1, 1) and abs(abs(p[0, 0]) - 1) < 1e-12
+    _, p = within_class_whitening(x, y, shrinkage=1.0)  # lambda' = 1 x the mean variance
+    assert abs(abs(p[0, 0]) - 1 / np.sqrt(2)) < 1e-12
+
+
+@pytest.mark.parametrize("shrinkage", [0.0, 0.01, 0.5])
+def test_within_class_whitening_whitens_the_within_class_scatter(shrinkage):
+    rng = np.random.default_rng(0)
+    D, C, n = 6, 4, 200
+    mix = rng.normal(size=(D, D)) * np.array([5, 2, 1, 0.5, 0.2, 0.1])  # anisotropic spread
+    centres = 10 * rng.normal(size=(C, D))
+    y = np.repeat(np.arange(C), n)
+    x = centres[y] + rng.normal(size=(C * n, D)) @ mix.T
+    m, p = within_class_whitening(x, y, shrinkage)
+    np.testing.assert_allclose(m, x.mean(0), atol=1e-12)
+    e = (x - m) @ p
+    means = np.stack([e[y == c].mean(0) for c in range(C)])
+    within = (e - means[y]).T @ (e - means[y]) / len(e)
+    scatter = np.cov((x - np.stack([x[y == c].mean(0) for c in range(C)])[y]).T, bias=True)
+    lam = shrinkage * np.trace(scatter) / D
+    np.testing.assert_allclose(p.T @ (scatter + lam * np.eye(D)) @ p, np.eye(D), atol=1e-9)
+    if shrinkage == 0:  # the embedding's within-class scatter is exactly the identity
+        np.testing.assert_allclose(within, np.eye(D), atol=1e-9)
+    else:  # shrunk: every direction's within-class variance is below 1
+        assert np.linalg.eigvalsh(within).max() < 1
+
+
+def test_within_class_whitening_rejects_bad_input():
+    x = np.random.default_rng(0).normal(size=(10, 3))
+    with pytest.raises(ValueError, match="2 identities"):
+        within_class_whitening(x, np.zeros(10))
+    with pytest.raises(ValueError, match="shrinkage"):
+        within_class_whitening(x, np.arange(10) % 2, shrinkage=-1)
+    bad = x.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        within_class_whitening(bad, np.arange(10) % 2)
+    wide = np.random.default_rng(1).normal(size=(4, 8))  # 4 codes cannot span 8 dimensions
+    with pytest.raises(ValueError, match="singular"):
+        within_class_whitening(wide, np.array([0, 0, 1, 1]), shrinkage=0.0)
+    within_class_whitening(wide, np.array([0, 0, 1, 1]), shrinkage=0.01)  # shrinkage fixes it
+
+
+def test_reid_embedding_is_the_code_until_a_whitening_is_set_and_old_checkpoints_load():
+    from tests.test_netepu_texture import _models
+
+    tex, _ = _models()
+    mu = torch.randn(5, tex.cfg.latent)
+    assert torch.equal(tex.reid_embedding(mu), mu)
+    old = {k: v for k, v in tex.state_dict().items() if not k.startswith("reid_")}
+    m, p = torch.randn(tex.cfg.latent), torch.randn(tex.cfg.latent, tex.cfg.latent)
+    tex.set_reid_whitening(m, p)
+    torch.testing.assert_close(tex.reid_embedding(mu), (mu - m) @ p)
+    fresh, _ = _models()
+    fresh.load_state_dict(tex.state_dict())
+    torch.testing.assert_close(fresh.reid_embedding(mu), (mu - m) @ p)
+    fresh.load_state_dict(old)  # a checkpoint from before the whitening: the identity again
+    assert torch.equal(fresh.reid_embedding(mu), mu)
+    with pytest.raises(ValueError, match="shapes"):
+        tex.set_reid_whitening(m[:3], p)

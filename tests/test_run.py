@@ -208,7 +208,7 @@ def test_netepu_stages_with_tiny_models(tmp_path):
     assert [int(r.split(",")[0]) for r in lines] == export["id"].tolist()  # one line per row
     assert [int(r.split(",")[3]) for r in lines] == export["subject_id"].tolist()
     acc = res["identities"].summary["accuracy"]
-    assert res["identities"].summary["column"] == "texture"
+    assert res["identities"].summary["column"] == "texture_reid"
     assert acc["matched_rows"] == 0 or 0 <= acc["identity_accuracy"] <= 1
     assert res["keypoints"].summary["accuracy"]["inverted"] == len(kp["subject_frame"])
 

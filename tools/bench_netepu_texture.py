@@ -13,6 +13,7 @@ Steps (each its own process, so that each can run under the machine's CPU protoc
         hydra.run.dir=runs/netepu/texture_no_nnopcs
     ... netepu.texture.model.local_features=false  hydra.run.dir=runs/netepu/texture_no_local
 
+    .venv/bin/python tools/bench_netepu_texture.py whiten  # the re-id whitening into a copy
     .venv/bin/python tools/bench_netepu_texture.py evaluate --baseline-minutes 5
     .venv/bin/python tools/bench_netepu_texture.py speed   # nothing else running
     .venv/bin/python tools/bench_netepu_texture.py report
@@ -54,6 +55,7 @@ RUNS = {
     "no_nnopcs": "runs/netepu/texture_no_nnopcs",
     "no_local": "runs/netepu/texture_no_local",
     "contrast_w02_normals": "runs/netepu/texture_w02_normals",
+    "contrast_w02_normals_whitened": "runs/netepu/texture_w02_normals_whitened",
 }
 WORK = ROOT / "runs" / "netepu" / "texture_bench"
 IMAGES = ROOT / "docs" / "images"
@@ -81,8 +83,13 @@ ROW_NOTES = {  # what each evaluated run is (netepu-train stage=texture override
     "contrast_w02_normals": "as contrast_w02_14min, the encoder also reads world normals of the "
     "rendered depth (use_normals=true)",
     "contrast_w02_normals_crop96": "as contrast_w02_normals, 96 x 96 encoder crops (crop_size=96)",
+    "contrast_hard": "as contrast_w02_normals, contrast_weight=0.5, contrast_temperature=0.05, "
+    "batch_sampling=textures (harder look-alike negatives)",
+    "contrast_w02_normals_whitened": "contrast_w02_normals with the re-id whitening fitted on "
+    "4096 of its training codes (`whiten`; the default since 2026-11-22): the same codes, "
+    "compared as (mu - m) P",
 }
-DEFAULT_RUN = "contrast_w02_normals"  # the run trained with conf/netepu/texture/default.yaml
+DEFAULT_RUN = "contrast_w02_normals_whitened"  # conf/netepu/texture/default.yaml's recipe
 
 
 def _load(run: str):
@@ -157,10 +164,13 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
         codes = task.codes()
         colour = evaluate_colour(task.texture, task.geometry, task.data, codes)
         h = task.data.heldout
-        reid = _reid(codes, h["camera"], task.data.textures)
+        emb = task.reid_embeddings(codes)  # the codes themselves without a whitening
+        reid = _reid(emb, h["camera"], task.data.textures)
+        raw = _reid(codes, h["camera"], task.data.textures)
+        reid |= {"mu_rank1": raw["rank1"], "mu_map": raw["map"]}
         E, T = codes.shape[:2]
         euclid = reid_metrics(
-            codes.reshape(E * T, -1),
+            emb.reshape(E * T, -1),
             np.tile(np.arange(T), E),
             np.repeat(h["camera"], T),
             metric="euclidean",
@@ -181,7 +191,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
             }
         results["runs"][name] = row
         print(name, json.dumps(row), f"{time.time() - t0:.0f}s", flush=True)
-        keep[name] = (task, codes)
+        keep[name] = (task, emb)
     if add_only:  # merge these runs' rows into an existing evaluate.json (no baseline, figures)
         old = json.loads((WORK / "evaluate.json").read_text())
         old["runs"].update(results["runs"])
@@ -239,6 +249,20 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
         "texture_encoder_parameters": sum(p.numel() for p in task.texture.encoder.parameters()),
     }
     print("baseline", json.dumps(results["baseline"]), flush=True)
+    # the same post-hoc whitening as the texture model's, fitted on the baseline's training
+    # embeddings, so that the comparison does not credit the whitening to the texture code
+    from netepu.reid import within_class_whitening
+
+    n = len(tr["sample_view"])
+    idx = np.unique(np.linspace(0, n - 1, min(4096, n)).round().astype(np.int64))
+    with torch.no_grad():
+        train_emb = torch.cat([base(sample(idx[s : s + 512]))[0] for s in range(0, len(idx), 512)])
+    m, proj = within_class_whitening(train_emb.numpy(), tr["sample_texture"][idx], 0.01)
+    white = ((base_codes.reshape(E * T, -1) - m) @ proj).reshape(E, T, -1)
+    results["baseline_whitened"] = {
+        f"reid_{k}": v for k, v in _reid(white, h["camera"], data.textures).items()
+    }
+    print("baseline whitened", json.dumps(results["baseline_whitened"]), flush=True)
     # figures: t-SNE + KDE (contours: training cameras, dots: held-out cameras), separation
     ids = np.tile(np.arange(T), E)
     cams = np.repeat(h["camera"], T)
@@ -393,6 +417,11 @@ def report() -> None:
                 "rank-1 look-alike queries": round(r["reid_rank1_look_alikes"], 4),
                 "rank-1 other queries": _r4(r.get("reid_rank1_others")),
                 "errors to the look-alike partner": _r4(r.get("reid_errors_to_look_alike_partner")),
+                "rank-1 / mAP of mu (no whitening)": (
+                    f"{r['reid_mu_rank1']:.4f} / {r['reid_mu_map']:.4f}"
+                    if "reid_mu_rank1" in r
+                    else ""
+                ),
                 "steps": r["steps"],
                 "train min": round(r["train_minutes"], 1),
             }
@@ -410,6 +439,20 @@ def report() -> None:
             "train min": round(b["train_minutes"], 1),
         }
     )
+    bw = ev.get("baseline_whitened")
+    if bw:
+        rows.append(
+            {
+                "model": "CNN baseline, whitened (the texture model's re-id whitening)",
+                "re-id rank-1": round(bw["reid_rank1"], 4),
+                "re-id mAP": round(bw["reid_map"], 4),
+                "rank-1 look-alike queries": round(bw["reid_rank1_look_alikes"], 4),
+                "rank-1 other queries": _r4(bw.get("reid_rank1_others")),
+                "errors to the look-alike partner": _r4(
+                    bw.get("reid_errors_to_look_alike_partner")
+                ),
+            }
+        )
     notes = ["Rows:\n"]
     notes += [f"* `{k}`: {ROW_NOTES.get(k, '')}" for k in ev["runs"]]
     notes.append(
@@ -463,9 +506,21 @@ def report() -> None:
     )
 
 
+def whiten(source: str, target: str, samples: int, shrinkage: float) -> None:
+    """Copy a run's checkpoint to ``target`` and fit the re-id whitening into the copy."""
+    import shutil
+
+    from netepu.texture_stage import add_reid_whitening
+
+    out = ROOT / target
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(ROOT / source / "checkpoint.pt", out / "checkpoint.pt")
+    print(add_reid_whitening(out / "checkpoint.pt", samples, shrinkage))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("what", choices=["evaluate", "speed", "report"])
+    p.add_argument("what", choices=["evaluate", "speed", "report", "whiten"])
     p.add_argument("--baseline-minutes", type=float, default=5.0)
     p.add_argument(
         "--speed-threads",
@@ -481,6 +536,8 @@ def main() -> None:
     )
     p.add_argument("--run", action="append", default=[], help="name=run folder (replaces RUNS)")
     p.add_argument("--work", default=None, help="folder of the intermediate JSON files")
+    p.add_argument("--samples", type=int, default=4096, help="whiten: training codes")
+    p.add_argument("--shrinkage", type=float, default=0.01, help="whiten: shrinkage")
     p.add_argument("--images", default=None, help="figure folder (default docs/images)")
     a = p.parse_args()
     global WORK, IMAGES
@@ -493,6 +550,8 @@ def main() -> None:
         evaluate(a.baseline_minutes, a.speed_threads, a.add_only)
     elif a.what == "speed":
         speed(a.repeats)
+    elif a.what == "whiten":  # the default run from the run it was fitted on
+        whiten(RUNS["contrast_w02_normals"], RUNS[DEFAULT_RUN], a.samples, a.shrinkage)
     else:
         report()
 

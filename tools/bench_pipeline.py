@@ -97,7 +97,8 @@ def main() -> None:
         "cache, writing it takes about 7 s more), 10 minutes of NSD training (`train`), "
         "evaluation on 30 held-out frames (`evaluate`), the export of all 300 frames with "
         "crops, Parquet embeddings, MOT tracks, TensorBoard projector and t-SNE (`export`), "
-        "identities of the tracks from NSD's appearance vectors (no texture model configured: "
+        "an identity for every exported row from NSD's appearance vectors (no texture model "
+        "configured: "
         "the NeTePu `keypoints` and `texture` stages are skipped) and 4 image grids (`grids`). "
         "One process, 2 torch threads, nothing else running."
     )

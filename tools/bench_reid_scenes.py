@@ -57,6 +57,8 @@ TEXTURES = {  # texture models (netepu-train stage=texture), all trained on the 
     "cross-view": ROOT / "runs/netepu/texture_full_xv/checkpoint.pt",
     "cross-view + contrastive": ROOT / "runs/netepu/texture_full_xv_contrast/checkpoint.pt",
     "cross-view + contrastive + normals": ROOT / "runs/netepu/texture_w02_normals/checkpoint.pt",
+    "cross-view + contrastive + normals, whitened": ROOT
+    / "runs/netepu/texture_w02_normals_whitened/checkpoint.pt",
 }
 FIRST_UNSEEN_TEXTURE = 100  # ids >= the pool size are generated textures, never in the pool
 
@@ -87,8 +89,11 @@ def _gt_keypoints(export: Path, scene: Path, label_free: Path, out: Path) -> Non
     np.savez(out, id=np.array(ids, np.int64), keypoints=np.stack(kps).astype(np.float32))
 
 
-def _scores(export: Path, scene: Path, tables: dict[str, Path], n: int) -> dict[str, dict]:
-    """Row-level rank-1 and pipeline identity accuracy of each texture column, on common rows."""
+def _scores(
+    export: Path, scene: Path, tables: dict[str, Path], n: int, column: str = "texture"
+) -> dict[str, dict]:
+    """Row-level rank-1 and pipeline identity accuracy of each table's ``column`` (the codes
+    or their re-id embeddings), on the rows coded in every table."""
     from netepu.identities import (
         IDENTITY_METHODS,
         assign_identities,
@@ -98,7 +103,7 @@ def _scores(export: Path, scene: Path, tables: dict[str, Path], n: int) -> dict[
     from nsd.embeddings_io import read_embeddings
 
     matched = ground_truth_identities(export, scene)
-    cols = ["id", "camera", "subject_id", "frame", "texture", "texture_valid"]
+    cols = ["id", "camera", "subject_id", "frame", column, "texture_valid"]
     read = {k: read_embeddings(p, cols) for k, p in tables.items()}
     ids = next(iter(read.values()))["id"]
     common = np.isin(ids, list(matched))
@@ -113,15 +118,15 @@ def _scores(export: Path, scene: Path, tables: dict[str, Path], n: int) -> dict[
     cross_time = (cams[:, None] == cams[None]) & (np.abs(frames[:, None] - frames[None]) >= 10)
     out = {}
     for name, t in read.items():
-        codes = t["texture"][common].astype(np.float64)
-        sub = {k: t[k][common] for k in ("id", "camera", "subject_id", "frame", "texture")}
+        codes = t[column][common].astype(np.float64)
+        sub = {k: t[k][common] for k in ("id", "camera", "subject_id", "frame", column)}
         out[name] = {
             "rows": int(common.sum()),
             "cross_view_rank1": rank1(codes, ident, cross_view),
             "cross_time_rank1": rank1(codes, ident, cross_time),
         }
         for method in IDENTITY_METHODS:  # both scored on the same rows
-            identity, summary = assign_identities(sub, "texture", n, method)
+            identity, summary = assign_identities(sub, column, n, method)
             acc = identity_accuracy(export, scene, rows, identity)
             tag = "" if method == "rows" else "tracks_"
             out[name] |= {f"{tag}{k}": v for k, v in acc.items() if k != "matched_rows"}
@@ -204,7 +209,8 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
         "detection_rate": ev.get("detection_rate"),
         "count_accuracy": _count_accuracy(export, n),
         "keypoints": results["keypoints"].summary.get("accuracy", {}),
-        "scores": _scores(export, scene, tables, n),
+        "column": "texture_reid",
+        "scores": _scores(export, scene, tables, n, "texture_reid"),
         "seconds": seconds,
         "total_seconds": round(time.perf_counter() - t0, 1),
     }
@@ -224,7 +230,9 @@ def rescore() -> None:
             "label-free keypoints": embeddings_path(WORK / f"run{n}" / "texture"),
             "ground-truth keypoints": embeddings_path(WORK / f"texture_gt{n}"),
         }
-        r["scores"] = _scores(WORK / f"run{n}" / "export", WORK / f"scene{n}", tables, n)
+        r["scores"] = _scores(  # mu is the same in every table of one model's weights
+            WORK / f"run{n}" / "export", WORK / f"scene{n}", tables, n, r.get("column", "texture")
+        )
         path.write_text(json.dumps(r, indent=1, default=float))
         print(path.name, json.dumps(r["scores"], indent=1, default=float))
 
@@ -242,6 +250,7 @@ def report() -> None:
                 {
                     "individuals": r["individuals"],
                     "texture model": r.get("texture_model", "cross-view"),
+                "compared": r.get("column", "texture"),
                     "keypoints": variant,
                     "mask mIoU": r["mask_miou"],
                     "detection rate": r["detection_rate"],
