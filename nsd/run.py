@@ -103,9 +103,14 @@ def _scene_stage(cfg: DictConfig) -> Stage:
     return Stage("scene", run, {"scene": spec})
 
 
+def _train_config(cfg: DictConfig) -> DictConfig:
+    """The ``train`` section as an ``nsd-train`` config (its run-folder settings,
+    ``train.hydra``, do not apply here)."""
+    return OmegaConf.create({k: _container(v) for k, v in cfg.train.items() if k != "hydra"})
+
+
 def _train_stage(cfg: DictConfig) -> Stage:
-    # nsd-train's own run-folder settings (train.hydra) do not apply here
-    tcfg = OmegaConf.create({k: _container(v) for k, v in cfg.train.items() if k != "hydra"})
+    tcfg = _train_config(cfg)
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         from nsd.train import run as train
@@ -182,31 +187,84 @@ def _export_stage(cfg: DictConfig) -> Stage:
     return Stage("export", run, overrides, needs=("scene", "train"))
 
 
+KEYPOINT_SOURCES = ("inverse", "regressor")
+_INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "max_subject_frames")
+
+
+def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
+    """Fail before training on a keypoint source the scene cannot serve."""
+    source = cfg.netepu.keypoints.source
+    if source not in KEYPOINT_SOURCES:
+        raise ConfigError(
+            f"netepu.keypoints.source must be one of {KEYPOINT_SOURCES}, got {source!r}"
+        )
+    if source == "regressor" and not ground_truth:
+        raise ConfigError(
+            "netepu.keypoints.source=regressor trains NSD's pose regressor from a few 3D "
+            "keypoint labels, and this scene has none (no gt/ folder); use source=inverse "
+            "(label-free, needs netepu.geometry)"
+        )
+
+
 def _keypoints_stage(cfg: DictConfig) -> Stage:
     n = cfg.netepu
-    settings = {"geometry": n.geometry, **_container(n.keypoints)}
+    k = n.keypoints
+    regress = k.source == "regressor"
+    settings = {"source": k.source, **{name: k[name] for name in _INVERSE_KEYS}}
+    if regress:  # the regressor is trained on the decomposition of the train stage
+        settings |= {"label_fraction": k.label_fraction, "regressor_steps": k.regressor_steps}
+    else:
+        settings["geometry"] = n.geometry
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         from netepu.subject_keypoints import invert_export, keypoint_error
 
         scene = up["scene"].summary["path"]
-        summary = invert_export(
-            up["export"].folder, scene, n.geometry, out, **_container(n.keypoints)
-        )
-        if up["scene"].summary["ground_truth"]:
-            summary["accuracy"] = keypoint_error(
-                up["export"].folder, scene, out / "keypoints3d.npz"
+        export = up["export"].folder
+        if regress:
+            summary = _regress_keypoints(cfg, scene, _checkpoint(up), export, out)
+        else:
+            summary = invert_export(
+                export, scene, n.geometry, out, **{name: k[name] for name in _INVERSE_KEYS}
             )
+        if up["scene"].summary["ground_truth"]:
+            summary["accuracy"] = keypoint_error(export, scene, out / "keypoints3d.npz")
         return summary
 
     return Stage(
         "keypoints",
         run,
         settings,
-        needs=("scene", "export"),
-        enabled=n.geometry is not None,
-        why_disabled="no geometry model (netepu.geometry=null)",
+        needs=("scene", "train", "export") if regress else ("scene", "export"),
+        enabled=regress or n.geometry is not None,
+        why_disabled="no geometry model (netepu.geometry=null) and source=inverse",
     )
+
+
+def _regress_keypoints(
+    cfg: DictConfig, scene: str, checkpoint: Path, export: Path, out: Path
+) -> dict[str, Any]:
+    """Train NSD's pose regressor (stage 3) on the frozen decomposition with
+    ``label_fraction`` of the training frames labelled, then regress the exported subjects."""
+    from nsd.pose_keypoints import regress_export
+    from nsd.train import run as train
+
+    k = cfg.netepu.keypoints
+    c = _train_config(cfg)
+    c.data.scene = scene
+    c.stage, c.init_from = "pose", str(checkpoint)
+    c.pose.label_fraction = float(k.label_fraction)
+    c.trainer.max_steps, c.trainer.max_minutes = int(k.regressor_steps), 0.0
+    c.trainer.eval_at_minutes = []
+    metrics = train(c, out / "pose")
+    summary = regress_export(
+        export, scene, out / "pose" / "checkpoint.pt", out, int(k.frame_step), max(2, k.min_views)
+    )
+    summary["regressor"] = {
+        "held_out_mpjpe_mm": float(metrics.get("mpjpe_mm", float("nan"))),
+        "labelled_frames": float(metrics.get("labelled_frames", float("nan"))),
+    }
+    return summary
 
 
 def _texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
@@ -372,7 +430,10 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
     """Stage factories in order (a factory may read the results of earlier stages)."""
     return [
         lambda: _scene_stage(cfg),
-        lambda: _train_stage(cfg),
+        lambda: (
+            _check_keypoint_source(cfg, bool(runner.results["scene"].summary["ground_truth"])),
+            _train_stage(cfg),
+        )[1],
         lambda: _evaluate_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
         lambda: _export_stage(cfg),
         lambda: _keypoints_stage(cfg),

@@ -31,12 +31,19 @@ are the argmax of the soft association. It uses no labels.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from nsd.projection import pixel_to_normalized
 
-__all__ = ["depth_prior", "ray_distances", "triangulate_midpoints", "window_rays"]
+__all__ = [
+    "depth_prior",
+    "nearest_point_to_rays",
+    "ray_distances",
+    "triangulate_midpoints",
+    "window_rays",
+]
 
 
 def window_rays(
@@ -86,6 +93,34 @@ def triangulate_midpoints(
     u = (a11 * r2 - a12 * r1) / safe
     p = 0.5 * ((o1[:, None] + s[..., None] * d1) + (o2[:, None] + u[..., None] * d2))
     return p, ok & (s > 0) & (u > 0)
+
+
+def nearest_point_to_rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    r"""The point with the least sum of squared distances to rays :math:`o_i + s\,d_i`:
+
+    .. math::
+        \Big(\sum_i I - \hat d_i \hat d_i^\top\Big)\, X
+            = \sum_i (I - \hat d_i \hat d_i^\top)\, o_i .
+
+    Args:
+        origins, directions: (n, 3), n >= 2 rays that are not all parallel.
+
+    Returns:
+        (3,) float64.
+
+    Raises:
+        ValueError: fewer than two rays, or (nearly) parallel rays.
+    """
+    o = np.asarray(origins, np.float64)
+    d = np.asarray(directions, np.float64)
+    if o.shape != d.shape or o.ndim != 2 or o.shape[1] != 3 or len(o) < 2:
+        raise ValueError(f"nearest_point_to_rays: (n >= 2, 3) rays, got {o.shape}, {d.shape}")
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # (n, 3, 3)
+    A, b = proj.sum(0), (proj @ o[:, :, None]).sum(0)[:, 0]
+    if np.linalg.cond(A) > 1e8:
+        raise ValueError("nearest_point_to_rays: the rays are (nearly) parallel")
+    return np.linalg.solve(A, b)
 
 
 def ray_distances(o1: Tensor, d1: Tensor, o2: Tensor, d2: Tensor, eps: float = 1e-9) -> Tensor:

@@ -60,6 +60,10 @@ TEXTURES = {  # texture models (netepu-train stage=texture), all trained on the 
     "cross-view + contrastive + normals, whitened": ROOT
     / "runs/netepu/texture_w02_normals_whitened/checkpoint.pt",
 }
+KEYPOINT_VARIANTS = {  # netepu.keypoints.source -> the row's name
+    "inverse": "label-free keypoints",
+    "regressor": "regressor keypoints (10 % of frames labelled)",
+}
 FIRST_UNSEEN_TEXTURE = 100  # ids >= the pool size are generated textures, never in the pool
 
 
@@ -143,7 +147,9 @@ def _count_accuracy(export: Path, n: int) -> float:
     return float(np.mean([len(s) == n for s in per_frame.values()]))
 
 
-def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str) -> None:
+def one(
+    n: int, minutes: float, frame_step: int, threads: int, texture_name: str, source: str
+) -> None:
     import torch
 
     from netepu.embed import embed_into_copy
@@ -152,6 +158,10 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     torch.set_num_threads(threads)
     scene, run = WORK / f"scene{n}", WORK / f"run{n}"
+    suffix = "" if source == "inverse" else f"_{source}"
+    if suffix and not run.with_name(run.name + suffix).is_dir() and run.is_dir():
+        shutil.copytree(run, run.with_name(run.name + suffix))  # reuse its training and export
+    run = run.with_name(run.name + suffix)
     texture = TEXTURES[texture_name]
     textures = [FIRST_UNSEEN_TEXTURE + 7 * n + i for i in range(n)]
     if not (scene / "gt").is_dir():  # an existing scene is kept: nsd-run then reuses its stages
@@ -177,6 +187,7 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
         f"netepu.geometry={GEOMETRY}",
         f"netepu.texture={texture}",
         f"netepu.keypoints.frame_step={frame_step}",
+        f"netepu.keypoints.source={source}",
         f"netepu.identities.k={n}",
     )
     t0 = time.perf_counter()
@@ -184,9 +195,9 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
     seconds = {k: round(r.seconds, 1) for k, r in results.items()}
     export = results["export"].folder
     label_free = results["keypoints"].folder / "keypoints3d.npz"
-    gt_kp = WORK / f"gt_keypoints{n}.npz"
+    gt_kp = WORK / f"gt_keypoints{n}{suffix}.npz"
     _gt_keypoints(export, scene, label_free, gt_kp)
-    gt_dir = WORK / f"texture_gt{n}"
+    gt_dir = WORK / f"texture_gt{n}{suffix}"
     shutil.rmtree(gt_dir, ignore_errors=True)
     t1 = time.perf_counter()
     embed_into_copy(export, gt_dir, texture, gt_kp, scene)
@@ -194,7 +205,7 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
     from nsd.embeddings_io import embeddings_path
 
     tables = {
-        "label-free keypoints": embeddings_path(results["texture"].folder),
+        KEYPOINT_VARIANTS[source]: embeddings_path(results["texture"].folder),
         "ground-truth keypoints": embeddings_path(gt_dir),
     }
     ev = results["evaluate"].summary.get("metrics", {})
@@ -208,13 +219,16 @@ def one(n: int, minutes: float, frame_step: int, threads: int, texture_name: str
         "mask_miou": ev.get("mask_miou"),
         "detection_rate": ev.get("detection_rate"),
         "count_accuracy": _count_accuracy(export, n),
+        "keypoints_source": source,
         "keypoints": results["keypoints"].summary.get("accuracy", {}),
+        "regressor": results["keypoints"].summary.get("regressor"),
         "column": "texture_reid",
         "scores": _scores(export, scene, tables, n, "texture_reid"),
         "seconds": seconds,
         "total_seconds": round(time.perf_counter() - t0, 1),
     }
     tag = "" if texture_name == "cross-view" else "_" + re.sub(r"\W+", "_", texture_name)
+    tag += suffix
     (WORK / f"result{n}{tag}.json").write_text(json.dumps(record, indent=1, default=float))
     print(json.dumps(record, indent=1, default=float))
 
@@ -225,13 +239,18 @@ def rescore() -> None:
 
     for path in sorted(WORK.glob("result*.json")):
         r = json.loads(path.read_text())
-        n = r["individuals"]
+        n, source = r["individuals"], r.get("keypoints_source", "inverse")
+        suffix = "" if source == "inverse" else f"_{source}"
         tables = {
-            "label-free keypoints": embeddings_path(WORK / f"run{n}" / "texture"),
-            "ground-truth keypoints": embeddings_path(WORK / f"texture_gt{n}"),
+            KEYPOINT_VARIANTS[source]: embeddings_path(WORK / f"run{n}{suffix}" / "texture"),
+            "ground-truth keypoints": embeddings_path(WORK / f"texture_gt{n}{suffix}"),
         }
         r["scores"] = _scores(  # mu is the same in every table of one model's weights
-            WORK / f"run{n}" / "export", WORK / f"scene{n}", tables, n, r.get("column", "texture")
+            WORK / f"run{n}{suffix}" / "export",
+            WORK / f"scene{n}",
+            tables,
+            n,
+            r.get("column", "texture"),
         )
         path.write_text(json.dumps(r, indent=1, default=float))
         print(path.name, json.dumps(r["scores"], indent=1, default=float))
@@ -256,7 +275,7 @@ def report() -> None:
                     "detection rate": r["detection_rate"],
                     "count accuracy": r["count_accuracy"],
                     "MPJPE mm": r["keypoints"].get("mpjpe_mm")
-                    if variant.startswith("label")
+                    if not variant.startswith("ground")
                     else "",
                     "rows": s["rows"],
                     "cross-view rank-1": s["cross_view_rank1"],
@@ -292,12 +311,13 @@ def main() -> None:
     o.add_argument("--frame-step", type=int, default=15, help="invert every this many frames")
     o.add_argument("--threads", type=int, default=1)
     o.add_argument("--texture", choices=sorted(TEXTURES), default="cross-view")
+    o.add_argument("--keypoints", choices=sorted(KEYPOINT_VARIANTS), default="inverse")
     sub.add_parser("rescore", help="score the stored runs again (e.g. new identity code)")
     sub.add_parser("report")
     args = ap.parse_args()
     if args.cmd == "one":
         WORK.mkdir(parents=True, exist_ok=True)
-        one(args.n, args.minutes, args.frame_step, args.threads, args.texture)
+        one(args.n, args.minutes, args.frame_step, args.threads, args.texture, args.keypoints)
     elif args.cmd == "rescore":
         rescore()
     else:

@@ -1,0 +1,182 @@
+"""3D keypoints of exported subjects from NSD's pose regressor (where a few 3D labels exist).
+
+The pose regressor P (stage 3, :mod:`nsd.pose_stage`) maps a window's latent
+cloud to the individual's root-relative keypoints in that window's camera
+frame. For each selected frame of an ``nsd-export`` folder, every row of a
+subject (one cross-view ``subject_id``; one row per camera) gets its window's
+latent from the frozen decomposition of the pose checkpoint (the row's
+``slot``), and P's prediction :math:`x^{cam}_v` is turned to the world frame,
+:math:`x_v = R_v^\\top x^{cam}_v`. The subject's pose is the mean over its
+views, placed so that its keypoint centroid lies at the point nearest to the
+rays through its rows' box centres (:func:`nsd.triangulation.nearest_point_to_rays`):
+
+.. math::
+    X = c + \\bar x - \\operatorname{mean}_k \\bar x_k, \\qquad \\bar x = \\frac{1}{V}\\sum_v x_v.
+
+Subjects seen in fewer than ``min_views`` cameras are skipped (one ray fixes no
+point). The output is the format ``netepu-embed`` reads and
+:mod:`netepu.subject_keypoints` writes (``keypoints3d.npz``: ``id``,
+``keypoints`` per row; ``subject_*`` per subject-frame, where ``subject_loss``
+is the views' disagreement, the mean distance of the :math:`x_v` to
+:math:`\\bar x` in scene units).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from nsd.atomic import atomic_save_npz
+from nsd.errors import CheckpointError, ConfigError
+from nsd.triangulation import nearest_point_to_rays
+
+__all__ = ["load_pose_checkpoint", "regress_export", "world_keypoints"]
+
+log = logging.getLogger(__name__)
+
+
+def load_pose_checkpoint(path: str | os.PathLike) -> tuple[Any, Any, dict[str, Any]]:
+    """``(decomposition model, pose regressor, config)`` of an ``nsd-train stage=pose``
+    checkpoint, both in eval mode."""
+    from nsd.pose_regressor import PoseRegressor
+    from nsd.train import build_model
+    from nsd.trainer import load_checkpoint
+
+    state = load_checkpoint(path)
+    cfg = state.get("config") or {}
+    if cfg.get("stage") != "pose" or "pose" not in state.get("modules", {}):
+        raise CheckpointError(f"{path} is not a pose-regressor checkpoint (nsd-train stage=pose)")
+    from omegaconf import OmegaConf
+
+    c = OmegaConf.create(cfg)
+    model = build_model(c.model)
+    model.load_state_dict(state["modules"]["model"])
+    weights = state["modules"]["pose"]
+    last = max(k for k in weights if k.endswith(".weight"))
+    keypoints = weights[last].shape[0] // 3
+    pose = PoseRegressor(model.encoder.points, keypoints, int(c.pose.hidden), float(c.pose.dropout))
+    pose.load_state_dict(weights)
+    return model.eval(), pose.eval(), cfg
+
+
+def world_keypoints(
+    relative: np.ndarray, rotations: np.ndarray, origins: np.ndarray, directions: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """One subject's world keypoints from its views (the module docstring's formula).
+
+    Args:
+        relative: (V, K, 3) root-relative keypoints in each view's camera frame.
+        rotations: (V, 3, 3) world-to-camera rotations R_v.
+        origins, directions: (V, 3) rays through the subject's box centres.
+
+    Returns:
+        ``(keypoints (K, 3), disagreement)``: the mean distance of the views' world poses
+        to their mean.
+    """
+    world = np.einsum("vkc,vcd->vkd", np.asarray(relative, np.float64), rotations)  # R^T x
+    mean = world.mean(0)
+    centre = nearest_point_to_rays(origins, directions)
+    return centre + mean - mean.mean(0), float(np.linalg.norm(world - mean, axis=-1).mean())
+
+
+@torch.no_grad()
+def regress_export(
+    export: str | os.PathLike,
+    scene: str | os.PathLike,
+    checkpoint: str | os.PathLike,
+    out: str | os.PathLike,
+    frame_step: int = 10,
+    min_views: int = 2,
+) -> dict[str, Any]:
+    """Regress every subject of every ``frame_step``-th exported frame; writes
+    ``keypoints3d.npz`` (see the module docstring).
+
+    Args:
+        export: an ``nsd-export`` folder of the same decomposition.
+        scene: its scene folder.
+        checkpoint: an ``nsd-train stage=pose`` checkpoint.
+        out: folder for ``keypoints3d.npz``.
+        frame_step: every this many exported frames.
+        min_views: subjects in fewer cameras are skipped.
+
+    Returns:
+        counts and the mean disagreement between views.
+    """
+    from nsd.data import SceneData
+    from nsd.inference import decompose
+    from nsd.pose_stage import ROOT
+    if frame_step < 1 or min_views < 2:
+        raise ConfigError(f"frame_step >= 1 and min_views >= 2, got {frame_step}, {min_views}")
+    from nsd.calibration_io import read_calibration
+
+    model, pose, cfg = load_pose_checkpoint(checkpoint)
+    d = cfg["data"]
+    data = SceneData(scene, d["image_size"], d.get("cameras"), 0.0, d.get("max_frames", 0))
+    rig = data.rig  # the model's views, in its order
+    native = read_calibration(scene)  # the export's boxes are in native pixels
+    coco = json.loads((Path(export) / "subjects.coco.json").read_text())
+    images = {int(im["id"]): im for im in coco["images"]}
+    frames = sorted({int(im["frame"]) for im in images.values()})
+    chosen = set(frames[::frame_step])
+    groups: dict[tuple[int, int], list[dict]] = defaultdict(list)
+    for a in coco["annotations"]:
+        im = images[int(a["image_id"])]
+        if int(im["frame"]) in chosen and im["camera"] in rig.names:
+            groups[(int(im["frame"]), int(a["subject_id"]))].append(a)
+    ids, kps = [], []
+    sub: dict[str, list] = defaultdict(list)
+    decomposed: dict[int, Any] = {}
+    for (t, sid), anns in sorted(groups.items()):
+        if len(anns) < min_views:
+            continue
+        if t not in decomposed:
+            views, bgs = data.views(t)
+            decomposed = {t: decompose(model, views, bgs)}
+        dec = decomposed[t]
+        rel, rot, origins, dirs = [], [], [], []
+        for a in anns:
+            name = images[int(a["image_id"])]["camera"]
+            v, cam = rig.index(name), native[name]
+            x = pose(dec.latent[v, int(a["slot"])][None])[0].double().numpy()
+            rel.append(x - x[ROOT])
+            rot.append(cam.R)
+            bx, by, bw, bh = a["bbox"]
+            origins.append(cam.center)
+            dirs.append(cam.unproject(np.array([[bx + bw / 2 - 0.5, by + bh / 2 - 0.5]]))[0])
+        kp, spread = world_keypoints(
+            np.stack(rel), np.stack(rot), np.stack(origins), np.stack(dirs)
+        )
+        kp = kp.astype(np.float32)
+        for a in anns:
+            ids.append(int(a["id"]))
+            kps.append(kp)
+        sub["frame"].append(t)
+        sub["id"].append(sid)
+        sub["keypoints"].append(kp)
+        sub["loss"].append(spread)
+        sub["views"].append(len(anns))
+    K = pose.keypoints
+    atomic_save_npz(
+        Path(out) / "keypoints3d.npz",
+        id=np.asarray(ids, np.int64),
+        keypoints=np.asarray(kps, np.float32).reshape(-1, K, 3),
+        subject_frame=np.asarray(sub["frame"], np.int64),
+        subject_id=np.asarray(sub["id"], np.int64),
+        subject_keypoints=np.asarray(sub["keypoints"], np.float32).reshape(-1, K, 3),
+        subject_loss=np.asarray(sub["loss"], np.float32),
+        subject_views=np.asarray(sub["views"], np.int64),
+    )
+    log.info("keypoints: %d subject-frames regressed, %d frames", len(sub["frame"]), len(chosen))
+    return {
+        "subject_frames": len(sub["frame"]),
+        "rows": len(ids),
+        "frames": len(chosen),
+        "mean_view_disagreement": float(np.mean(sub["loss"])) if sub["loss"] else None,
+    }
