@@ -216,10 +216,10 @@ def render_maps(
     region = np.zeros((B, fy, fx), bool)
     for b in range(B):
         region[b, :h, :w] = candidate_region(frame.uv[b], frame.scale[b], s.margin, size)
-    # a grid point is evaluated when the region reaches into one of its cells
-    reach = F.max_pool2d(torch.from_numpy(region).float()[:, None], 2 * stride + 1, 1,
-                         stride)[:, 0] > 0
-    todo = reach[:, ::stride, ::stride]
+    # a grid point is evaluated when the region reaches into one of its cells (the pooling
+    # window of a grid point covers its four cells; evaluated at the grid points only)
+    region_t = torch.from_numpy(region).float()[:, None]
+    todo = F.max_pool2d(region_t, 2 * stride + 1, stride, stride)[:, 0] > 0
     v = _background(B, ny, nx, dtype)
     count = torch.zeros(B, dtype=torch.int64)
     v, count = _evaluate(model_query, ctx, v, todo, stride, s.chunk, count)
