@@ -40,7 +40,7 @@ from omegaconf import DictConfig
 
 from nsd.errors import ConfigError, NSDError
 
-__all__ = ["embed_export", "embed_into_copy", "main"]
+__all__ = ["embed_export", "embed_into_copy", "main", "write_surface_maps"]
 
 log = logging.getLogger(__name__)
 
@@ -71,8 +71,13 @@ def embed_export(
     calibration: str | os.PathLike | None = None,
     column: str = "texture",
     batch_size: int = 64,
+    maps: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """Append texture codes to an export's embedding table (see the module docstring).
+
+    Args:
+        maps: also write what the encoder read for every coded row to this ``.npz``
+            (:func:`write_surface_maps`), and a grid image next to it.
 
     Returns:
         ``rows``, ``encoded`` (rows with a code), ``path`` of the table.
@@ -121,6 +126,7 @@ def embed_export(
             " or keypoints" if need_geometry else "",
         )
     cams = rig.stacked(torch.float32) if rig is not None else None
+    read: dict[str, list] = {"id": [], "rgb": [], "inside": [], "surface": []}
     for s in range(0, len(todo), batch_size):
         rows = todo[s : s + batch_size]
         ids = [int(row_ids[k]) for k in rows]
@@ -144,7 +150,7 @@ def embed_export(
                 ) from e
             cam = {k: v[ci] for k, v in cams.items()}
             kp = torch.from_numpy(np.stack([kps[i] for i in ids])).float()
-        mu = texture_codes(
+        mu, rgb, inside, surface = texture_codes(
             texture,
             geometry,
             torch.from_numpy(images[keep]),
@@ -152,12 +158,58 @@ def embed_export(
             kp,
             cam,
             window=window,
+            return_crops=True,
         )
         codes[rows] = mu.numpy()
+        if maps is not None:
+            read["id"] += ids
+            read["rgb"].append(rgb.numpy())
+            read["inside"].append(inside.numpy())
+            if surface is not None:
+                read["surface"].append(surface.numpy())
         reid[rows] = texture.reid_embedding(mu).numpy()
     valid = ~np.isnan(codes).any(1)
+    if maps is not None:
+        write_surface_maps(Path(maps), read, texture.cfg.crop_size)
     path = add_columns(table, {column: codes, f"{column}_valid": valid, f"{column}_reid": reid})
     return {"rows": len(row_ids), "encoded": int(valid.sum()), "path": str(path)}
+
+
+def write_surface_maps(path: Path, read: dict[str, list], size: int, grid_rows: int = 12) -> None:
+    """Write the encoder's crops of the coded rows and a grid a person can look at.
+
+    ``<path>`` (``.npz``): ``id`` (n,) annotation ids, ``rgb`` (n, S, S, 3) uint8 masked
+    crops, ``inside`` (n, S, S) bool, and for NNOPCS models ``nnopcs`` (n, S, S, 3) float16
+    in [0, 1] (0 outside the mask) and, with normals, ``normals`` (n, S, S, 3) float16
+    world normals. ``<path>.png``: up to ``grid_rows`` rows, each a crop, its NNOPCS map
+    as colour and (with normals) its normals as colour.
+    """
+    import cv2
+
+    from nsd.atomic import atomic_save_npz, atomic_write_bytes
+
+    n = len(read["id"])
+    empty = np.zeros((0, size, size, 3), np.float32)
+    rgb = np.concatenate(read["rgb"]) if n else empty
+    inside = np.concatenate(read["inside"]) if n else np.zeros((0, size, size), bool)
+    out = {"id": np.asarray(read["id"], np.int64), "inside": inside.astype(bool)}
+    out["rgb"] = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
+    panels = [out["rgb"]]
+    if read["surface"]:
+        surface = np.concatenate(read["surface"])
+        out["nnopcs"] = surface[..., :3].astype(np.float16)
+        panels.append(np.round(np.clip(surface[..., :3], 0, 1) * 255).astype(np.uint8))
+        if surface.shape[-1] == 6:
+            out["normals"] = surface[..., 3:].astype(np.float16)
+            shown = np.clip((surface[..., 3:] + 1) / 2, 0, 1) * inside[..., None]
+            panels.append(np.round(shown * 255).astype(np.uint8))
+    atomic_save_npz(path, **out)
+    if n:
+        pick = np.unique(np.linspace(0, n - 1, min(grid_rows, n)).round().astype(int))
+        rows = [np.concatenate([p[i] for p in panels], 1) for i in pick]
+        ok, buf = cv2.imencode(".png", cv2.cvtColor(np.concatenate(rows, 0), cv2.COLOR_RGB2BGR))
+        if ok:
+            atomic_write_bytes(path.with_suffix(".png"), buf.tobytes())
 
 
 def embed_into_copy(
@@ -166,6 +218,7 @@ def embed_into_copy(
     checkpoint: str | os.PathLike,
     keypoints: str | os.PathLike | None = None,
     calibration: str | os.PathLike | None = None,
+    maps: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """:func:`embed_export` into a copy of the export's embedding table in folder ``out``.
 
@@ -182,7 +235,7 @@ def embed_into_copy(
     shutil.copyfile(table, out / table.name)
     (out / "crops").symlink_to((export / "crops").resolve())
     try:
-        return embed_export(out, checkpoint, keypoints, calibration)
+        return embed_export(out, checkpoint, keypoints, calibration, maps=maps)
     finally:
         (out / "crops").unlink()
 
@@ -199,6 +252,7 @@ def main(cfg: DictConfig) -> None:
             cfg.calibration,
             cfg.column,
             int(cfg.batch_size),
+            cfg.get("maps"),
         )
     except (NSDError, FileNotFoundError, ValueError, KeyError) as e:
         print(f"netepu-embed: error: {e}", file=sys.stderr)

@@ -749,7 +749,8 @@ def texture_codes(
     keypoints: Tensor | None,
     camera: dict[str, Tensor] | None,
     window: Tensor | None = None,
-) -> Tensor:
+    return_crops: bool = False,
+) -> Tensor | tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Texture codes of subjects from their visible pixels (see the module docstring).
 
     Args:
@@ -761,9 +762,12 @@ def texture_codes(
         camera: ``K, R, t[, dist]`` with batch B (the camera of each image).
         window: (B, 3) ``(x0, y0, side)`` of square crops in the camera's native
             pixels; None when ``image`` is the camera frame.
+        return_crops: also return what the encoder read.
 
     Returns:
-        mu, (B, d_z).
+        mu, (B, d_z); with ``return_crops``: ``(mu, rgb (B, S, S, 3), inside (B, S, S),
+        surface (B, S, S, C_s) or None)``, the surface being the predicted NNOPCS
+        [+ world normals] at the crop pixels.
     """
     render = None
     if texture.cfg.use_nnopcs:
@@ -781,4 +785,5 @@ def texture_codes(
 
     rgb, inside, nn_crop, _ = encoder_crops(texture, image, mask, render, window)
     texture.eval()
-    return texture.encode(texture.encoder_input(rgb, inside, nn_crop))[0]
+    mu = texture.encode(texture.encoder_input(rgb, inside, nn_crop))[0]
+    return (mu, rgb, inside, nn_crop) if return_crops else mu

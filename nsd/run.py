@@ -274,8 +274,16 @@ def _texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
         from netepu.embed import embed_into_copy
 
         kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
-        res = embed_into_copy(up["export"].folder, out, n.texture, kp, up["scene"].summary["path"])
-        return {"table": Path(res["path"]).name, "rows": res["rows"], "encoded": res["encoded"]}
+        res = embed_into_copy(
+            up["export"].folder, out, n.texture, kp, up["scene"].summary["path"],
+            maps=out / "nnopcs.npz",
+        )  # fmt: skip
+        return {
+            "table": Path(res["path"]).name,
+            "rows": res["rows"],
+            "encoded": res["encoded"],
+            "maps": "nnopcs.npz",
+        }
 
     return Stage(
         "texture",

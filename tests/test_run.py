@@ -203,6 +203,16 @@ def test_netepu_stages_with_tiny_models(tmp_path):
     assert np.array_equal(valid, np.isin(table["id"], kp["id"]))  # codes need keypoints
     assert table["texture"].shape == (len(table["id"]), TINY_TEXTURE["latent"])
     assert not (out / "texture" / "crops").exists()
+    with np.load(out / "texture" / "nnopcs.npz") as z:  # what the encoder read, per coded row
+        S = TINY_TEXTURE["crop_size"]
+        assert sorted(z["id"].tolist()) == sorted(table["id"][valid].tolist())
+        assert z["rgb"].shape == (len(z["id"]), S, S, 3) and z["rgb"].dtype == np.uint8
+        assert z["nnopcs"].shape == (len(z["id"]), S, S, 3)
+        inside, nnopcs = z["inside"], z["nnopcs"].astype(np.float32)
+        assert inside.any() and not nnopcs[~inside].any()
+        assert 0 <= nnopcs.min() <= nnopcs.max() <= 1
+        assert not z["rgb"][~inside].any()  # masked crops
+    assert cv2.imread(str(out / "texture" / "nnopcs.png")) is not None
     head, *lines = (out / "identities" / "identities.csv").read_text().split()
     assert head == "id,camera,frame,subject_id,identity"
     assert [int(r.split(",")[0]) for r in lines] == export["id"].tolist()  # one line per row

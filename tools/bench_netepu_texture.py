@@ -56,6 +56,8 @@ RUNS = {
     "no_local": "runs/netepu/texture_no_local",
     "contrast_w02_normals": "runs/netepu/texture_w02_normals",
     "contrast_w02_normals_whitened": "runs/netepu/texture_w02_normals_whitened",
+    "contrast_hard": "runs/netepu/texture_hard",
+    "default_4166_steps": "runs/netepu/texture_long",
 }
 WORK = ROOT / "runs" / "netepu" / "texture_bench"
 IMAGES = ROOT / "docs" / "images"
@@ -68,8 +70,8 @@ TITLES = {
     "dots = held-out cameras",
     "texture_xv": "NeTePu texture code, cross-view training (mu, predicted NNOPCS): contours = "
     "training cameras, dots = held-out cameras",
-    "texture_default": "NeTePu texture code, default (cross-view + contrastive + normals; mu, "
-    "predicted NNOPCS): contours = training cameras, dots = held-out cameras",
+    "texture_default": "NeTePu texture code, default (cross-view + contrastive + normals; "
+    "whitened mu, predicted NNOPCS): contours = training cameras, dots = held-out cameras",
 }
 ROW_NOTES = {  # what each evaluated run is (netepu-train stage=texture overrides)
     "full": "NeTePu's recipe (reconstruction only)",
@@ -85,6 +87,8 @@ ROW_NOTES = {  # what each evaluated run is (netepu-train stage=texture override
     "contrast_w02_normals_crop96": "as contrast_w02_normals, 96 x 96 encoder crops (crop_size=96)",
     "contrast_hard": "as contrast_w02_normals, contrast_weight=0.5, contrast_temperature=0.05, "
     "batch_sampling=textures (harder look-alike negatives)",
+    "default_4166_steps": "the default recipe (normals, whitening fitted at the end of "
+    "training) trained twice as long, 4166 steps",
     "contrast_w02_normals_whitened": "contrast_w02_normals with the re-id whitening fitted on "
     "4096 of its training codes (`whiten`; the default since 2026-11-22): the same codes, "
     "compared as (mu - m) P",
