@@ -59,8 +59,8 @@ def load_pose_checkpoint(path: str | os.PathLike) -> tuple[Any, Any, dict[str, A
     model = build_model(c.model)
     model.load_state_dict(state["modules"]["model"])
     weights = state["modules"]["pose"]
-    last = max(k for k in weights if k.endswith(".weight"))
-    keypoints = weights[last].shape[0] // 3
+    last = max((k for k in weights if k.endswith(".weight")), key=lambda k: int(k.split(".")[1]))
+    keypoints = weights[last].shape[0] // 3  # the output layer: K x 3
     pose = PoseRegressor(model.encoder.points, keypoints, int(c.pose.hidden), float(c.pose.dropout))
     pose.load_state_dict(weights)
     return model.eval(), pose.eval(), cfg

@@ -119,3 +119,14 @@ def test_regressor_source_needs_3d_labels_and_fails_before_training(tmp_path):
     with pytest.raises(ConfigError, match=r"netepu\.keypoints\.source must be one of"):
         run_pipeline(_cfg(FIXTURES / "tiny_scene", tmp_path / "run2",
                           "netepu.keypoints.source=oracle"))  # fmt: skip
+
+
+def test_a_decomposition_checkpoint_is_not_a_pose_checkpoint(regressor_run):
+    from nsd.errors import CheckpointError
+    from nsd.pose_keypoints import load_pose_checkpoint
+
+    _, out, _ = regressor_run
+    with pytest.raises(CheckpointError, match="stage=pose"):
+        load_pose_checkpoint(out / "train" / "checkpoint.pt")
+    model, pose, cfg = load_pose_checkpoint(out / "keypoints" / "pose" / "checkpoint.pt")
+    assert cfg["stage"] == "pose" and pose.keypoints == 17 and not pose.training
