@@ -130,3 +130,4 @@ def test_a_decomposition_checkpoint_is_not_a_pose_checkpoint(regressor_run):
         load_pose_checkpoint(out / "train" / "checkpoint.pt")
     model, pose, cfg = load_pose_checkpoint(out / "keypoints" / "pose" / "checkpoint.pt")
     assert cfg["stage"] == "pose" and pose.keypoints == 17 and not pose.training
+    assert not model.training
