@@ -216,10 +216,7 @@ def render_maps(
     region = np.zeros((B, fy, fx), bool)
     for b in range(B):
         region[b, :h, :w] = candidate_region(frame.uv[b], frame.scale[b], s.margin, size)
-    # a grid point is evaluated when the region reaches into one of its cells (the pooling
-    # window of a grid point covers its four cells; evaluated at the grid points only)
-    region_t = torch.from_numpy(region).float()[:, None]
-    todo = F.max_pool2d(region_t, 2 * stride + 1, stride, stride)[:, 0] > 0
+    todo = _coarse_points(torch.from_numpy(region), stride)
     v = _background(B, ny, nx, dtype)
     count = torch.zeros(B, dtype=torch.int64)
     v, count = _evaluate(model_query, ctx, v, todo, stride, s.chunk, count)
@@ -234,6 +231,19 @@ def render_maps(
         todo[:, ::2, ::2] = False  # corners were evaluated at the coarser level
         v, count = _evaluate(model_query, ctx, v, todo, stride, s.chunk, count)
     return _finish(v[..., :h, :w], frame, count)
+
+
+def _coarse_points(region: Tensor, stride: int) -> Tensor:
+    """Grid points (every ``stride``-th pixel) whose four cells the region reaches into.
+
+    Args:
+        region: (B, fy, fx) bool with ``fy - 1`` and ``fx - 1`` multiples of ``stride``.
+
+    Returns:
+        (B, (fy - 1) / stride + 1, (fx - 1) / stride + 1) bool. The pooling window of a
+        grid point covers its four cells, and it is evaluated at the grid points only.
+    """
+    return F.max_pool2d(region.float()[:, None], 2 * stride + 1, stride, stride)[:, 0] > 0
 
 
 def _evaluate(model_query, ctx, v: Tensor, todo: Tensor, stride: int, chunk: int,

@@ -105,3 +105,21 @@ class TestRenderMaps(BaseTester):
     def test_bad_settings(self):
         with pytest.raises(ValueError, match="mode"):
             MapSettings(mode="fast").validate()
+
+
+@pytest.mark.parametrize("stride", [1, 2, 4, 8])
+def test_coarse_points_are_the_grid_points_whose_cells_meet_the_region(stride):
+    from netepu.maps import _coarse_points
+
+    rng = np.random.default_rng(stride)
+    fy, fx = 5 * stride + 1, 3 * stride + 1
+    region = torch.from_numpy(rng.random((2, fy, fx)) > 0.97)
+    got = _coarse_points(region, stride)
+    want = torch.zeros(2, 6, 4, dtype=torch.bool)  # slow reference: look at the four cells
+    for b in range(2):
+        for i in range(6):
+            for j in range(4):
+                y0, y1 = max(0, (i - 1) * stride), min(fy, (i + 1) * stride + 1)
+                x0, x1 = max(0, (j - 1) * stride), min(fx, (j + 1) * stride + 1)
+                want[b, i, j] = bool(region[b, y0:y1, x0:x1].any())
+    assert torch.equal(got, want)
