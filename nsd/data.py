@@ -201,15 +201,25 @@ class SceneData:
         return batch
 
     def sample(
-        self, rng: np.random.Generator, batch_size: int, frames: np.ndarray | None = None
+        self,
+        rng: np.random.Generator,
+        batch_size: int,
+        frames: np.ndarray | None = None,
+        same_view: float = 0.0,
     ) -> PairBatch:
-        """Random view pairs of random training frames (``v != w``)."""
+        """Random view pairs of random training frames (``v != w``); with ``same_view`` > 0
+        that share of the pairs, drawn at random, is a view with itself (``w = v``, a
+        re-synthesis from its own windows, as the auto-encoder ablation does for all)."""
         if self.num_views < 2:
             raise ConfigError("Bi-NVS needs at least 2 cameras")
+        if not 0 <= same_view <= 1:
+            raise ConfigError(f"data.same_view must be in [0, 1], got {same_view}")
         pool = self.train_frames if frames is None else frames
         t = rng.choice(pool, size=batch_size)
         v = rng.integers(0, self.num_views, size=batch_size)
         w = (v + rng.integers(1, self.num_views, size=batch_size)) % self.num_views
+        if same_view > 0:  # drawn only when asked, so the default draws are unchanged
+            w = np.where(rng.random(batch_size) < same_view, v, w)
         return self.pairs(t, v, w)
 
     def views(self, t: int) -> tuple[Tensor, Tensor]:

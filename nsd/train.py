@@ -431,7 +431,8 @@ class NSDTask:
         self.step = step
         self._update_stage(step)
         self._update_presence(step)
-        return self.losses(self.data.sample(rng, self.cfg.batch_size))
+        same = float(self.cfg.data.get("same_view", 0.0))
+        return self.losses(self.data.sample(rng, self.cfg.batch_size, same_view=same))
 
     def evaluate(self, step: int) -> dict[str, float]:
         frames = _spread(self.data.val_frames, self.cfg.eval_frames)

@@ -137,3 +137,25 @@ def test_association_prior_score_is_validated(tiny_data):
 
     with pytest.raises(ConfigError, match=r"prior_association\.score"):
         NSDTask(tiny_cfg("prior_association.score=geometry"), tiny_data)
+
+
+def test_same_view_pairs_share_and_default_draws(tiny_scene):
+    """data.same_view: that share of the pairs re-synthesises a view from itself; at 0 the
+    draws are exactly the Bi-NVS pairs (v != w); out-of-range values are config errors."""
+    from nsd.data import SceneData
+    from nsd.errors import ConfigError
+
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    a = data.sample(np.random.default_rng(0), 400)
+    b = data.sample(np.random.default_rng(0), 400, same_view=0.0)
+    assert torch.equal(a.image_v, b.image_v) and torch.equal(a.image_w, b.image_w)
+    assert not torch.equal(a.image_v, a.image_w)
+    same = data.sample(np.random.default_rng(0), 400, same_view=1.0)
+    assert torch.equal(same.image_v, same.image_w)
+    eye = torch.eye(3).expand_as(same.rotation_vw)
+    torch.testing.assert_close(same.rotation_vw, eye, atol=1e-6, rtol=0)
+    half = data.sample(np.random.default_rng(1), 400, same_view=0.5)
+    share = (half.image_v == half.image_w).flatten(1).all(1).float().mean().item()
+    assert 0.4 < share < 0.6
+    with pytest.raises(ConfigError, match="same_view"):
+        data.sample(np.random.default_rng(0), 4, same_view=1.5)

@@ -73,6 +73,8 @@ ABLATIONS = {
         "model.detector.presence=true",
         "prior_presence=hull",
     ],
+    "half the pairs from the view itself": ["data.same_view=0.5"],
+    "a quarter of the pairs from the view itself": ["data.same_view=0.25"],
 }
 
 CHILD = r"""
