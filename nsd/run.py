@@ -8,6 +8,13 @@ is never recomputed, a changed setting re-runs it and everything downstream)::
               resumes from its work folder <out>/.train-work-<hash>/)
     evaluate  metrics against ground truth (nsd.evaluate; only scenes with gt/)
     export    COCO masks and boxes, crops, embeddings, MOT tracks, manifest (nsd.export)
+    keypoints 3D keypoints per subject: NeTePu inverse rendering of the visible masks
+              (label-free, netepu.geometry) or NSD's pose regressor trained on a few
+              3D labels (netepu.keypoints.source=regressor, nsd.pose_keypoints)
+    texture   texture codes, their re-id embeddings and NNOPCS maps (netepu.embed;
+              netepu.texture)
+    identities  an identity for every exported row across cameras and time
+              (netepu.identities)
     grids     image grids a person can look at: per frame, every camera's input,
               boxes, visible masks and depth order (coloured by subject id)
 

@@ -75,6 +75,14 @@ ABLATIONS = {
     ],
     "half the pairs from the view itself": ["data.same_view=0.5"],
     "a quarter of the pairs from the view itself": ["data.same_view=0.25"],
+    "a quarter of the pairs from the view itself, seed 1": [
+        "data.same_view=0.25",
+        "trainer.seed=1",
+    ],
+    "a quarter of the pairs from the view itself, seed 2": [
+        "data.same_view=0.25",
+        "trainer.seed=2",
+    ],
 }
 
 CHILD = r"""
