@@ -54,8 +54,8 @@ def _worker(rank: int, world: int, port: int, scene: str, root: str) -> None:
         seen: list[float] = []
         sample = data.sample
 
-        def recording_sample(rng, n):
-            batch = sample(rng, n)
+        def recording_sample(rng, n, **kwargs):
+            batch = sample(rng, n, **kwargs)
             seen.append(float(batch.image_v.sum()))
             return batch
 
