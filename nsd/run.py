@@ -23,6 +23,7 @@ Usage::
     nsd-run                                   # default scene -> runs/nsd-run/default/
     nsd-run scene=my_scene out=runs/my_scene  # any scene folder
     nsd-run train.trainer.max_minutes=3       # shorter training (train.* is nsd-train's config)
+    nsd-run checkpoint=runs/nsd/<run>/checkpoint.pt  # load a trained decomposition instead
     nsd-run +export.crop.size=96 grids.frames=8  # export.* overrides conf/export.yaml
 
 ``<out>/pipeline.json`` records every stage's status, wall time and summary.
@@ -116,7 +117,35 @@ def _train_config(cfg: DictConfig) -> DictConfig:
     return OmegaConf.create({k: _container(v) for k, v in cfg.train.items() if k != "hydra"})
 
 
+def _load_stage(path: Path) -> Stage:
+    """The ``train`` stage when ``checkpoint=`` names a trained decomposition: copied, not
+    trained (the stage re-runs when the file changes)."""
+    from nsd.errors import CheckpointError
+    from nsd.trainer import load_checkpoint
+
+    if not path.is_file():
+        raise ConfigError(f"checkpoint: {path} does not exist (an nsd-train checkpoint.pt)")
+    st = path.stat()
+    settings = {"checkpoint": str(path.resolve()), "size": st.st_size, "mtime": st.st_mtime_ns}
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        state = load_checkpoint(path)
+        config = state.get("config") or {}
+        if "model" not in state.get("modules", {}) or config.get("stage") != "decomposition":
+            raise CheckpointError(
+                f"checkpoint: {path} is not an NSD decomposition checkpoint (nsd-train "
+                "stage=decomposition)"
+            )
+        shutil.copyfile(path, out / "checkpoint.pt")
+        return {"checkpoint": "checkpoint.pt", "steps": int(state.get("step", 0)),
+                "loaded_from": str(path)}  # fmt: skip
+
+    return Stage("train", run, settings, needs=("scene",))
+
+
 def _train_stage(cfg: DictConfig) -> Stage:
+    if cfg.get("checkpoint"):
+        return _load_stage(Path(str(cfg.checkpoint)))
     tcfg = _train_config(cfg)
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
@@ -255,10 +284,12 @@ def _regress_keypoints(
     ``label_fraction`` of the training frames labelled, then regress the exported subjects."""
     from nsd.pose_keypoints import regress_export
     from nsd.train import run as train
+    from nsd.trainer import load_checkpoint
 
     k = cfg.netepu.keypoints
-    c = _train_config(cfg)
+    c = OmegaConf.create(load_checkpoint(checkpoint)["config"])  # as trained (or loaded)
     c.data.scene = scene
+    c.trainer.progress = bool(cfg.train.trainer.progress)
     c.stage, c.init_from = "pose", str(checkpoint)
     c.pose.label_fraction = float(k.label_fraction)
     c.trainer.max_steps, c.trainer.max_minutes = int(k.regressor_steps), 0.0

@@ -13,6 +13,7 @@ from pycocotools.coco import COCO
 
 import nsd.export
 import nsd.train
+from nsd.errors import ConfigError
 from nsd.run import load_run_config, run_pipeline
 from tests.conftest import FIXTURES
 from tests.test_nsd_train import TINY
@@ -74,6 +75,33 @@ def test_tiny_run_then_rerun_does_no_work(tiny_run, monkeypatch):
     assert again["export"].summary == res["export"].summary
     changed = [p for p, t in stamps.items() if p.stat().st_mtime_ns != t]
     assert changed == [out / "pipeline.json"]
+
+
+def test_a_trained_decomposition_is_loaded_instead_of_trained(tiny_run, tmp_path, monkeypatch):
+    """checkpoint=<nsd-train checkpoint>: the train stage copies it (no training), and the
+    export is the trained run's; a missing file or another kind of checkpoint is an error."""
+    from nsd.atomic import atomic_save_torch
+    from nsd.errors import CheckpointError
+
+    tiny_scene, first, _ = tiny_run
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("trained although a checkpoint was given")
+
+    monkeypatch.setattr(nsd.train, "run", no_training)
+    ckpt = first / "train" / "checkpoint.pt"
+    res = run_pipeline(_cfg(tiny_scene, tmp_path / "run", f"checkpoint={ckpt}"))
+    assert res["train"].summary["loaded_from"] == str(ckpt)
+    assert (tmp_path / "run" / "train" / "checkpoint.pt").read_bytes() == ckpt.read_bytes()
+    a = json.loads((first / "export" / "subjects.coco.json").read_text())["annotations"]
+    b = json.loads((tmp_path / "run" / "export" / "subjects.coco.json").read_text())["annotations"]
+    assert [x["bbox"] for x in a] == [x["bbox"] for x in b]
+    with pytest.raises(ConfigError, match="does not exist"):
+        run_pipeline(_cfg(tiny_scene, tmp_path / "run2", f"checkpoint={tmp_path / 'nope.pt'}"))
+    atomic_save_torch({"format": "nsd-netepu-checkpoint-v1", "modules": {}}, tmp_path / "x.pt")
+    with pytest.raises(CheckpointError, match="not an NSD decomposition checkpoint"):
+        run_pipeline(_cfg(tiny_scene, tmp_path / "run3", f"checkpoint={tmp_path / 'x.pt'}"))
+    assert not (tmp_path / "run3" / "train").exists()
 
 
 def test_changed_grid_setting_reruns_only_grids(tiny_run, tmp_path, monkeypatch):
