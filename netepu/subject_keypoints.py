@@ -5,13 +5,8 @@ subject (one cross-view ``subject_id``) in every camera that shows it go into
 :func:`netepu.inverse.invert_silhouettes` with a trained NeTePu geometry model
 and the scene's calibration; the recovered world keypoints are written for
 every annotation (camera-frame row) of that subject in that frame, in the
-format ``netepu-embed`` reads::
-
-    keypoints3d.npz
-      id          (n,)       annotation ids of the export (COCO ``id``, embeddings ``id``)
-      keypoints   (n, K, 3)  world keypoints, the calibration's units
-      subject_frame (m,), subject_id (m,), subject_keypoints (m, K, 3),
-      subject_loss (m,), subject_views (m,)   one entry per inverted subject-frame
+``keypoints3d.npz`` format ``netepu-embed`` reads (:mod:`nsd.keypoints_io`;
+``subject_loss`` is the inversion's final silhouette loss).
 
 Visible masks of an occluded subject are partial; the inversion then fits a
 body to what is visible in each view (the multi-view silhouette loss is a
@@ -23,7 +18,6 @@ training data is needed at run time.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from collections import defaultdict
@@ -34,8 +28,8 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
-from nsd.atomic import atomic_save_npz
 from nsd.errors import ConfigError
+from nsd.keypoints_io import SubjectKeypoints, subject_groups
 
 __all__ = ["invert_export", "keypoint_error", "template_poses"]
 
@@ -102,18 +96,11 @@ def invert_export(
     settings = InverseSettings(steps=steps, margin=float(net.get("render", {}).get("margin", 0.35)))
     rig = read_calibration(scene)
     cams = rig.stacked(torch.float32)
-    coco = json.loads((Path(export) / "subjects.coco.json").read_text())
-    images = {int(im["id"]): im for im in coco["images"]}
-    frames = sorted({int(im["frame"]) for im in images.values()})
-    chosen = set(frames[::frame_step])
-    groups: dict[tuple[int, int], list[dict]] = defaultdict(list)
-    for a in coco["annotations"]:
-        im = images[int(a["image_id"])]
-        if int(im["frame"]) in chosen and a["area"] >= min_area:
-            groups[(int(im["frame"]), int(a["subject_id"]))].append(a)
-    ids, kps = [], []
-    sub: dict[str, list] = defaultdict(list)
-    for (t, sid), anns in sorted(groups.items()):
+    images, groups, n_frames = subject_groups(
+        export, frame_step, lambda a, im: a["area"] >= min_area
+    )
+    fitted = SubjectKeypoints()
+    for (t, sid), anns in groups:
         sizes = {
             (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"]))
             for a in anns
@@ -134,7 +121,7 @@ def invert_export(
             ]
         if len(anns) < min_views:
             continue
-        if max_subject_frames and len(sub["frame"]) >= max_subject_frames:
+        if max_subject_frames and len(fitted) >= max_subject_frames:
             break
         cam_idx = [rig.index(images[a["image_id"]]["camera"]) for a in anns]
         masks = torch.from_numpy(
@@ -148,34 +135,17 @@ def invert_export(
             settings,
             np.random.default_rng(t),
         )
-        kp = res.keypoints.float().numpy()
-        for a in anns:
-            ids.append(int(a["id"]))
-            kps.append(kp)
-        sub["frame"].append(t)
-        sub["id"].append(sid)
-        sub["keypoints"].append(kp)
-        sub["loss"].append(res.loss)
-        sub["views"].append(len(anns))
+        fitted.add(t, sid, anns, res.keypoints.float().numpy(), res.loss)
         log.info(
             "keypoints: frame %d subject %d from %d views, loss %.3f", t, sid, len(anns), res.loss
         )
-    K = starts.shape[1]
-    atomic_save_npz(
-        Path(out) / "keypoints3d.npz",
-        id=np.asarray(ids, np.int64),
-        keypoints=np.asarray(kps, np.float32).reshape(-1, K, 3),
-        subject_frame=np.asarray(sub["frame"], np.int64),
-        subject_id=np.asarray(sub["id"], np.int64),
-        subject_keypoints=np.asarray(sub["keypoints"], np.float32).reshape(-1, K, 3),
-        subject_loss=np.asarray(sub["loss"], np.float32),
-        subject_views=np.asarray(sub["views"], np.int64),
-    )
+    fitted.save(Path(out) / "keypoints3d.npz", starts.shape[1])
+    losses = fitted.subjects["loss"]
     return {
-        "subject_frames": len(sub["frame"]),
-        "rows": len(ids),
-        "frames": len(chosen),
-        "mean_loss": float(np.mean(sub["loss"])) if sub["loss"] else None,
+        "subject_frames": len(fitted),
+        "rows": len(fitted.row_ids),
+        "frames": n_frames,
+        "mean_loss": float(np.mean(losses)) if losses else None,
     }
 
 

@@ -207,11 +207,15 @@ class TextureTask:
         pools = (self._by_texture[int(t)] for t in self.data.train["sample_texture"][idx])
         return np.array([pool[rng.integers(0, len(pool))] for pool in pools], dtype=idx.dtype)
 
-    def encoder_input(self, src: np.ndarray, rng: np.random.Generator) -> Tensor:
-        """Encoder input of training samples ``src``: masked RGB, (occluded) mask, NNOPCS."""
+    def encoder_input(
+        self, src: np.ndarray, rng: np.random.Generator, occlusion: float | None = None
+    ) -> Tensor:
+        """Encoder input of training samples ``src``: masked RGB, (occluded) mask, NNOPCS;
+        ``occlusion``: the occlusion probability (None: the config's)."""
         tr = self.data.train
         vs = tr["sample_view"][src]
-        inside = occlude(torch.from_numpy(tr["inside"][vs]), rng, self.cfg.occlusion)
+        prob = self.cfg.occlusion if occlusion is None else occlusion
+        inside = occlude(torch.from_numpy(tr["inside"][vs]), rng, prob)
         rgb = torch.from_numpy(tr["rgb"][src]).float() / 255 * inside[..., None]
         nn_ = torch.from_numpy(self.nnopcs_train[vs].astype(np.float32))
         return self.texture.encoder_input(rgb, inside, nn_)
@@ -303,13 +307,10 @@ class TextureTask:
         was = self.texture.training
         self.texture.eval()
         out = []
+        unused = np.random.default_rng(0)  # occlusion 0: its draws change nothing
         for s in range(0, len(idx), batch):
-            src = idx[s : s + batch]
-            vs = tr["sample_view"][src]
-            inside = torch.from_numpy(tr["inside"][vs])
-            rgb = torch.from_numpy(tr["rgb"][src]).float() / 255 * inside[..., None]
-            surface = torch.from_numpy(self.nnopcs_train[vs].astype(np.float32))
-            out.append(self.texture.encode(self.texture.encoder_input(rgb, inside, surface))[0])
+            x = self.encoder_input(idx[s : s + batch], unused, occlusion=0.0)
+            out.append(self.texture.encode(x)[0])
         self.texture.train(was)
         return torch.cat(out).numpy(), tr["sample_texture"][idx]
 

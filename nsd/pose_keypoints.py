@@ -14,27 +14,23 @@ rays through its rows' box centres (:func:`nsd.triangulation.nearest_point_to_ra
     X = c + \\bar x - \\operatorname{mean}_k \\bar x_k, \\qquad \\bar x = \\frac{1}{V}\\sum_v x_v.
 
 Subjects seen in fewer than ``min_views`` cameras are skipped (one ray fixes no
-point). The output is the format ``netepu-embed`` reads and
-:mod:`netepu.subject_keypoints` writes (``keypoints3d.npz``: ``id``,
-``keypoints`` per row; ``subject_*`` per subject-frame, where ``subject_loss``
-is the views' disagreement, the mean distance of the :math:`x_v` to
-:math:`\\bar x` in scene units).
+point). The output is ``keypoints3d.npz`` (:mod:`nsd.keypoints_io`), where
+``subject_loss`` is the views' disagreement, the mean distance of the
+:math:`x_v` to :math:`\\bar x` in scene units.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from nsd.atomic import atomic_save_npz
 from nsd.errors import CheckpointError, ConfigError
+from nsd.keypoints_io import SubjectKeypoints, subject_groups
 from nsd.triangulation import nearest_point_to_rays
 
 __all__ = ["load_pose_checkpoint", "regress_export", "world_keypoints"]
@@ -109,37 +105,28 @@ def regress_export(
     Returns:
         counts and the mean disagreement between views.
     """
+    from nsd.calibration_io import read_calibration
     from nsd.data import SceneData
     from nsd.inference import decompose
     from nsd.pose_stage import ROOT
+
     if frame_step < 1 or min_views < 2:
         raise ConfigError(f"frame_step >= 1 and min_views >= 2, got {frame_step}, {min_views}")
-    from nsd.calibration_io import read_calibration
-
     model, pose, cfg = load_pose_checkpoint(checkpoint)
     d = cfg["data"]
     data = SceneData(scene, d["image_size"], d.get("cameras"), 0.0, d.get("max_frames", 0))
     rig = data.rig  # the model's views, in its order
     native = read_calibration(scene)  # the export's boxes are in native pixels
-    coco = json.loads((Path(export) / "subjects.coco.json").read_text())
-    images = {int(im["id"]): im for im in coco["images"]}
-    frames = sorted({int(im["frame"]) for im in images.values()})
-    chosen = set(frames[::frame_step])
-    groups: dict[tuple[int, int], list[dict]] = defaultdict(list)
-    for a in coco["annotations"]:
-        im = images[int(a["image_id"])]
-        if int(im["frame"]) in chosen and im["camera"] in rig.names:
-            groups[(int(im["frame"]), int(a["subject_id"]))].append(a)
-    ids, kps = [], []
-    sub: dict[str, list] = defaultdict(list)
-    decomposed: dict[int, Any] = {}
-    for (t, sid), anns in sorted(groups.items()):
+    images, groups, n_frames = subject_groups(
+        export, frame_step, lambda a, im: im["camera"] in rig.names
+    )
+    fitted = SubjectKeypoints()
+    dec, dec_frame = None, None
+    for (t, sid), anns in groups:  # in frame order: each frame is decomposed once
         if len(anns) < min_views:
             continue
-        if t not in decomposed:
-            views, bgs = data.views(t)
-            decomposed = {t: decompose(model, views, bgs)}
-        dec = decomposed[t]
+        if dec_frame != t:
+            dec, dec_frame = decompose(model, *data.views(t)), t
         rel, rot, origins, dirs = [], [], [], []
         for a in anns:
             name = images[int(a["image_id"])]["camera"]
@@ -153,30 +140,13 @@ def regress_export(
         kp, spread = world_keypoints(
             np.stack(rel), np.stack(rot), np.stack(origins), np.stack(dirs)
         )
-        kp = kp.astype(np.float32)
-        for a in anns:
-            ids.append(int(a["id"]))
-            kps.append(kp)
-        sub["frame"].append(t)
-        sub["id"].append(sid)
-        sub["keypoints"].append(kp)
-        sub["loss"].append(spread)
-        sub["views"].append(len(anns))
-    K = pose.keypoints
-    atomic_save_npz(
-        Path(out) / "keypoints3d.npz",
-        id=np.asarray(ids, np.int64),
-        keypoints=np.asarray(kps, np.float32).reshape(-1, K, 3),
-        subject_frame=np.asarray(sub["frame"], np.int64),
-        subject_id=np.asarray(sub["id"], np.int64),
-        subject_keypoints=np.asarray(sub["keypoints"], np.float32).reshape(-1, K, 3),
-        subject_loss=np.asarray(sub["loss"], np.float32),
-        subject_views=np.asarray(sub["views"], np.int64),
-    )
-    log.info("keypoints: %d subject-frames regressed, %d frames", len(sub["frame"]), len(chosen))
+        fitted.add(t, sid, anns, kp, spread)
+    fitted.save(Path(out) / "keypoints3d.npz", pose.keypoints)
+    log.info("keypoints: %d subject-frames regressed, %d frames", len(fitted), n_frames)
+    spreads = fitted.subjects["loss"]
     return {
-        "subject_frames": len(sub["frame"]),
-        "rows": len(ids),
-        "frames": len(chosen),
-        "mean_view_disagreement": float(np.mean(sub["loss"])) if sub["loss"] else None,
+        "subject_frames": len(fitted),
+        "rows": len(fitted.row_ids),
+        "frames": n_frames,
+        "mean_view_disagreement": float(np.mean(spreads)) if spreads else None,
     }

@@ -143,7 +143,8 @@ def _load_stage(path: Path) -> Stage:
     return Stage("train", run, settings, needs=("scene",))
 
 
-def _train_stage(cfg: DictConfig) -> Stage:
+def _train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
+    _check_keypoint_source(cfg, ground_truth)  # before any training
     if cfg.get("checkpoint"):
         return _load_stage(Path(str(cfg.checkpoint)))
     tcfg = _train_config(cfg)
@@ -476,10 +477,7 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
     """Stage factories in order (a factory may read the results of earlier stages)."""
     return [
         lambda: _scene_stage(cfg),
-        lambda: (
-            _check_keypoint_source(cfg, bool(runner.results["scene"].summary["ground_truth"])),
-            _train_stage(cfg),
-        )[1],
+        lambda: _train_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
         lambda: _evaluate_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
         lambda: _export_stage(cfg),
         lambda: _keypoints_stage(cfg),

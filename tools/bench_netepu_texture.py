@@ -431,29 +431,23 @@ def report() -> None:
             }
         )
     b = ev["baseline"]
-    rows.append(
-        {
-            "model": "CNN baseline (identity + triplet)",
-            "re-id rank-1": round(b["reid_rank1"], 4),
-            "re-id mAP": round(b["reid_map"], 4),
-            "rank-1 look-alike queries": round(b["reid_rank1_look_alikes"], 4),
-            "rank-1 other queries": _r4(b.get("reid_rank1_others")),
-            "errors to the look-alike partner": _r4(b.get("reid_errors_to_look_alike_partner")),
-            "steps": int(b["steps"]),
-            "train min": round(b["train_minutes"], 1),
-        }
-    )
-    bw = ev.get("baseline_whitened")
-    if bw:
+    baselines = [("CNN baseline (identity + triplet)", b)]
+    if ev.get("baseline_whitened"):
+        label = "CNN baseline, whitened (the texture model's re-id whitening)"
+        baselines.append((label, ev["baseline_whitened"]))
+    for label, r in baselines:
         rows.append(
             {
-                "model": "CNN baseline, whitened (the texture model's re-id whitening)",
-                "re-id rank-1": round(bw["reid_rank1"], 4),
-                "re-id mAP": round(bw["reid_map"], 4),
-                "rank-1 look-alike queries": round(bw["reid_rank1_look_alikes"], 4),
-                "rank-1 other queries": _r4(bw.get("reid_rank1_others")),
-                "errors to the look-alike partner": _r4(
-                    bw.get("reid_errors_to_look_alike_partner")
+                "model": label,
+                "re-id rank-1": round(r["reid_rank1"], 4),
+                "re-id mAP": round(r["reid_map"], 4),
+                "rank-1 look-alike queries": round(r["reid_rank1_look_alikes"], 4),
+                "rank-1 other queries": _r4(r.get("reid_rank1_others")),
+                "errors to the look-alike partner": _r4(r.get("reid_errors_to_look_alike_partner")),
+                **(
+                    {"steps": int(r["steps"]), "train min": round(r["train_minutes"], 1)}
+                    if "steps" in r
+                    else {}
                 ),
             }
         )
