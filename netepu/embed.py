@@ -16,8 +16,9 @@ window in native pixels. RGB-only models (``use_nnopcs: false``) need
 neither. Rows without a crop or keypoints get NaN codes and a ``False`` in
 ``<column>_valid``. A third column, ``<column>_reid``, holds each code's
 re-identification embedding (:meth:`netepu.texture.TextureModel.reid_embedding`:
-the model's within-class whitening; the code itself for models without one):
-compare individuals with it, render with ``<column>``.
+the model's within-class whitening of the code, with ``reid_colour`` together with
+the crop's colour statistics; the code itself for models without either): compare
+individuals with it, render with ``<column>``.
 
 Examples::
 
@@ -115,7 +116,7 @@ def embed_export(
     index = {r["id"]: r for r in read_crop_index(crops)}
     row_ids = read_embeddings(table, columns=["id"])["id"].astype(np.int64)
     codes = np.full((len(row_ids), texture.cfg.latent), np.nan, np.float32)
-    reid = codes.copy()
+    reid = np.full((len(row_ids), texture.cfg.reid_dims), np.nan, np.float32)
     todo = [k for k, i in enumerate(row_ids) if int(i) in index and (kps is None or int(i) in kps)]
     skipped = len(row_ids) - len(todo)
     if skipped:
@@ -167,7 +168,7 @@ def embed_export(
             read["inside"].append(inside.numpy())
             if surface is not None:
                 read["surface"].append(surface.numpy())
-        reid[rows] = texture.reid_embedding(mu).numpy()
+        reid[rows] = texture.reid_embedding(mu, rgb, inside).numpy()
     valid = ~np.isnan(codes).any(1)
     if maps is not None:
         write_surface_maps(Path(maps), read, texture.cfg.crop_size)

@@ -51,11 +51,13 @@ Decoder and renderer (:class:`TextureDecoder`, :class:`ColourRenderer`)
     global token alone. Only foreground pixels are ever rendered.
 
 Re-identification embedding (:meth:`TextureModel.reid_embedding`)
-    :math:`\mu` renders; for retrieval it is mapped by a within-class
-    whitening :math:`e = (\mu - m) P` (:func:`netepu.reid.within_class_whitening`)
-    that the texture stage fits on its training codes after training and
-    stores in the model (buffers ``reid_mean``, ``reid_projection``; the
-    identity for models without it).
+    :math:`\mu` renders; for retrieval, :math:`u = \mu` (or, with
+    ``reid_colour``, :math:`u = [\mu, c]` with the crop's colour statistics
+    :math:`c`, :func:`netepu.reid.colour_statistics`) is mapped by a
+    within-class whitening :math:`e = (u - m) P`
+    (:func:`netepu.reid.within_class_whitening`) that the texture stage fits on
+    its training codes after training and stores in the model (buffers
+    ``reid_mean``, ``reid_projection``; the identity for models without it).
 
 Loss (:func:`texture_loss`): :math:`\lambda_{col}` MSE of colour on in-mask
 points + :math:`\lambda_{KLD}` KLD (eq. 8; defaults 5 and 1e-8), with
@@ -119,6 +121,7 @@ class TextureConfig:
     dense_hidden: int = 256
     decoder_hidden: int = 256
     renderer: dict[str, Any] = field(default_factory=dict)
+    reid_colour: bool = False
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> TextureConfig:
@@ -140,6 +143,13 @@ class TextureConfig:
                 "use_nnopcs=false use_normals=false)"
             )
         return c
+
+    @property
+    def reid_dims(self) -> int:
+        """Length of the re-identification input: d_z [+ the colour statistics]."""
+        from netepu.reid import COLOUR_STATISTICS
+
+        return self.latent + (COLOUR_STATISTICS if self.reid_colour else 0)
 
     @property
     def surface_channels(self) -> int:
@@ -442,23 +452,50 @@ class TextureModel(nn.Module):
             )
         except TypeError as e:
             raise ConfigError(f"netepu.texture.model.renderer: {e}") from e
-        # re-identification embedding (mu - reid_mean) @ reid_projection (netepu.reid's
-        # within-class whitening, fitted after training); the identity until then
-        self.register_buffer("reid_mean", torch.zeros(cfg.latent))
-        self.register_buffer("reid_projection", torch.eye(cfg.latent))
+        # re-identification embedding (u - reid_mean) @ reid_projection of the input
+        # u = [mu, colour statistics] (netepu.reid's within-class whitening, fitted after
+        # training); the identity until then
+        self.register_buffer("reid_mean", torch.zeros(cfg.reid_dims))
+        self.register_buffer("reid_projection", torch.eye(cfg.reid_dims))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
-        d = self.cfg.latent  # checkpoints from before the whitening: the identity map
+        d = self.cfg.reid_dims  # checkpoints from before the whitening: the identity map
         state_dict.setdefault(prefix + "reid_mean", torch.zeros(d))
         state_dict.setdefault(prefix + "reid_projection", torch.eye(d))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
-    def reid_embedding(self, mu: Tensor) -> Tensor:
-        """Re-identification embedding of texture codes: (B, d_z) -> (B, d_z)."""
-        return (mu - self.reid_mean.to(mu.dtype)) @ self.reid_projection.to(mu.dtype)
+    def reid_input(
+        self, mu: Tensor, rgb: Tensor | None = None, inside: Tensor | None = None
+    ) -> Tensor:
+        """What the re-identification whitening reads: mu (B, d_z), with ``reid_colour``
+        followed by :func:`netepu.reid.colour_statistics` of the crop that gave mu (rgb
+        (B, S, S, 3) in [0, 1], inside (B, S, S) bool): (B, cfg.reid_dims)."""
+        if not self.cfg.reid_colour:
+            return mu
+        if rgb is None or inside is None:
+            raise ValueError(
+                "this texture model re-identifies with colour statistics: pass the crop"
+            )
+        from netepu.reid import colour_statistics
+
+        return torch.cat([mu, colour_statistics(rgb, inside).to(mu.dtype)], -1)
+
+    def reid_embedding(
+        self, mu: Tensor, rgb: Tensor | None = None, inside: Tensor | None = None
+    ) -> Tensor:
+        """Re-identification embedding of texture codes mu (B, d_z) encoded from the crop
+        rgb, inside (needed with ``reid_colour``; :meth:`reid_input`): (B, cfg.reid_dims)."""
+        u = self.reid_input(mu, rgb, inside)
+        return (u - self.reid_mean.to(u.dtype)) @ self.reid_projection.to(u.dtype)
+
+    @staticmethod
+    def crop_colours(x: Tensor) -> tuple[Tensor, Tensor]:
+        """The crop colours (B, S, S, 3) and mask (B, S, S) bool of an encoder input x
+        (B, C_in, S, S) (:meth:`encoder_input`)."""
+        return x[:, :3].permute(0, 2, 3, 1), x[:, 3] > 0.5
 
     def set_reid_whitening(self, mean: Tensor | Any, projection: Tensor | Any) -> None:
-        """Store a whitening ``(m (d_z,), P (d_z, d_z))``.
+        """Store a whitening ``(m (D,), P (D, D))`` of the re-id input, D = ``cfg.reid_dims``.
 
         See :func:`netepu.reid.within_class_whitening`.
         """

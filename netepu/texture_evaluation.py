@@ -29,6 +29,7 @@ __all__ = [
     "colour_psnr",
     "evaluate_colour",
     "heldout_codes",
+    "heldout_reid_inputs",
     "render_colour",
     "synthesis_grid",
 ]
@@ -72,6 +73,26 @@ def heldout_codes(
         sl = slice(s, s + batch)
         out.append(texture.encode(_crop_batch(texture, data, nnopcs, views[sl], tex[sl]))[0])
     texture.train(was)
+    return torch.cat(out).reshape(E, T, -1).numpy()
+
+
+@torch.no_grad()
+def heldout_reid_inputs(
+    texture: TextureModel, data: TextureData, nnopcs: np.ndarray, codes: np.ndarray
+) -> np.ndarray:
+    """Re-identification inputs (E, T, reid_dims) of the held-out codes (E, T, d_z) from
+    :func:`heldout_codes` (:meth:`TextureModel.reid_input`: the codes, with
+    ``reid_colour`` followed by each crop's colour statistics)."""
+    E, T = codes.shape[:2]
+    if not texture.cfg.reid_colour:
+        return codes
+    views, tex = np.divmod(np.arange(E * T), T)
+    flat = torch.from_numpy(codes.reshape(E * T, -1))
+    out = []
+    for s in range(0, E * T, 256):
+        sl = slice(s, s + 256)
+        x = _crop_batch(texture, data, nnopcs, views[sl], tex[sl])
+        out.append(texture.reid_input(flat[sl], *texture.crop_colours(x)))
     return torch.cat(out).reshape(E, T, -1).numpy()
 
 

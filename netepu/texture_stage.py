@@ -33,7 +33,10 @@ it can, so that look-alike textures meet in the contrastive loss.
 Re-identification whitening (ours; ``reid_whitening_samples`` > 0): when
 training ends, the codes of that many training samples (evenly spaced, no
 occlusion) and their texture ids fit :func:`netepu.reid.within_class_whitening`
-(shrinkage ``reid_shrinkage``), stored in the model before the final checkpoint
+(shrinkage ``reid_shrinkage``; ``auto`` picks it by
+:func:`netepu.reid.select_shrinkage` on two folds of training views; with the
+model's ``reid_colour`` the codes carry the crops' colour statistics), stored in the
+model before the final checkpoint
 (:meth:`TextureTask.finish`); :func:`add_reid_whitening` adds it to a finished
 checkpoint.
 
@@ -65,8 +68,15 @@ from netepu.texture import (
     texture_loss,
 )
 from netepu.texture_data import TextureData, build_texture_data, predicted_nnopcs_crops
-from netepu.texture_evaluation import evaluate_colour, heldout_codes, synthesis_grid
+from netepu.texture_evaluation import (
+    evaluate_colour,
+    heldout_codes,
+    heldout_reid_inputs,
+    synthesis_grid,
+)
 from nsd.errors import ConfigError
+
+FALLBACK_SHRINKAGE = 0.01  # reid_shrinkage=auto when the training codes cannot choose
 
 __all__ = ["TextureStageConfig", "TextureTask", "add_reid_whitening", "build_texture_stage"]
 
@@ -94,7 +104,7 @@ class TextureStageConfig:
     batch_sampling: str = "random"
     eval_views: int = 8
     reid_whitening_samples: int = 0
-    reid_shrinkage: float = 0.01
+    reid_shrinkage: float | str = 0.01
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> TextureStageConfig:
@@ -112,10 +122,13 @@ class TextureStageConfig:
                 "netepu.texture.optim: contrast_weight must be >= 0 and contrast_temperature > 0, "
                 f"got {c.contrast_weight}, {c.contrast_temperature}"
             )
-        if c.reid_whitening_samples < 0 or c.reid_shrinkage < 0:
+        auto = c.reid_shrinkage == "auto"
+        if c.reid_whitening_samples < 0 or not (
+            auto or (isinstance(c.reid_shrinkage, (int, float)) and c.reid_shrinkage >= 0)
+        ):
             raise ConfigError(
-                "netepu.texture.optim: reid_whitening_samples and reid_shrinkage must be >= 0, "
-                f"got {c.reid_whitening_samples}, {c.reid_shrinkage}"
+                "netepu.texture.optim: reid_whitening_samples must be >= 0 and reid_shrinkage "
+                f"a number >= 0 or 'auto', got {c.reid_whitening_samples}, {c.reid_shrinkage!r}"
             )
         if c.batch_sampling not in BATCH_SAMPLINGS:
             raise ConfigError(
@@ -291,16 +304,24 @@ class TextureTask:
         """mu of every held-out crop and texture, (E, T, d_z)."""
         return heldout_codes(self.texture, self.data, self.nnopcs_heldout)
 
-    def reid_embeddings(self, codes: np.ndarray) -> np.ndarray:
-        """The model's re-identification embeddings of codes (..., d_z)."""
-        with torch.no_grad():
-            flat = torch.from_numpy(codes.reshape(-1, codes.shape[-1]))
-            return self.texture.reid_embedding(flat).numpy().reshape(codes.shape)
+    def reid_inputs(self, codes: np.ndarray) -> np.ndarray:
+        """What the re-identification whitening reads for the held-out codes (E, T, d_z):
+        (E, T, reid_dims) (:meth:`netepu.texture.TextureModel.reid_input`)."""
+        return heldout_reid_inputs(self.texture, self.data, self.nnopcs_heldout, codes)
+
+    def reid_embeddings(self, inputs: np.ndarray) -> np.ndarray:
+        """The model's re-identification embeddings of re-id inputs (..., reid_dims)."""
+        m = self.texture.reid_mean.double().numpy()
+        p = self.texture.reid_projection.double().numpy()
+        flat = inputs.reshape(-1, inputs.shape[-1]).astype(np.float64)
+        return ((flat - m) @ p).astype(np.float32).reshape(inputs.shape)
 
     @torch.no_grad()
-    def training_codes(self, n: int, batch: int = 256) -> tuple[np.ndarray, np.ndarray]:
-        """mu and texture id of ``n`` training samples evenly spaced (all when fewer), no
-        occlusion: ((n, d_z), (n,))."""
+    def training_reid_inputs(
+        self, n: int, batch: int = 256
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Re-id inputs of ``n`` training samples evenly spaced (all when fewer), no
+        occlusion: ((n, reid_dims), texture ids (n,), cameras (n,), views (n,))."""
         tr = self.data.train
         total = len(tr["sample_view"])
         idx = np.unique(np.linspace(0, total - 1, min(n, total)).round().astype(np.int64))
@@ -310,22 +331,37 @@ class TextureTask:
         unused = np.random.default_rng(0)  # occlusion 0: its draws change nothing
         for s in range(0, len(idx), batch):
             x = self.encoder_input(idx[s : s + batch], unused, occlusion=0.0)
-            out.append(self.texture.encode(x)[0])
+            mu = self.texture.encode(x)[0]
+            out.append(self.texture.reid_input(mu, *self.texture.crop_colours(x)))
         self.texture.train(was)
-        return torch.cat(out).numpy(), tr["sample_texture"][idx]
+        views = tr["sample_view"][idx]
+        return torch.cat(out).numpy(), tr["sample_texture"][idx], tr["camera"][views], views
 
-    def fit_reid_whitening(self) -> None:
-        """Fit the re-identification whitening on training codes and store it in the model."""
-        from netepu.reid import within_class_whitening
+    def fit_reid_whitening(self) -> dict[str, Any]:
+        """Fit the re-identification whitening on training codes and store it in the model;
+        returns the shrinkage used and, with ``auto``, the validation scores."""
+        from netepu.reid import select_shrinkage, within_class_whitening
 
-        codes, ids = self.training_codes(self.cfg.reid_whitening_samples)
-        mean, projection = within_class_whitening(codes, ids, self.cfg.reid_shrinkage)
+        codes, ids, cams, views = self.training_reid_inputs(self.cfg.reid_whitening_samples)
+        shrinkage, scores = self.cfg.reid_shrinkage, {}
+        if shrinkage == "auto":  # two folds of views: the first and the second half
+            folds = (views >= np.median(views)).astype(np.int64)
+            try:
+                shrinkage, scores = select_shrinkage(codes, ids, cams, folds)
+            except ValueError as e:
+                log.warning("re-id shrinkage: %s; using %g", e, FALLBACK_SHRINKAGE)
+                shrinkage = FALLBACK_SHRINKAGE
+        mean, projection = within_class_whitening(codes, ids, float(shrinkage))
         self.texture.set_reid_whitening(mean, projection)
         log.info(
-            "re-identification whitening fitted on %d training codes of %d textures",
+            "re-identification whitening fitted on %d training codes of %d textures "
+            "(shrinkage %g%s)",
             len(codes),
             len(np.unique(ids)),
+            shrinkage,
+            f", validation {scores}" if scores else "",
         )
+        return {"shrinkage": float(shrinkage), "validation": scores}
 
     def finish(self, step: int) -> None:
         """After the last step (before the final checkpoint): fit the whitening if enabled."""
@@ -343,7 +379,7 @@ class TextureTask:
         E, T = codes.shape[:2]
         ids = np.tile(np.arange(T), E)
         cams = np.repeat(h["camera"], T)
-        emb = self.reid_embeddings(codes).reshape(E * T, -1)
+        emb = self.reid_embeddings(self.reid_inputs(codes)).reshape(E * T, -1)
         out.update({f"reid/{k}": v for k, v in reid_metrics(emb, ids, cams).items()})
         return out
 
@@ -436,9 +472,12 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
     return task, found
 
 
-def add_reid_whitening(checkpoint: str | Path, samples: int, shrinkage: float) -> dict[str, Any]:
+def add_reid_whitening(
+    checkpoint: str | Path, samples: int, shrinkage: float | str, colour: bool | None = None
+) -> dict[str, Any]:
     """Fit the re-identification whitening into a finished texture checkpoint (in place,
-    atomically); everything else in the checkpoint is kept. Returns the fit's summary."""
+    atomically); everything else in the checkpoint is kept. ``colour``: switch the
+    model's ``reid_colour`` (None: keep it). Returns the fit's summary."""
     from nsd.atomic import atomic_save_torch
     from nsd.trainer import load_checkpoint
 
@@ -448,10 +487,14 @@ def add_reid_whitening(checkpoint: str | Path, samples: int, shrinkage: float) -
     cfg = OmegaConf.create(state["config"])
     cfg.netepu.texture.optim.reid_whitening_samples = samples
     cfg.netepu.texture.optim.reid_shrinkage = shrinkage
+    if colour is not None:
+        cfg.netepu.texture.model.reid_colour = bool(colour)
+    TextureStageConfig.from_mapping(cfg.netepu.texture.optim)  # checked before any work
     task, _ = build_texture_stage(cfg)
-    task.texture.load_state_dict(state["modules"]["texture"])
-    task.fit_reid_whitening()
+    weights = {k: v for k, v in state["modules"]["texture"].items() if not k.startswith("reid_")}
+    task.texture.load_state_dict(weights)  # the whitening is refitted: its old buffers go
+    fit = task.fit_reid_whitening()
     state["modules"]["texture"] = task.texture.state_dict()
     state["config"] = OmegaConf.to_container(cfg, resolve=True)
     atomic_save_torch(state, Path(checkpoint))
-    return {"samples": samples, "shrinkage": shrinkage}
+    return {"samples": samples, "colour": bool(task.texture.cfg.reid_colour), **fit}

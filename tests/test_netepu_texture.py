@@ -375,15 +375,46 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
     from netepu.texture_stage import build_texture_stage
 
     tex2 = load_texture_model(tmp_path / "run" / "checkpoint.pt")[0]
-    assert not torch.equal(tex2.reid_projection, torch.eye(tex2.cfg.latent))
+    assert tex2.cfg.reid_colour and tex2.cfg.reid_dims == tex2.cfg.latent + 6  # the default
+    assert not torch.equal(tex2.reid_projection, torch.eye(tex2.cfg.reid_dims))
     with initialize_config_module("nsd.conf", version_base="1.3"):
         task, _ = build_texture_stage(compose("netepu_train", overrides=ov))
     task.texture.load_state_dict(tex2.state_dict())
-    codes, ids = task.training_codes(task.cfg.reid_whitening_samples)
-    assert len(np.unique(ids)) == 2
-    m, p = within_class_whitening(codes, ids, task.cfg.reid_shrinkage)
-    torch.testing.assert_close(tex2.reid_mean, torch.from_numpy(m).float())
-    torch.testing.assert_close(tex2.reid_projection, torch.from_numpy(p).float())
+    codes, ids, cams, views = task.training_reid_inputs(task.cfg.reid_whitening_samples)
+    assert len(np.unique(ids)) == 2 and codes.shape[1] == tex2.cfg.reid_dims
+    assert cams.shape == views.shape == ids.shape
+    # reid_shrinkage=auto: the whitening of these inputs at one of the candidate shrinkages
+    fits = [within_class_whitening(codes, ids, s) for s in (0.1, 0.01, 0.001, 0.0001)]
+    assert any(
+        np.allclose(tex2.reid_mean.numpy(), m, atol=1e-5)
+        and np.allclose(tex2.reid_projection.numpy(), p, rtol=1e-4, atol=1e-4)
+        for m, p in fits
+    )
+    # refitting a finished checkpoint without the colour statistics: the code's whitening
+    from netepu.texture_stage import add_reid_whitening
+    from nsd.errors import ConfigError
+
+    ckpt = tmp_path / "run" / "checkpoint.pt"
+    before = ckpt.read_bytes()
+    with pytest.raises(ConfigError, match="reid_shrinkage"):
+        add_reid_whitening(ckpt, 64, "often")
+    assert ckpt.read_bytes() == before  # a bad value writes nothing
+    fit = add_reid_whitening(ckpt, 64, 0.01, colour=False)
+    assert fit["colour"] is False and fit["shrinkage"] == 0.01
+    tex3 = load_texture_model(ckpt)[0]
+    assert tex3.cfg.reid_dims == tex3.cfg.latent and not tex3.cfg.reid_colour
+    for k, v in tex2.state_dict().items():  # the weights are kept
+        if not k.startswith("reid_"):
+            assert torch.equal(tex3.state_dict()[k], v), k
+    with initialize_config_module("nsd.conf", version_base="1.3"):
+        task, _ = build_texture_stage(
+            compose("netepu_train", overrides=[*ov, "netepu.texture.model.reid_colour=false"])
+        )
+    task.texture.load_state_dict(tex3.state_dict())
+    codes, ids, _, _ = task.training_reid_inputs(64)
+    m, p = within_class_whitening(codes, ids, 0.01)
+    torch.testing.assert_close(tex3.reid_mean, torch.from_numpy(m).float())
+    torch.testing.assert_close(tex3.reid_projection, torch.from_numpy(p).float())
     # the same cache with other crops (size, normals): the predicted crops are not reused
     for extra in (["netepu.texture.model.crop_size=24"], ["netepu.texture.model.use_normals=true"]):
         with initialize_config_module("nsd.conf", version_base="1.3"):

@@ -152,21 +152,22 @@ def test_embedding_file_round_trip_with_texture_columns(tmp_path):
             add_columns(path, {"texture": tex})
 
 
-def _texture_checkpoint(path, use_nnopcs: bool):
+def _texture_checkpoint(path, use_nnopcs: bool, reid_colour: bool = False):
     from nsd.atomic import atomic_save_torch
     from tests.netepu_world import TINY_MODEL
     from tests.test_netepu_texture import K_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE, _models
 
-    tex, geo = _models(use_nnopcs=use_nnopcs)
+    tex, geo = _models(use_nnopcs=use_nnopcs, reid_colour=reid_colour)
     g = torch.Generator().manual_seed(1)  # a whitening the embeddings must carry
-    d = tex.cfg.latent
+    d = tex.cfg.reid_dims
     tex.set_reid_whitening(torch.randn(d, generator=g), torch.randn(d, d, generator=g))
     atomic_save_torch({
         "format": "nsd-netepu-checkpoint-v1",
         "modules": {"geometry": geo.state_dict(), "texture": tex.state_dict()},
         "config": {"netepu": {"model": TINY_MODEL,
                               "data": {**TINY_GEOMETRY_DATA, "n_keypoints": K_BIPED},
-                              "texture": {"model": {**TINY_TEXTURE, "use_nnopcs": use_nnopcs}}}},
+                              "texture": {"model": {**TINY_TEXTURE, "use_nnopcs": use_nnopcs,
+                                                    "reid_colour": reid_colour}}}},
     }, path)  # fmt: skip
     return tex, geo
 
@@ -216,15 +217,15 @@ def _fake_export(folder):
     return rig, ids, kps
 
 
-@pytest.mark.parametrize("use_nnopcs", [True, False])
-def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs):
+@pytest.mark.parametrize(("use_nnopcs", "reid_colour"), [(True, True), (False, False)])
+def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs, reid_colour):
     from netepu.embed import embed_export
     from netepu.texture import texture_codes
     from nsd.crops_io import read_crop_index, read_crops
     from nsd.embeddings_io import read_embeddings
     from nsd.errors import ConfigError
 
-    tex, geo = _texture_checkpoint(tmp_path / "tex.pt", use_nnopcs)
+    tex, geo = _texture_checkpoint(tmp_path / "tex.pt", use_nnopcs, reid_colour)
     rig, ids, kps = _fake_export(tmp_path)
     kw = {"keypoints": tmp_path / "keypoints.npz", "calibration": tmp_path} if use_nnopcs else {}
     out = embed_export(tmp_path, tmp_path / "tex.pt", **kw)
@@ -239,7 +240,7 @@ def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs):
                            for i in enc], dtype=torch.float64)  # fmt: skip
     cams = rig.stacked(torch.float32)
     ci = torch.tensor([rig.index(index[i]["camera"]) for i in enc])
-    expected = texture_codes(
+    mu, rgb, inside, _ = texture_codes(
         tex,
         geo,
         torch.from_numpy(images),
@@ -247,14 +248,17 @@ def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs):
         torch.from_numpy(np.stack(kps[: len(enc)])),
         {k: v[ci] for k, v in cams.items()},
         window=window,
-    ).numpy()
+        return_crops=True,
+    )
+    expected, reid = mu.numpy(), tex.reid_embedding(mu, rgb, inside).numpy()
+    assert reid.shape[1] == tex.cfg.latent + (6 if reid_colour else 0)
     for k, i in enumerate(table["id"]):
         if i in enc:
             np.testing.assert_allclose(table["texture"][k], expected[enc.index(i)], rtol=1e-5,
                                        atol=1e-6)  # fmt: skip
             assert table["texture_valid"][k]
-            reid = tex.reid_embedding(torch.tensor(table["texture"][k][None]))[0]
-            np.testing.assert_allclose(table["texture_reid"][k], reid.numpy(), rtol=1e-5, atol=1e-5)
+            np.testing.assert_allclose(table["texture_reid"][k], reid[enc.index(i)], rtol=1e-5,
+                                       atol=1e-5)  # fmt: skip
         else:
             assert np.isnan(table["texture"][k]).all() and not table["texture_valid"][k]
             assert np.isnan(table["texture_reid"][k]).all()
@@ -352,3 +356,68 @@ def test_reid_embedding_is_the_code_until_a_whitening_is_set_and_old_checkpoints
     assert torch.equal(fresh.reid_embedding(mu), mu)
     with pytest.raises(ValueError, match="shapes"):
         tex.set_reid_whitening(m[:3], p)
+
+
+def test_colour_statistics_known_values_and_the_mask():
+    from netepu.reid import colour_statistics
+
+    rgb = torch.rand(3, 8, 8, 3, dtype=torch.float64)  # noise outside the masks
+    inside = torch.zeros(3, 8, 8, dtype=torch.bool)
+    inside[0, :4] = True  # crop 0: a constant colour inside
+    rgb[0, :4] = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
+    inside[1, :, :2] = True  # crop 1: half 0.1, half 0.5 in every channel
+    rgb[1, :4, :2], rgb[1, 4:, :2] = 0.1, 0.5
+    out = colour_statistics(rgb, inside)  # crop 2: an empty mask
+    eps = 1 / 255
+    torch.testing.assert_close(out[0, :3], torch.log(torch.tensor([0.2, 0.4, 0.6]) + eps).double())
+    torch.testing.assert_close(out[0, 3:], torch.zeros(3, dtype=torch.float64))
+    torch.testing.assert_close(out[1, :3], torch.full((3,), np.log(0.3 + eps), dtype=torch.float64))
+    torch.testing.assert_close(out[1, 3:], torch.full((3,), 0.2, dtype=torch.float64))
+    torch.testing.assert_close(out[2], torch.tensor([np.log(eps)] * 3 + [0.0] * 3).double())
+    # a grey shading factor s moves the log mean by log s (up to eps) and scales the spread
+    scaled = colour_statistics(rgb * 0.5, inside)
+    torch.testing.assert_close(scaled[1, :3], torch.full((3,), np.log(0.15 + eps)).double())
+    torch.testing.assert_close(scaled[1, 3:], out[1, 3:] * 0.5)
+
+
+def test_select_shrinkage_finds_the_weak_identity_direction_and_breaks_ties_upwards():
+    from netepu.reid import select_shrinkage
+
+    rng = np.random.default_rng(0)
+    n = 400
+    ids = np.arange(n) % 4
+    cams = (np.arange(n) // 4) % 5
+    folds = (np.arange(n) >= n // 2).astype(np.int64)
+    # one weak but clean identity direction and three loud directions of pure nuisance
+    weak = 0.05 * ids + rng.normal(0, 0.002, n)
+    codes = np.column_stack([weak, rng.normal(0, 1, (n, 3))])
+    best, scores = select_shrinkage(codes, ids, cams, folds)
+    assert best == 1e-4, scores  # less shrinkage lets the weak direction count more
+    assert scores[1e-4] > scores[1e-3] > scores[1e-2] > scores[0.1]
+    assert scores[1e-4] > 0.8 and scores[0.1] < 0.5
+    # every shrinkage separates well-apart identities: the largest wins the tie
+    apart = 10.0 * np.eye(4)[ids] + rng.normal(0, 0.1, (n, 4))
+    best, scores = select_shrinkage(apart, ids, cams, folds)
+    assert best == 0.1 and len(set(scores.values())) == 1
+    with pytest.raises(ValueError, match="grid"):
+        select_shrinkage(codes, ids, cams, folds, grid=())
+
+
+def test_reid_colour_reads_the_crop_and_keeps_old_checkpoints():
+    from netepu.reid import colour_statistics
+    from tests.test_netepu_texture import _models
+
+    tex, _ = _models(reid_colour=True)
+    d = tex.cfg.latent
+    assert tex.cfg.reid_dims == d + 6 and tex.reid_projection.shape == (d + 6, d + 6)
+    mu = torch.randn(2, d)
+    rgb, inside = torch.rand(2, 16, 16, 3), torch.rand(2, 16, 16) > 0.5
+    u = tex.reid_embedding(mu, rgb, inside)  # no whitening yet: [mu, statistics]
+    torch.testing.assert_close(u, torch.cat([mu, colour_statistics(rgb, inside)], -1))
+    x = tex.encoder_input(rgb * inside[..., None], inside, torch.rand(2, 16, 16, 3))
+    r2, i2 = tex.crop_colours(x)  # what the stage reads back from an encoder input
+    torch.testing.assert_close(tex.reid_input(mu, r2, i2), u)
+    with pytest.raises(ValueError, match="colour statistics"):
+        tex.reid_embedding(mu)
+    plain, _ = _models()  # models without the setting: the code, of d_z numbers
+    assert plain.cfg.reid_dims == d and torch.equal(plain.reid_embedding(mu, rgb, inside), mu)

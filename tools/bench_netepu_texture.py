@@ -13,7 +13,10 @@ Steps (each its own process, so that each can run under the machine's CPU protoc
         hydra.run.dir=runs/netepu/texture_no_nnopcs
     ... netepu.texture.model.local_features=false  hydra.run.dir=runs/netepu/texture_no_local
 
-    .venv/bin/python tools/bench_netepu_texture.py whiten  # the re-id whitening into a copy
+    .venv/bin/python tools/bench_netepu_texture.py whiten --colour --shrinkage auto \
+        --target contrast_w02_normals_colour   # the default re-id whitening into a copy
+    .venv/bin/python tools/bench_netepu_texture.py whiten --shrinkage 0.01 \
+        --target contrast_w02_normals_whitened  # the same without colour statistics
     .venv/bin/python tools/bench_netepu_texture.py evaluate --baseline-minutes 5
     .venv/bin/python tools/bench_netepu_texture.py speed   # nothing else running
     .venv/bin/python tools/bench_netepu_texture.py report
@@ -29,7 +32,8 @@ the geometry render, at 128 x 128 and 256 x 256 frames, in two modes:
 ``frame`` (NeTePu's inference: render the silhouette and NNOPCS of the whole
 frame coarse-to-fine, mask the image with the predicted silhouette, encode)
 and ``visible mask`` (the pipeline's: the subject's visible mask is given;
-NNOPCS is rendered only at the encoder's in-mask crop pixels).
+NNOPCS is rendered only at the encoder's in-mask crop pixels; the re-identification
+embedding, colour statistics included, is computed too).
 """
 
 from __future__ import annotations
@@ -58,6 +62,7 @@ RUNS = {
     "contrast_w02_normals_whitened": "runs/netepu/texture_w02_normals_whitened",
     "contrast_hard": "runs/netepu/texture_hard",
     "default_4166_steps": "runs/netepu/texture_long",
+    "contrast_w02_normals_colour": "runs/netepu/texture_w02_normals_colour",
 }
 WORK = ROOT / "runs" / "netepu" / "texture_bench"
 IMAGES = ROOT / "docs" / "images"
@@ -71,7 +76,8 @@ TITLES = {
     "texture_xv": "NeTePu texture code, cross-view training (mu, predicted NNOPCS): contours = "
     "training cameras, dots = held-out cameras",
     "texture_default": "NeTePu texture code, default (cross-view + contrastive + normals; "
-    "whitened mu, predicted NNOPCS): contours = training cameras, dots = held-out cameras",
+    "whitened [mu, colour statistics], predicted NNOPCS): contours = training cameras, "
+    "dots = held-out cameras",
 }
 ROW_NOTES = {  # what each evaluated run is (netepu-train stage=texture overrides)
     "full": "NeTePu's recipe (reconstruction only)",
@@ -89,11 +95,15 @@ ROW_NOTES = {  # what each evaluated run is (netepu-train stage=texture override
     "batch_sampling=textures (harder look-alike negatives)",
     "default_4166_steps": "the default recipe (normals, whitening fitted at the end of "
     "training) trained twice as long, 4166 steps",
+    "contrast_w02_normals_colour": "contrast_w02_normals, re-identified by the whitening of "
+    "[mu, the crop's colour statistics] fitted on 4096 of its training codes, shrinkage chosen "
+    "on two folds of training views (`whiten --colour --shrinkage auto`)",
     "contrast_w02_normals_whitened": "contrast_w02_normals with the re-id whitening fitted on "
-    "4096 of its training codes (`whiten`; the default since 2026-11-22): the same codes, "
+    "4096 of its training codes (`whiten --shrinkage 0.01`; the default on 2026-11-22 "
+    "until the colour statistics): the same codes, "
     "compared as (mu - m) P",
 }
-DEFAULT_RUN = "contrast_w02_normals_whitened"  # conf/netepu/texture/default.yaml's recipe
+DEFAULT_RUN = "contrast_w02_normals_colour"  # conf/netepu/texture/default.yaml's recipe
 
 
 def _load(run: str):
@@ -134,8 +144,13 @@ def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[
             for i, j in zip(ids, top, strict=True)
         ]
     )
+    pairs = {
+        f"rank1_pair_{a}_{b}": float((~wrong[np.isin(textures[ids], (a, b))]).mean())
+        for a, b in LOOK_ALIKE_PAIRS
+    }
     return {
         **out,
+        **pairs,
         "rank1_look_alikes": float((~wrong[look]).mean()),
         "rank1_others": float((~wrong[~look]).mean()),
         "errors_to_look_alike_partner": (
@@ -168,7 +183,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
         codes = task.codes()
         colour = evaluate_colour(task.texture, task.geometry, task.data, codes)
         h = task.data.heldout
-        emb = task.reid_embeddings(codes)  # the codes themselves without a whitening
+        emb = task.reid_embeddings(task.reid_inputs(codes))  # codes when no whitening
         reid = _reid(emb, h["camera"], task.data.textures)
         raw = _reid(codes, h["camera"], task.data.textures)
         reid |= {"mu_rank1": raw["rank1"], "mu_map": raw["map"]}
@@ -195,7 +210,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
             }
         results["runs"][name] = row
         print(name, json.dumps(row), f"{time.time() - t0:.0f}s", flush=True)
-        keep[name] = (task, emb)
+        keep[name] = (task, emb, codes)  # retrieval embeddings; codes mu render
     if add_only:  # merge these runs' rows into an existing evaluate.json (no baseline, figures)
         old = json.loads((WORK / "evaluate.json").read_text())
         old["runs"].update(results["runs"])
@@ -206,9 +221,9 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
     if (WORK / "evaluate.json").is_file():  # keep the rows of runs not evaluated this time
         old = json.loads((WORK / "evaluate.json").read_text())["runs"]
         results["runs"] = {**old, **results["runs"]}
-    task, codes = keep["full"]
+    task, codes, _ = keep["full"]
     data, h = task.data, task.data.heldout
-    grid_task, grid_codes = keep.get(DEFAULT_RUN, keep.get("full_xv", keep["full"]))
+    grid_task, _, grid_codes = keep.get(DEFAULT_RUN, keep.get("full_xv", keep["full"]))
     import cv2
 
     for held in (False, True):
@@ -267,6 +282,27 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
         f"reid_{k}": v for k, v in _reid(white, h["camera"], data.textures).items()
     }
     print("baseline whitened", json.dumps(results["baseline_whitened"]), flush=True)
+    # and the default's re-id input: [embedding, the crop's colour statistics], the shrinkage
+    # chosen on two folds of training views, as TextureTask.fit_reid_whitening does
+    from netepu.reid import colour_statistics, select_shrinkage
+
+    def stats(rgb: np.ndarray, inside: np.ndarray) -> np.ndarray:
+        return colour_statistics(torch.from_numpy(rgb).float() / 255, torch.from_numpy(inside))
+
+    views = tr["sample_view"][idx]
+    train_u = np.concatenate([train_emb.numpy(), stats(tr["rgb"][idx], tr["inside"][views])], 1)
+    held_in = np.repeat(h["inside"][:, None], T, 1).reshape(E * T, *h["inside"].shape[1:])
+    held_rgb = h["rgb"].reshape(E * T, *h["rgb"].shape[2:])
+    held_u = np.concatenate([base_codes.reshape(E * T, -1), stats(held_rgb, held_in)], 1)
+    folds = (views >= np.median(views)).astype(np.int64)
+    labels = tr["sample_texture"][idx]
+    shrinkage, _ = select_shrinkage(train_u, labels, tr["camera"][views], folds)
+    m, proj = within_class_whitening(train_u, labels, shrinkage)
+    white = ((held_u - m) @ proj).reshape(E, T, -1)
+    results["baseline_colour"] = {
+        f"reid_{k}": v for k, v in _reid(white, h["camera"], data.textures).items()
+    } | {"shrinkage": shrinkage}
+    print("baseline with colour statistics", json.dumps(results["baseline_colour"]), flush=True)
     # figures: t-SNE + KDE (contours: training cameras, dots: held-out cameras), separation
     ids = np.tile(np.arange(T), E)
     cams = np.repeat(h["camera"], T)
@@ -306,8 +342,11 @@ def _speed_fns(texture, geometry, image, mask, kps, cam, size: int) -> dict:
     from netepu.maps import MapSettings, render_maps
     from netepu.texture import encode_texture, surface_normals, texture_codes
 
-    def visible_mode():
-        texture_codes(texture, geometry, image, mask, kps, cam)
+    def visible_mode():  # the code and its re-id embedding, as netepu-embed writes them
+        mu, rgb, inside, _ = texture_codes(
+            texture, geometry, image, mask, kps, cam, return_crops=True
+        )
+        texture.reid_embedding(mu, rgb, inside)
 
     def frame_mode():
         with torch.no_grad():
@@ -435,6 +474,9 @@ def report() -> None:
     if ev.get("baseline_whitened"):
         label = "CNN baseline, whitened (the texture model's re-id whitening)"
         baselines.append((label, ev["baseline_whitened"]))
+    if ev.get("baseline_colour"):
+        label = "CNN baseline with colour statistics, whitened (the default's re-id input)"
+        baselines.append((label, ev["baseline_colour"]))
     for label, r in baselines:
         rows.append(
             {
@@ -504,8 +546,9 @@ def report() -> None:
     )
 
 
-def whiten(source: str, target: str, samples: int, shrinkage: float) -> None:
-    """Copy a run's checkpoint to ``target`` and fit the re-id whitening into the copy."""
+def whiten(source: str, target: str, samples: int, shrinkage: float | str, colour: bool) -> None:
+    """Copy a run's checkpoint to ``target`` and fit the re-id whitening into the copy
+    (``colour``: with the crops' colour statistics)."""
     import shutil
 
     from netepu.texture_stage import add_reid_whitening
@@ -513,7 +556,7 @@ def whiten(source: str, target: str, samples: int, shrinkage: float) -> None:
     out = ROOT / target
     out.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(ROOT / source / "checkpoint.pt", out / "checkpoint.pt")
-    print(add_reid_whitening(out / "checkpoint.pt", samples, shrinkage))
+    print(add_reid_whitening(out / "checkpoint.pt", samples, shrinkage, colour))
 
 
 def main() -> None:
@@ -535,7 +578,12 @@ def main() -> None:
     p.add_argument("--run", action="append", default=[], help="name=run folder (replaces RUNS)")
     p.add_argument("--work", default=None, help="folder of the intermediate JSON files")
     p.add_argument("--samples", type=int, default=4096, help="whiten: training codes")
-    p.add_argument("--shrinkage", type=float, default=0.01, help="whiten: shrinkage")
+    p.add_argument("--shrinkage", default="0.01", help="whiten: shrinkage (a number or auto)")
+    p.add_argument(
+        "--colour", action="store_true", help="whiten: with the crops' colour statistics"
+    )
+    p.add_argument("--source", default="contrast_w02_normals", help="whiten: the run to copy")
+    p.add_argument("--target", default=DEFAULT_RUN, help="whiten: the run written (a RUNS name)")
     p.add_argument("--images", default=None, help="figure folder (default docs/images)")
     a = p.parse_args()
     global WORK, IMAGES
@@ -549,7 +597,8 @@ def main() -> None:
     elif a.what == "speed":
         speed(a.repeats)
     elif a.what == "whiten":  # the default run from the run it was fitted on
-        whiten(RUNS["contrast_w02_normals"], RUNS[DEFAULT_RUN], a.samples, a.shrinkage)
+        shrinkage = a.shrinkage if a.shrinkage == "auto" else float(a.shrinkage)
+        whiten(RUNS[a.source], RUNS[a.target], a.samples, shrinkage, a.colour)
     else:
         report()
 

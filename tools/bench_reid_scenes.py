@@ -59,6 +59,8 @@ TEXTURES = {  # texture models (netepu-train stage=texture), all trained on the 
     "cross-view + contrastive + normals": ROOT / "runs/netepu/texture_w02_normals/checkpoint.pt",
     "cross-view + contrastive + normals, whitened": ROOT
     / "runs/netepu/texture_w02_normals_whitened/checkpoint.pt",
+    "cross-view + contrastive + normals, whitened with colour statistics": ROOT
+    / "runs/netepu/texture_w02_normals_colour/checkpoint.pt",
 }
 KEYPOINT_VARIANTS = {  # netepu.keypoints.source -> the row's name
     "inverse": "label-free keypoints",
@@ -183,6 +185,7 @@ def one(
         "train.trainer.progress=false",
         "+export.progress=false",
         f"train.model.num_windows={n}",
+        "~train.data.same_view",  # Bi-NVS pairs only, as when these rows were first measured
         f"train.trainer.max_minutes={minutes}",
         f"netepu.geometry={GEOMETRY}",
         f"netepu.texture={texture}",
@@ -269,7 +272,7 @@ def report() -> None:
                 {
                     "individuals": r["individuals"],
                     "texture model": r.get("texture_model", "cross-view"),
-                "compared": r.get("column", "texture"),
+                    "compared": r.get("column", "texture"),
                     "keypoints": variant,
                     "mask mIoU": r["mask_miou"],
                     "detection rate": r["detection_rate"],
