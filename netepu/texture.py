@@ -485,7 +485,10 @@ class TextureModel(nn.Module):
     ) -> Tensor:
         """Re-identification embedding of texture codes mu (B, d_z) encoded from the crop
         rgb, inside (needed with ``reid_colour``; :meth:`reid_input`): (B, cfg.reid_dims)."""
-        u = self.reid_input(mu, rgb, inside)
+        return self.whiten_reid(self.reid_input(mu, rgb, inside))
+
+    def whiten_reid(self, u: Tensor) -> Tensor:
+        """The stored whitening of re-id inputs u (B, reid_dims): (u - m) P, (B, reid_dims)."""
         return (u - self.reid_mean.to(u.dtype)) @ self.reid_projection.to(u.dtype)
 
     @staticmethod

@@ -311,10 +311,10 @@ class TextureTask:
 
     def reid_embeddings(self, inputs: np.ndarray) -> np.ndarray:
         """The model's re-identification embeddings of re-id inputs (..., reid_dims)."""
-        m = self.texture.reid_mean.double().numpy()
-        p = self.texture.reid_projection.double().numpy()
-        flat = inputs.reshape(-1, inputs.shape[-1]).astype(np.float64)
-        return ((flat - m) @ p).astype(np.float32).reshape(inputs.shape)
+        flat = torch.from_numpy(inputs.reshape(-1, inputs.shape[-1]).astype(np.float64))
+        with torch.no_grad():
+            out = self.texture.whiten_reid(flat)
+        return out.float().numpy().reshape(inputs.shape)
 
     @torch.no_grad()
     def training_reid_inputs(
