@@ -122,14 +122,15 @@ def select_shrinkage(
     codes: np.ndarray,
     labels: np.ndarray,
     cameras: np.ndarray,
-    folds: np.ndarray,
+    groups: np.ndarray,
     grid: tuple[float, ...] = (0.1, 0.01, 0.001, 0.0001),
 ) -> tuple[float, dict[float, float]]:
     """The whitening shrinkage that re-identifies best across two folds of training codes.
 
     Args:
         codes: (N, D); labels: (N,) identities; cameras: (N,) camera ids.
-        folds: (N,) 0 or 1 (e.g. by view, so one pose never sits in both).
+        groups: (N,) ordered group ids (e.g. training views, so that one view never sits in
+            both folds); fold 1 holds the groups >= their median, fold 0 the others.
         grid: shrinkage values to try.
 
     Returns:
@@ -143,7 +144,8 @@ def select_shrinkage(
     if not grid:
         raise ValueError("select_shrinkage: the grid is empty")
     codes, labels = np.asarray(codes, np.float64), np.asarray(labels)
-    cameras, folds = np.asarray(cameras), np.asarray(folds)
+    cameras, groups = np.asarray(cameras), np.asarray(groups)
+    folds = (groups >= np.median(groups)).astype(np.int64)
     scores = {}
     for shrinkage in sorted(grid, reverse=True):
         total = 0.0

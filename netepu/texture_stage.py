@@ -345,9 +345,8 @@ class TextureTask:
         codes, ids, cams, views = self.training_reid_inputs(self.cfg.reid_whitening_samples)
         shrinkage, scores = self.cfg.reid_shrinkage, {}
         if shrinkage == "auto":  # two folds of views: the first and the second half
-            folds = (views >= np.median(views)).astype(np.int64)
             try:
-                shrinkage, scores = select_shrinkage(codes, ids, cams, folds)
+                shrinkage, scores = select_shrinkage(codes, ids, cams, views)
             except ValueError as e:
                 log.warning("re-id shrinkage: %s; using %g", e, FALLBACK_SHRINKAGE)
                 shrinkage = FALLBACK_SHRINKAGE

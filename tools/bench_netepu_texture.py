@@ -294,9 +294,8 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
     held_in = np.repeat(h["inside"][:, None], T, 1).reshape(E * T, *h["inside"].shape[1:])
     held_rgb = h["rgb"].reshape(E * T, *h["rgb"].shape[2:])
     held_u = np.concatenate([base_codes.reshape(E * T, -1), stats(held_rgb, held_in)], 1)
-    folds = (views >= np.median(views)).astype(np.int64)
     labels = tr["sample_texture"][idx]
-    shrinkage, _ = select_shrinkage(train_u, labels, tr["camera"][views], folds)
+    shrinkage, _ = select_shrinkage(train_u, labels, tr["camera"][views], views)
     m, proj = within_class_whitening(train_u, labels, shrinkage)
     white = ((held_u - m) @ proj).reshape(E, T, -1)
     results["baseline_colour"] = {
