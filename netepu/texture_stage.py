@@ -316,6 +316,11 @@ class TextureTask:
             out = self.texture.whiten_reid(flat)
         return out.float().numpy().reshape(inputs.shape)
 
+    def spaced_training_samples(self, n: int) -> np.ndarray:
+        """Indices of ``n`` training samples evenly spaced over the set (all when fewer)."""
+        total = len(self.data.train["sample_view"])
+        return np.unique(np.linspace(0, total - 1, min(n, total)).round().astype(np.int64))
+
     @torch.no_grad()
     def training_reid_inputs(
         self, n: int, batch: int = 256
@@ -323,8 +328,7 @@ class TextureTask:
         """Re-id inputs of ``n`` training samples evenly spaced (all when fewer), no
         occlusion: ((n, reid_dims), texture ids (n,), cameras (n,), views (n,))."""
         tr = self.data.train
-        total = len(tr["sample_view"])
-        idx = np.unique(np.linspace(0, total - 1, min(n, total)).round().astype(np.int64))
+        idx = self.spaced_training_samples(n)
         was = self.texture.training
         self.texture.eval()
         out = []

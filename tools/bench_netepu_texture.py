@@ -272,8 +272,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
     # embeddings, so that the comparison does not credit the whitening to the texture code
     from netepu.reid import within_class_whitening
 
-    n = len(tr["sample_view"])
-    idx = np.unique(np.linspace(0, n - 1, min(4096, n)).round().astype(np.int64))
+    idx = task.spaced_training_samples(4096)
     with torch.no_grad():
         train_emb = torch.cat([base(sample(idx[s : s + 512]))[0] for s in range(0, len(idx), 512)])
     m, proj = within_class_whitening(train_emb.numpy(), tr["sample_texture"][idx], 0.01)
