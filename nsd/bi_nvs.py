@@ -160,7 +160,11 @@ class BiNVS(nn.Module):
         self.cfg, self.detector, self.encoder, self.decoder = cfg, detector, encoder, decoder
 
     def windows(
-        self, images: Tensor, backgrounds: Tensor, min_presence: float | None = None
+        self,
+        images: Tensor,
+        backgrounds: Tensor,
+        min_presence: float | None = None,
+        detections: Detections | None = None,
     ) -> Windows:
         """Detect, crop and encode the windows of frames (B, 3, H, W).
 
@@ -169,8 +173,10 @@ class BiNVS(nn.Module):
             min_presence: windows whose presence is below this are switched off: they are
                 neither cropped nor encoded (their crops, appearance and latent are zeros).
                 None: every window is encoded (training).
+            detections: windows to use instead of the detector's (e.g. fused with the
+                visual hull, :mod:`nsd.multiview`); None: run the detector.
         """
-        det = self.detector(images, backgrounds)
+        det = self.detector(images, backgrounds) if detections is None else detections
         size = (self.cfg.crop_size, self.cfg.crop_size)
         B, N = det.presence.shape
         if min_presence is None:

@@ -17,6 +17,7 @@ from nsd.errors import ConfigError, FootageError
 from nsd.evaluation import evaluate_model
 from nsd.ground_truth import GroundTruth
 from nsd.model_io import load_decomposition
+from nsd.multiview import InferenceSettings
 
 __all__ = ["evaluate_checkpoint", "main", "markdown_table"]
 
@@ -46,8 +47,11 @@ def markdown_table(metrics: dict[str, float]) -> str:
 
 def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
                         frames: str | list[int] = "val", max_frames: int = 0,
-                        refine: str = "residual") -> dict[str, float]:
-    """Evaluate a checkpoint on a scene (default: its training scene)."""
+                        refine: str = "residual", inference=None) -> dict[str, float]:
+    """Evaluate a checkpoint on a scene (default: its training scene).
+
+    ``inference``: :class:`nsd.multiview.InferenceSettings` (None: the defaults).
+    """
     trained = load_decomposition(checkpoint)
     scene = Path(scene) if scene else Path(trained.config.data.scene or "")
     if not scene or str(scene) in ("", "."):
@@ -71,7 +75,7 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
     if max_frames and len(idx) > max_frames:
         idx = idx[np.linspace(0, len(idx) - 1, max_frames).round().astype(int)]
     gt = GroundTruth.load(scene)
-    metrics = evaluate_model(trained.model, data, idx, gt, refine=refine)
+    metrics = evaluate_model(trained.model, data, idx, gt, refine=refine, inference=inference)
     metrics.update({"frames": float(len(idx)), "step": float(trained.step)})
     return metrics
 
@@ -80,7 +84,10 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
 def main(cfg: DictConfig) -> float:
     torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
     frames = cfg.frames if isinstance(cfg.frames, str) else list(cfg.frames)
-    metrics = evaluate_checkpoint(cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine)
+    settings = InferenceSettings.from_config(cfg.inference)
+    metrics = evaluate_checkpoint(
+        cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings
+    )
     ckpt = Path(cfg.checkpoint)
     out = Path(cfg.out) if cfg.out else (ckpt if ckpt.is_dir() else ckpt.parent)
     atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))

@@ -219,7 +219,13 @@ def coco_ap(gt_coco, results: list[dict], image_ids: Sequence[int]) -> dict[str,
 
 
 def association_scores(
-    model, dec, cameras: dict[str, torch.Tensor], image_size: Sequence[int], v: int, w: int
+    model,
+    dec,
+    cameras: dict[str, torch.Tensor],
+    image_size: Sequence[int],
+    v: int,
+    w: int,
+    slot_bonus: float = 0.0,
 ) -> torch.Tensor:
     """The model's association score (N, N) between the windows of views v and w of a frame.
 
@@ -230,6 +236,8 @@ def association_scores(
             (:meth:`nsd.calibration.CameraRig.stacked`).
         image_size: (H, W) of the decomposed frames.
         v, w: the two views.
+        slot_bonus: added where both windows were fused with the same visual-hull
+            individual (``dec.slots``, multi-view inference, :mod:`nsd.multiview`).
     """
     cost = model.geometry_cost(
         dec.windows[v][None],
@@ -238,26 +246,44 @@ def association_scores(
         {k: c[w][None] for k, c in cameras.items()},
         tuple(image_size),
     )
-    return model.association_score(dec.app[v][None], dec.app[w][None], cost)[0]
+    score = model.association_score(dec.app[v][None], dec.app[w][None], cost)[0]
+    slots = getattr(dec, "slots", None)
+    if slots is not None and slot_bonus > 0:
+        a, b = slots[v], slots[w]
+        same = (a[:, None] == b[None, :]) & (a[:, None] >= 0)
+        score = score + slot_bonus * same.to(score.dtype)
+    return score
 
 
 @torch.no_grad()
 def evaluate_model(
-    model, data, frames: Sequence[int], gt=None, threshold: float = 0.5, refine: str = "residual"
+    model,
+    data,
+    frames: Sequence[int],
+    gt=None,
+    threshold: float = 0.5,
+    refine: str = "residual",
+    inference=None,
 ) -> dict[str, float]:
     """All metrics on ``frames`` of ``data`` (an :class:`nsd.data.SceneData`).
 
     Without ground truth only the self-supervised novel-view PSNR/SSIM is returned.
     With it, ``mask_miou_raw`` also scores the compositor's raw masks (no refinement).
+    ``inference``: :class:`nsd.multiview.InferenceSettings` (None: the defaults,
+    multi-view inference).
     """
     import kornia
 
     from nsd.export_coco import decomposition_to_coco
-    from nsd.inference import decompose
+    from nsd.multiview import InferenceSettings, decompose_views
 
+    settings = inference or InferenceSettings()
     was = model.training
     model.eval()
     V = data.num_views
+    grid = (
+        settings.grid(data.rig, data.image_size) if settings.multiview and gt is not None else None
+    )
     psnr, ssim = [], []
     total = FrameScore()
     raw_iou = 0.0
@@ -276,7 +302,9 @@ def evaluate_model(
             ssim.append(kornia.metrics.ssim(rv.image.clamp(0, 1), views, 7).mean().item())
             if gt is None:
                 continue
-            dec = decompose(model, views, bgs, mask_threshold=threshold, refine=refine)
+            dec = decompose_views(
+                model, views, bgs, V, settings, grid, mask_threshold=threshold, refine=refine
+            )
             per_view = []
             for v, cam in enumerate(data.rig.names):
                 fgt = gt.frame(cam, int(t), data.image_size)
@@ -318,7 +346,9 @@ def evaluate_model(
                 for w in range(V):
                     if v == w:
                         continue
-                    sim = association_scores(model, dec, data.cameras, data.image_size, v, w)
+                    sim = association_scores(
+                        model, dec, data.cameras, data.image_size, v, w, settings.slot_bonus
+                    )
                     for ident, iv in per_view[v].items():
                         if ident in per_view[w]:
                             assoc_total += 1

@@ -1,9 +1,11 @@
 """``nsd-export``: per-subject results of a trained decomposition, in the formats the field reads.
 
 Given a checkpoint and a scene folder, every selected frame is decomposed
-(:func:`nsd.inference.decompose`, at the checkpoint's training resolution),
-its windows get cross-view subject ids (:func:`nsd.inference.associate_views`
-with the model's association score) and the subjects are linked over time
+(:func:`nsd.multiview.decompose_views`, at the checkpoint's training resolution;
+by default each instant's windows are fused with the visual hull of its cameras,
+``inference.views=single`` decomposes each image alone), its windows get
+cross-view subject ids (:func:`nsd.inference.associate_views` with the model's
+association score) and the subjects are linked over time
 (:class:`nsd.tracking.SubjectTracker`). The export folder then holds (see
 ``datasets/export.md`` for every field and unit)::
 
@@ -70,9 +72,10 @@ from nsd.evaluation import association_scores
 from nsd.export_coco import SUBJECT_CATEGORY, decomposition_to_coco
 from nsd.footage import ImageFolderSource, MultiViewFootage
 from nsd.frame_selection import iter_selected, select_frames
-from nsd.inference import associate_views, decompose
+from nsd.inference import associate_views
 from nsd.model_io import TrainedDecomposition, load_decomposition
 from nsd.mot import MotWriter
+from nsd.multiview import InferenceSettings, decompose_views
 from nsd.tracking import SubjectObservation, SubjectTracker
 
 __all__ = ["ExportSummary", "export_subjects", "load_export_config", "main", "run"]
@@ -92,6 +95,8 @@ def load_export_config(**overrides: Any) -> DictConfig:
     """
     with (files("nsd.conf") / "export.yaml").open() as f:
         cfg = OmegaConf.load(f)
+    with (files("nsd.conf") / "inference" / "default.yaml").open() as f:
+        cfg.inference = OmegaConf.load(f)  # the defaults list's group, as nsd-export composes it
     for key in _CLI_ONLY:
         cfg.pop(key, None)
     for key, value in overrides.items():
@@ -116,6 +121,7 @@ def _check_config(cfg: DictConfig) -> None:
     need(int(cfg.batch_size) >= 1, "batch_size", "must be >= 1")
     need(0 < float(cfg.threshold) < 1, "threshold", "must be in (0, 1)")
     need(cfg.refine in ("residual", "none"), "refine", "must be residual or none")
+    InferenceSettings.from_config(cfg.get("inference"))  # a clear error naming the key
     need(int(cfg.crop.size) >= 4, "crop.size", "must be >= 4 pixels")
     need(float(cfg.crop.margin) >= 0, "crop.margin", "must be >= 0")
     need(int(cfg.crop.chunk) >= 1, "crop.chunk", "must be >= 1")
@@ -293,6 +299,12 @@ class _Exporter:
             float(t.appearance_weight), float(t.min_similarity), int(t.max_gap)
         )
         self.sample = Reservoir(int(cfg.views.max_points), int(cfg.views.seed))
+        self.inference = InferenceSettings.from_config(cfg.get("inference"))
+        self.grid = (
+            self.inference.grid(inp.footage.rig, inp.trained.image_size)
+            if self.inference.multiview
+            else None
+        )
         self.frames_done = 0
 
     def batch(self, items: list[tuple[int, list[np.ndarray]]]) -> None:
@@ -302,10 +314,13 @@ class _Exporter:
         small = np.stack([_to_model_size(views, (W, H)) for _, views in items])  # B, V, H, W, 3
         images = torch.from_numpy(small).flatten(0, 1).permute(0, 3, 1, 2).float().div_(255.0)
         bgs = self.inp.backgrounds.repeat(len(items), 1, 1, 1)
-        dec = decompose(
+        dec = decompose_views(
             self.model,
             images,
             bgs,
+            V,
+            self.inference,
+            self.grid,
             mask_threshold=float(self.cfg.threshold),
             refine=str(self.cfg.refine),
         )
@@ -318,11 +333,13 @@ class _Exporter:
     def _frame(self, dec, first: int, t: int, views: list[np.ndarray]) -> None:
         V = len(self.names)
         sl = slice(first, first + V)
-        one = SimpleNamespace(windows=dec.windows[sl], app=dec.app[sl])
+        slots = None if dec.slots is None else dec.slots[sl]
+        one = SimpleNamespace(windows=dec.windows[sl], app=dec.app[sl], slots=slots)
         H, W = self.inp.trained.image_size
+        bonus = self.inference.slot_bonus
 
         def score(v: int, r: int) -> torch.Tensor:
-            return association_scores(self.model, one, self.inp.cameras, (H, W), v, r)
+            return association_scores(self.model, one, self.inp.cameras, (H, W), v, r, bonus)
 
         assoc = associate_views(dec.app[sl], dec.active[sl], self.dims, score)
         per_view = []

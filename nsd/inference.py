@@ -1,4 +1,4 @@
-"""Inference API: frames in, one record per subject out (no autograd, batched).
+r"""Inference API: frames in, one record per subject out (no autograd, batched).
 
 At test time NSD needs a single image: the detector places the windows, the
 encoder encodes them, the decoder renders each window in its own view (no
@@ -9,8 +9,17 @@ Mask refinement (``refine="residual"``, the default): the decoder renders
 small windows (32 px by default) and misses thin limbs, so the visible masks
 are re-drawn from the background residual: every foreground pixel (evidence
 above 0.5, see :func:`nsd.losses.foreground_evidence`) goes to the subject
-with the largest composited weight there (if that weight exceeds
-``min_weight``). NSD still decides which subject a pixel belongs to and who
+with the largest ownership score there (if its composited weight exceeds
+``min_weight``). The ownership score of subject :math:`i` at pixel :math:`p`
+(:func:`ownership`) is its composited weight times the agreement of its
+decoded colour :math:`L_i(p)` with the image :math:`I(p)`,
+
+.. math::
+    o_i(p) = w_i(p)\, \exp\!\left(-\frac{\lVert I(p) - L_i(p) \rVert^2}{2 \sigma_c^2}\right),
+
+so that where two blobby decoded masks overlap, the pixel goes to the subject
+whose rendering looks like it (``colour_sigma`` :math:`\sigma_c`; 0 uses the
+weights alone). NSD still decides which subject a pixel belongs to and who
 occludes whom; the median background, which NSD already needs, only sharpens
 the silhouettes. ``refine="none"`` returns the raw masks.
 
@@ -34,9 +43,10 @@ from torch import Tensor
 
 from nsd.association import appearance_similarity
 from nsd.bi_nvs import BiNVS
+from nsd.detector import Detections
 from nsd.losses import foreground_evidence
 
-__all__ = ["Decomposition", "associate_views", "decompose", "mask_boxes"]
+__all__ = ["Decomposition", "associate_views", "decompose", "mask_boxes", "ownership"]
 
 
 @dataclass
@@ -58,6 +68,8 @@ class Decomposition:
         reconstruction: the frame re-synthesised from its own windows, (B, 3, H, W).
         occlusion_reasoning: False when no masks overlapped and the compositor's pairwise
             occlusion terms were skipped.
+        slots: (B, N) long, the visual-hull individual each window was fused with
+            (multi-view inference, :mod:`nsd.multiview`; -1: none), else None.
     """
 
     windows: Tensor
@@ -73,6 +85,7 @@ class Decomposition:
     latent: Tensor
     reconstruction: Tensor
     occlusion_reasoning: bool = True
+    slots: Tensor | None = None
 
 
 def mask_boxes(masks: Tensor) -> Tensor:
@@ -90,6 +103,21 @@ def mask_boxes(masks: Tensor) -> Tensor:
     return torch.where(rows.any(-1, keepdim=True), box, torch.zeros_like(box))
 
 
+def ownership(weights: Tensor, layers: Tensor, images: Tensor, colour_sigma: float) -> Tensor:
+    """Ownership scores (B, N, H, W) of the subjects over the pixels (module docstring).
+
+    Args:
+        weights: composited visible weights (B, N, H, W).
+        layers: each subject's decoded colour pasted into the frame, (B, N, 3, H, W).
+        images: the frames (B, 3, H, W).
+        colour_sigma: colour agreement scale (0: the weights alone).
+    """
+    if colour_sigma <= 0:
+        return weights
+    err = (images[:, None] - layers).pow(2).sum(2)
+    return weights * torch.exp(-err / (2 * colour_sigma**2))
+
+
 @torch.inference_mode()
 def decompose(
     model: BiNVS,
@@ -102,6 +130,8 @@ def decompose(
     min_weight: float = 0.05,
     evidence_threshold: float = 0.04,
     evidence_softness: float = 0.08,
+    colour_sigma: float = 0.2,
+    detections: Detections | None = None,
 ) -> Decomposition:
     """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
 
@@ -114,11 +144,13 @@ def decompose(
         refine: ``"residual"`` (silhouettes from the background residual) or ``"none"``.
         min_weight: smallest composited weight that claims a foreground pixel.
         evidence_threshold, evidence_softness: as in training (``loss`` config).
+        colour_sigma: colour agreement of the refinement's ownership (:func:`ownership`).
+        detections: windows to use instead of the detector's (:mod:`nsd.multiview`).
     """
     was_training = model.training
     model.eval()
     try:
-        win = model.windows(images, backgrounds, min_presence=presence_threshold)
+        win = model.windows(images, backgrounds, presence_threshold, detections)
         B = images.shape[0]
         eye = torch.eye(3, dtype=images.dtype).expand(B, 3, 3)
         r = model.render(win, win, eye, backgrounds, hard=True, associate=False)
@@ -128,7 +160,7 @@ def decompose(
     if refine == "residual":
         fg = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness) > 0.5
         weighted = raw * win.det.presence[..., None, None]
-        owner = weighted.argmax(1, keepdim=True)
+        owner = ownership(weighted, r.layers, images, colour_sigma).argmax(1, keepdim=True)
         claim = fg[:, None] & (weighted.amax(1, keepdim=True) > min_weight)
         masks = (torch.arange(raw.shape[1])[None, :, None, None] == owner) & claim
         masks = masks.to(raw.dtype)

@@ -23,6 +23,7 @@ Loss per view pair (both directions of Bi-NVS):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Mapping
@@ -45,6 +46,7 @@ from nsd.encoder import Encoder
 from nsd.errors import ConfigError
 from nsd.evaluation import evaluate_model
 from nsd.losses import foreground_evidence, total_image_loss
+from nsd.multiview import InferenceSettings
 from nsd.presence import (
     marginal_presence_target,
     presence_target_loss,
@@ -435,12 +437,20 @@ class NSDTask:
         return self.losses(self.data.sample(rng, self.cfg.batch_size, same_view=same))
 
     def evaluate(self, step: int) -> dict[str, float]:
-        frames = _spread(self.data.val_frames, self.cfg.eval_frames)
-        metrics = evaluate_model(self.model, self.data, frames, self.gt)
+        """Metrics with the configured inference; with ground truth and multi-view
+        inference, also NSD's single-image inference (prefixed ``single_``)."""
+        settings = InferenceSettings.from_config(self.cfg.get("inference"))
+        runs = [("", settings)]
+        if settings.multiview and self.gt is not None:
+            runs.append(("single_", dataclasses.replace(settings, views="single")))
+        sets = [("", _spread(self.data.val_frames, self.cfg.eval_frames))]
         if self.cfg.get("eval_train_frames", 0) > 0:
-            seen = _spread(self.data.train_frames, self.cfg.eval_train_frames)
-            train = evaluate_model(self.model, self.data, seen, self.gt)
-            metrics.update({f"train_{k}": v for k, v in train.items()})
+            sets.append(("train_", _spread(self.data.train_frames, self.cfg.eval_train_frames)))
+        metrics = {}
+        for where, frames in sets:
+            for how, s in runs:
+                m = evaluate_model(self.model, self.data, frames, self.gt, inference=s)
+                metrics.update({f"{where}{how}{k}": v for k, v in m.items()})
         return metrics
 
     def image_grids(self, step: int) -> dict[str, np.ndarray]:
