@@ -43,6 +43,7 @@ import datetime as _dt
 import functools
 import hashlib
 import json
+import logging
 import os
 import signal
 import sys
@@ -77,6 +78,8 @@ from nsd.model_io import TrainedDecomposition, load_decomposition
 from nsd.mot import MotWriter
 from nsd.multiview import InferenceSettings, decompose_views
 from nsd.tracking import SubjectObservation, SubjectTracker
+
+log = logging.getLogger(__name__)
 
 __all__ = ["ExportSummary", "export_subjects", "load_export_config", "main", "run"]
 
@@ -497,6 +500,10 @@ def export_subjects(cfg: DictConfig) -> ExportSummary:
         raise FileExistsError(f"{out} exists; pass overwrite=true to replace it")
     inp = _prepare(cfg)
     trained = inp.trained
+    if cfg.get("inference") is not None and len(inp.footage.rig) < 2:
+        if cfg.inference.views == "multiview":  # one camera: nothing to fuse
+            log.warning("one camera exported: single-image inference (inference.views=single)")
+        cfg.inference.views = "single"  # the manifest records the inference used
     with atomic_directory(out, overwrite=bool(cfg.overwrite)) as tmp:
         ex = _Exporter(inp, cfg, tmp)
         from tqdm import tqdm

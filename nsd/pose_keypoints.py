@@ -21,6 +21,7 @@ point). The output is ``keypoints3d.npz`` (:mod:`nsd.keypoints_io`), where
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from pathlib import Path
@@ -107,15 +108,29 @@ def regress_export(
     """
     from nsd.calibration_io import read_calibration
     from nsd.data import SceneData
-    from nsd.inference import decompose
+    from nsd.multiview import InferenceSettings, decompose_views
     from nsd.pose_stage import ROOT
 
     if frame_step < 1 or min_views < 2:
         raise ConfigError(f"frame_step >= 1 and min_views >= 2, got {frame_step}, {min_views}")
     model, pose, cfg = load_pose_checkpoint(checkpoint)
     d = cfg["data"]
-    data = SceneData(scene, d["image_size"], d.get("cameras"), 0.0, d.get("max_frames", 0))
-    rig = data.rig  # the model's views, in its order
+    # decompose exactly as the export did (its cameras and inference), so that an
+    # annotation's slot is the window whose latent is regressed; exports written before
+    # multi-view inference record no inference: single-image, weights alone
+    manifest = Path(export) / "manifest.json"
+    ecfg = json.loads(manifest.read_text()).get("config", {}) if manifest.is_file() else {}
+    settings = InferenceSettings.from_config(
+        ecfg.get("inference", {"views": "single", "colour_sigma": 0.0})
+    )
+    cams = ecfg.get("cameras") or d.get("cameras")
+    data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0))
+    rig = data.rig  # the exported views
+    grid = settings.grid(rig, data.image_size) if settings.multiview else None
+    decompose_kw = {
+        "mask_threshold": float(ecfg.get("threshold", 0.5)),
+        "refine": str(ecfg.get("refine", "residual")),
+    }
     native = read_calibration(scene)  # the export's boxes are in native pixels
     images, groups, n_frames = subject_groups(
         export, frame_step, lambda a, im: im["camera"] in rig.names
@@ -126,7 +141,9 @@ def regress_export(
         if len(anns) < min_views:
             continue
         if dec_frame != t:
-            dec, dec_frame = decompose(model, *data.views(t)), t
+            views, bgs = data.views(t)
+            dec = decompose_views(model, views, bgs, len(rig), settings, grid, **decompose_kw)
+            dec_frame = t
         rel, rot, origins, dirs = [], [], [], []
         for a in anns:
             name = images[int(a["image_id"])]["camera"]

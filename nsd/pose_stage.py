@@ -21,7 +21,7 @@ from scipy.optimize import linear_sum_assignment
 from torch import Tensor, nn
 
 from nsd.errors import ConfigError
-from nsd.inference import decompose
+from nsd.multiview import InferenceSettings, decompose_views
 from nsd.pose_regressor import PoseRegressor
 from nsd.train import build_model
 
@@ -75,9 +75,13 @@ class PoseTask:
         """Latent clouds (S, P, 3) and root-relative camera-frame keypoints (S, K, 3)."""
         latents, targets = [], []
         rig = self.data.rig
+        settings = InferenceSettings.from_config(self.cfg.get("inference"))
+        if len(rig) < 2:
+            settings = InferenceSettings(views="single", colour_sigma=settings.colour_sigma)
+        grid = settings.grid(rig, self.data.image_size) if settings.multiview else None
         for t in frames:
             views, bgs = self.data.views(int(t))
-            dec = decompose(self.model, views, bgs)
+            dec = decompose_views(self.model, views, bgs, len(rig), settings, grid)
             kp = self.gt.keypoints3d(int(t))  # identity -> (K, 3) world
             for v, cam in enumerate(rig):
                 act = np.flatnonzero(dec.active[v].numpy())

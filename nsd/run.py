@@ -176,15 +176,27 @@ def _checkpoint(up: dict[str, StageResult]) -> Path:
     return train.folder / train.summary["checkpoint"]
 
 
+def _inference(cfg: DictConfig) -> dict[str, Any]:
+    """The run's inference settings (``train.inference``), used by evaluate and export."""
+    return _container(cfg.train.inference)
+
+
 def _evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     e = cfg.evaluate
+    inference = _inference(cfg)
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         from nsd.evaluate import evaluate_checkpoint, markdown_table
+        from nsd.multiview import InferenceSettings
 
         frames = e.frames if isinstance(e.frames, str) else list(e.frames)
         metrics = evaluate_checkpoint(
-            _checkpoint(up), up["scene"].summary["path"], frames, int(e.max_frames), str(e.refine)
+            _checkpoint(up),
+            up["scene"].summary["path"],
+            frames,
+            int(e.max_frames),
+            str(e.refine),
+            InferenceSettings.from_config(inference),
         )
         metrics = {k: float(v) for k, v in metrics.items()}
         atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
@@ -197,12 +209,17 @@ def _evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
         else ("evaluate.enabled=false" if not e.enabled else "the scene has no ground truth (gt/)")
     )
     return Stage(
-        "evaluate", run, _container(e), needs=("scene", "train"), enabled=not why, why_disabled=why
+        "evaluate",
+        run,
+        {**_container(e), "inference": inference},
+        needs=("scene", "train"),
+        enabled=not why,
+        why_disabled=why,
     )
 
 
 def _export_stage(cfg: DictConfig) -> Stage:
-    overrides = _container(cfg.export)
+    overrides = _container(OmegaConf.merge({"inference": _inference(cfg)}, cfg.export))
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         from nsd.export import export_subjects, load_export_config

@@ -57,15 +57,21 @@ def _export(ckpt, scene, out, **changes):
 
 
 def _reference(ckpt, scene):
-    """The model's own outputs on every frame, one frame (all views) at a time."""
+    """The model's own outputs on every frame, one frame (all views) at a time, with the
+    export's default (multi-view) inference."""
     from nsd.data import SceneData
-    from nsd.inference import decompose
     from nsd.model_io import load_decomposition
+    from nsd.multiview import InferenceSettings, decompose_views
 
     trained = load_decomposition(ckpt)
     H, W = trained.image_size
     data = SceneData(scene, (W, H), val_fraction=0.0)
-    return data, [decompose(trained.model, *data.views(t)) for t in range(len(data.frames))]
+    st = InferenceSettings()
+    grid = st.grid(data.rig, data.image_size)
+    V = data.num_views
+    return data, [
+        decompose_views(trained.model, *data.views(t), V, st, grid) for t in range(len(data.frames))
+    ]
 
 
 def test_round_trip_equals_model_outputs(trained, tmp_path):
@@ -237,6 +243,8 @@ def test_own_image_ids_without_ground_truth(trained, tmp_path):
     ]
     assert (images[0]["width"], images[0]["height"]) == (48, 48)
     assert not s.manifest["scene"]["ground_truth"]
+    # one camera: nothing to fuse, so single-image inference, and the manifest says so
+    assert s.manifest["config"]["inference"]["views"] == "single"
 
 
 def test_unreadable_frame_mid_export(trained, tmp_path):

@@ -66,9 +66,11 @@ def regressor_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("pose_kp")
     scene = write_scene(tiny_config(), root / "scene")
     out = root / "run"
+    # every training frame labelled: a barely trained decomposition's windows hold 3 or more
+    # of an individual's projected keypoints in only a few camera-frames
     res = run_pipeline(
         _cfg(scene, out, "netepu.keypoints.source=regressor", "netepu.keypoints.frame_step=2",
-             "netepu.keypoints.regressor_steps=3", "netepu.keypoints.label_fraction=0.5",
+             "netepu.keypoints.regressor_steps=3", "netepu.keypoints.label_fraction=1.0",
              "evaluate.max_frames=2")
     )  # fmt: skip
     return scene, out, res

@@ -3,6 +3,8 @@
     python tools/bench_nsd.py main                  # default config, evals at 5/15/30 min
     python tools/bench_nsd.py ablations --minutes 15 --out DIR [--only NAME ...]
     python tools/bench_nsd.py ablations_report --out DIR
+    python tools/bench_nsd.py ablations_inference --out DIR   # re-score with today's inference
+    python tools/bench_nsd.py inference_speed --out RUN_DIR   # single-image vs multi-view
     python tools/bench_nsd.py collapse_report --runs "LABEL=RUN_DIR" ... [--at 9]
     python tools/bench_nsd.py throughput
 
@@ -216,6 +218,9 @@ def bench_ablations(minutes: float, out_root: Path, only: list[str] | None) -> N
         out = out_root / _slug(name)
         if not any(o.startswith("data.same_view=") for o in ov):
             ov = ["data.same_view=0", *ov]  # the rows were measured before the default changed
+        # ... and scored with single-image inference, no colour agreement (ablations_inference
+        # re-scores the checkpoints with today's inference)
+        ov = ["inference.views=single", "inference.colour_sigma=0", *ov]
         res = train(
             [
                 *ov,
@@ -249,6 +254,25 @@ def ablations_report(out_root: Path) -> None:
     if not rows:
         raise SystemExit(f"no ablation results under {out_root}")
 
+    rescored = []
+    for name in raw:
+        path = out_root / _slug(name) / "inference.json"
+        if path.exists():
+            inf = json.loads(path.read_text())
+            for views, label in (("multiview", "multi-view"), ("single", "single-image")):
+                rescored.append(_row(f"{name}, {label}", inf[views], minutes, inf[views]["step"]))
+            raw[name]["inference"] = inf
+    rescored_md = (
+        "\n\n## The same final checkpoints, re-scored with today's inference\n\n"
+        "Multi-view: each instant's windows fused with the visual hull of its 4 cameras; "
+        "single-image: NSD's own inference. Both with the colour agreement in the masks' "
+        "ownership (`inference.colour_sigma=0.2`; the table above was scored without it, "
+        "single-image). `python tools/bench_nsd.py ablations_inference --out DIR`.\n\n"
+        + markdown_table(rescored)
+        if rescored
+        else ""
+    )
+
     curve = []
     for name, res in raw.items():
         row = {"setting": name}
@@ -275,8 +299,84 @@ def ablations_report(out_root: Path) -> None:
         "\n\n## Convergence (detection rate / mask mIoU / raw decoder mask mIoU)\n\n"
         + markdown_table(curve)
         + "\n\nHeld-out evaluations during training; minutes of training time, "
-        "evaluation excluded.",
+        "evaluation excluded." + rescored_md,
         extra={"runs": raw},
+    )
+
+
+def ablations_inference(out_root: Path) -> None:
+    """Re-score every ablation run's final checkpoint under ``out_root`` with multi-view and
+    single-image inference (``<run>/inference.json``; the same 30 held-out frames as
+    training's evaluations), then rewrite the report."""
+    from nsd.evaluate import evaluate_checkpoint
+    from nsd.multiview import InferenceSettings
+
+    for name in ABLATIONS:
+        folder = out_root / _slug(name)
+        if not (folder / "checkpoint.pt").exists() or (folder / "inference.json").exists():
+            continue
+        res = {}
+        for views in ("multiview", "single"):
+            m = evaluate_checkpoint(
+                folder / "checkpoint.pt", None, "val", 30, inference=InferenceSettings(views=views)
+            )
+            res[views] = {k: float(v) for k, v in m.items()}
+        tmp = folder / "inference.json.tmp"
+        tmp.write_text(json.dumps(res))
+        tmp.replace(folder / "inference.json")
+        print(name, {k: round(res["multiview"][k], 3) for k in TARGETS}, flush=True)
+    ablations_report(out_root)
+
+
+def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> None:
+    """Seconds per instant (all 4 views) of single-image and multi-view inference, batches
+    of ``instants`` held-out instants, median of ``repeats``; and their ratio."""
+    import numpy as np
+    import torch
+
+    from nsd.data import SceneData
+    from nsd.model_io import load_decomposition
+    from nsd.multiview import InferenceSettings, decompose_views
+    from nsd.train import resolve_scene
+    from tools.benchlib import median_time
+
+    torch.set_num_threads(2)
+    trained = load_decomposition(checkpoint)
+    cfg = trained.config
+    H, W = trained.image_size
+    data = SceneData(resolve_scene(cfg.data.scene), (W, H), cfg.data.cameras, cfg.data.val_fraction)
+    V = data.num_views
+    frames = np.asarray(data.val_frames)[:instants]
+    views = torch.cat([data.views(int(t))[0] for t in frames])
+    bgs = torch.cat([data.views(int(t))[1] for t in frames])
+    rows, seconds = [], {}
+    for views_mode in ("single", "multiview"):
+        st = InferenceSettings(views=views_mode)
+        grid = st.grid(data.rig, data.image_size) if st.multiview else None
+        sec = median_time(
+            lambda st=st, grid=grid: decompose_views(trained.model, views, bgs, V, st, grid),
+            repeats,
+        )
+        seconds[views_mode] = sec / instants
+        rows.append(
+            {
+                "inference": views_mode,
+                "seconds per instant (4 views)": round(sec / instants, 4),
+                "instants per second": round(instants / sec, 1),
+                "camera-frames per second": round(instants * V / sec, 1),
+            }
+        )
+    grid_s = median_time(lambda: InferenceSettings().grid(data.rig, data.image_size), repeats)
+    write_report(
+        "nsd_inference",
+        "NSD inference speed: single-image and multi-view",
+        rows,
+        f"Default scene at 128x128, {instants} held-out instants of {V} views per call, "
+        f"median of {repeats} calls, 2 threads, checkpoint `{checkpoint}`. Multi-view "
+        "inference adds the visual hull of each instant (48^3 voxels) and the fusion; the "
+        f"voxel grid itself is built once per footage ({grid_s:.2f} s). Multi-view / single "
+        f"time ratio: {seconds['multiview'] / seconds['single']:.2f}.",
+        extra={"ratio_multiview_to_single": seconds["multiview"] / seconds["single"]},
     )
 
 
@@ -355,7 +455,16 @@ def bench_throughput(out_root: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument(
-        "what", choices=["main", "ablations", "ablations_report", "collapse_report", "throughput"]
+        "what",
+        choices=[
+            "main",
+            "ablations",
+            "ablations_report",
+            "ablations_inference",
+            "inference_speed",
+            "collapse_report",
+            "throughput",
+        ],
     )
     ap.add_argument("--minutes", type=float, nargs="*", default=None)
     ap.add_argument("--only", nargs="*", default=None)
@@ -373,6 +482,10 @@ def main() -> None:
         bench_ablations((a.minutes or [15])[0], out, a.only)
     elif a.what == "ablations_report":
         ablations_report(out)
+    elif a.what == "ablations_inference":
+        ablations_inference(out)
+    elif a.what == "inference_speed":
+        inference_speed(a.out / "checkpoint.pt" if a.out.is_dir() else a.out)
     else:
         bench_throughput(out)
     print(out)

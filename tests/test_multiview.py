@@ -1,0 +1,131 @@
+"""Multi-view inference: windows fused with the visual hull, colour-aware ownership, slots."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from nsd.data import SceneData
+from nsd.detector import Detections
+from nsd.errors import ConfigError
+from nsd.evaluation import association_scores
+from nsd.inference import decompose, ownership
+from nsd.multiview import InferenceSettings, decompose_views, fuse_detections
+from nsd.train import build_model
+from tests.test_nsd_train import tiny_cfg
+
+
+def _det():
+    boxes = torch.tensor([[[0.4, 0.6, -0.5, 0.1], [0.3, 0.5, 0.4, 0.0]]])  # (V=1, N=2, 4)
+    return Detections(boxes, torch.tensor([[0.3, -0.2]]), torch.ones(1, 2))
+
+
+def _hull():
+    # slot 0 lies near window 1, slot 1 near window 0: the matching must cross them
+    boxes = torch.tensor([[[0.2, 0.4, 0.6, -0.1], [0.5, 0.9, -0.3, 0.2]]])
+    return boxes, torch.tensor([[4.0, 6.0]])
+
+
+def test_fusion_blends_centres_linearly_and_scales_geometrically():
+    det = _det()
+    hb, hd = _hull()
+    fused, slots = fuse_detections(det, hb, hd, torch.ones(1, 2, dtype=torch.bool), 0.5)
+    assert slots.tolist() == [[1, 0]]
+    w0, h1 = det.boxes[0, 0], hb[0, 1]
+    expect = [math.sqrt(w0[0] * h1[0]), math.sqrt(w0[1] * h1[1]), (w0[2] + h1[2]) / 2, 0.15]
+    assert torch.allclose(fused.boxes[0, 0], torch.tensor(expect), atol=1e-6)
+    assert fused.depths.tolist() == [[6.0, 4.0]]  # each window its individual's depth
+    # the two ends of the blend: the detector's windows and the hull's
+    f0, _ = fuse_detections(det, hb, hd, torch.ones(1, 2, dtype=torch.bool), 0.0, "detector")
+    assert torch.allclose(f0.boxes, det.boxes) and torch.equal(f0.depths, det.depths)
+    f1, _ = fuse_detections(det, hb, hd, torch.ones(1, 2, dtype=torch.bool), 1.0)
+    assert torch.allclose(f1.boxes, hb[:, [1, 0]], atol=1e-6)
+
+
+def test_invalid_individual_keeps_the_window_and_the_views_depth_units():
+    det = _det()
+    hb, hd = _hull()
+    valid = torch.tensor([[True, False]])  # only slot 0 (window 1's) is valid
+    fused, slots = fuse_detections(det, hb, hd, valid, 1.0)
+    assert slots.tolist() == [[-1, 0]]
+    assert torch.equal(fused.boxes[0, 0], det.boxes[0, 0])
+    assert torch.allclose(fused.boxes[0, 1], hb[0, 0])
+    # one window has no hull depth: the view keeps the detector's depths for both
+    assert torch.equal(fused.depths, det.depths)
+
+
+def test_ownership_prefers_the_subject_whose_colour_matches():
+    weights = torch.tensor([0.6, 0.4]).view(1, 2, 1, 1)
+    image = torch.tensor([0.0, 0.0, 0.0]).view(1, 3, 1, 1)  # a black pixel
+    layers = torch.stack([torch.ones(3), torch.zeros(3)]).view(1, 2, 3, 1, 1)  # white, black
+    assert torch.equal(ownership(weights, layers, image, 0.0), weights)
+    o = ownership(weights, layers, image, 0.2)
+    assert o.argmax(1).item() == 1
+    assert o[0, 0].item() == pytest.approx(0.6 * math.exp(-3 / (2 * 0.04)))
+    assert o[0, 1].item() == pytest.approx(0.4)
+
+
+def test_slot_bonus_is_added_only_for_the_same_valid_individual(tiny_scene):
+    cams = SceneData(tiny_scene, (32, 24)).cameras
+    model = build_model(tiny_cfg().model)
+    app = torch.randn(2, 2, model.encoder.app_dims)
+    dec = SimpleNamespace(
+        windows=torch.tensor([[0.4, 0.5, -0.2, 0.0], [0.3, 0.4, 0.3, 0.1]]).expand(2, 2, 4),
+        app=app,
+        slots=torch.tensor([[0, -1], [-1, 0]]),
+    )
+    base = association_scores(model, dec, cams, (24, 32), 0, 1, 0.0)
+    bonus = association_scores(model, dec, cams, (24, 32), 0, 1, 2.5)
+    diff = bonus - base
+    assert torch.allclose(diff, torch.tensor([[0.0, 2.5], [0.0, 0.0]]))
+
+
+@pytest.mark.parametrize(
+    "kv",
+    [
+        {"views": "both"},
+        {"window_blend": 1.5},
+        {"depth": "stereo"},
+        {"slot_bonus": -1.0},
+        {"resolution": 2},
+        {"colour_sigma": -0.1},
+    ],
+)
+def test_wrong_settings_name_their_key(kv):
+    (key,) = kv
+    with pytest.raises(ConfigError, match=f"inference.{key}"):
+        InferenceSettings(**kv)
+
+
+def test_unknown_setting_and_single_camera_are_clear_errors(tiny_scene):
+    with pytest.raises(ConfigError, match="no setting 'blend'"):
+        InferenceSettings.from_config({"blend": 0.5})
+    data = SceneData(tiny_scene, (32, 24))
+    one = data.rig.select(data.rig.names[:1])
+    with pytest.raises(ConfigError, match="at least 2 cameras"):
+        InferenceSettings().grid(one, data.image_size)
+
+
+def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scene):
+    """With the windows and depths left as the detector's, multi-view inference must give
+    exactly NSD's single-image decomposition, plus the slots."""
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    model = build_model(tiny_cfg().model)
+    views = torch.cat([data.views(t)[0] for t in (0, 1)])
+    bgs = torch.cat([data.views(t)[1] for t in (0, 1)])
+    V = data.num_views
+    same = InferenceSettings(window_blend=0.0, depth="detector", resolution=16)
+    multi = decompose_views(model, views, bgs, V, same, same.grid(data.rig, data.image_size))
+    single = decompose(model, views, bgs)
+    for key in ("windows", "depths", "masks", "raw_masks", "app"):
+        assert torch.allclose(getattr(multi, key), getattr(single, key), atol=1e-6), key
+    assert multi.slots.shape == (2 * V, model.cfg.num_windows)
+    assert single.slots is None
+    # the single setting is decompose itself
+    one = decompose_views(model, views, bgs, V, InferenceSettings(views="single"))
+    assert torch.equal(one.masks, single.masks) and one.slots is None
+    with pytest.raises(ValueError, match="whole instants"):
+        decompose_views(model, views[:3], bgs[:3], V, same, same.grid(data.rig, data.image_size))
