@@ -104,7 +104,10 @@ def mask_boxes(masks: Tensor) -> Tensor:
 
 
 def ownership(weights: Tensor, layers: Tensor, images: Tensor, colour_sigma: float) -> Tensor:
-    """Ownership scores (B, N, H, W) of the subjects over the pixels (module docstring).
+    r"""Log ownership scores :math:`\log o_i(p)` (B, N, H, W) (module docstring).
+
+    In the log domain, so that no colour disagreement, however large for a small
+    ``colour_sigma``, underflows every subject's score to the same 0.
 
     Args:
         weights: composited visible weights (B, N, H, W).
@@ -112,10 +115,11 @@ def ownership(weights: Tensor, layers: Tensor, images: Tensor, colour_sigma: flo
         images: the frames (B, 3, H, W).
         colour_sigma: colour agreement scale (0: the weights alone).
     """
+    log_w = weights.clamp_min(torch.finfo(weights.dtype).tiny).log()
     if colour_sigma <= 0:
-        return weights
+        return log_w
     err = (images[:, None] - layers).pow(2).sum(2)
-    return weights * torch.exp(-err / (2 * colour_sigma**2))
+    return log_w - err / (2 * colour_sigma**2)
 
 
 @torch.inference_mode()

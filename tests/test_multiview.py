@@ -61,11 +61,14 @@ def test_ownership_prefers_the_subject_whose_colour_matches():
     weights = torch.tensor([0.6, 0.4]).view(1, 2, 1, 1)
     image = torch.tensor([0.0, 0.0, 0.0]).view(1, 3, 1, 1)  # a black pixel
     layers = torch.stack([torch.ones(3), torch.zeros(3)]).view(1, 2, 3, 1, 1)  # white, black
-    assert torch.equal(ownership(weights, layers, image, 0.0), weights)
+    assert torch.allclose(ownership(weights, layers, image, 0.0).exp(), weights)
     o = ownership(weights, layers, image, 0.2)
     assert o.argmax(1).item() == 1
-    assert o[0, 0].item() == pytest.approx(0.6 * math.exp(-3 / (2 * 0.04)))
-    assert o[0, 1].item() == pytest.approx(0.4)
+    assert o[0, 0].item() == pytest.approx(math.log(0.6) - 3 / (2 * 0.04))
+    assert o[0, 1].item() == pytest.approx(math.log(0.4))
+    # a tiny scale cannot underflow both scores to 0: the closer colour still wins
+    grey = torch.stack([torch.full((3,), 0.9), torch.full((3,), 0.8)]).view(1, 2, 3, 1, 1)
+    assert ownership(weights, grey, image, 0.01).argmax(1).item() == 1
 
 
 def test_slot_bonus_is_added_only_for_the_same_valid_individual(tiny_scene):
