@@ -500,10 +500,11 @@ def export_subjects(cfg: DictConfig) -> ExportSummary:
         raise FileExistsError(f"{out} exists; pass overwrite=true to replace it")
     inp = _prepare(cfg)
     trained = inp.trained
-    if cfg.get("inference") is not None and len(inp.footage.rig) < 2:
-        if cfg.inference.views == "multiview":  # one camera: nothing to fuse
-            log.warning("one camera exported: single-image inference (inference.views=single)")
-        cfg.inference.views = "single"  # the manifest records the inference used
+    asked = InferenceSettings.from_config(cfg.get("inference"))
+    used = asked.for_views(len(inp.footage.rig))
+    if used != asked:
+        log.warning("one camera exported: single-image inference (inference.views=single)")
+        OmegaConf.update(cfg, "inference.views", used.views, force_add=True)  # for the manifest
     with atomic_directory(out, overwrite=bool(cfg.overwrite)) as tmp:
         ex = _Exporter(inp, cfg, tmp)
         from tqdm import tqdm

@@ -24,6 +24,7 @@ latent stay the learned model's. ``views="single"`` is NSD's own single-image in
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -93,6 +94,11 @@ class InferenceSettings:
     @property
     def multiview(self) -> bool:
         return self.views == "multiview"
+
+    def for_views(self, num_views: int) -> InferenceSettings:
+        """These settings for footage of ``num_views`` cameras: single-image inference when
+        there is only one (nothing to fuse), else unchanged."""
+        return self if num_views >= 2 else dataclasses.replace(self, views="single")
 
     def grid(self, rig: CameraRig, image_size: tuple[int, int]) -> VoxelGrid:
         """The hull's voxel grid for cameras ``rig`` scaled to frames of ``image_size`` (H, W)."""

@@ -75,9 +75,7 @@ class PoseTask:
         """Latent clouds (S, P, 3) and root-relative camera-frame keypoints (S, K, 3)."""
         latents, targets = [], []
         rig = self.data.rig
-        settings = InferenceSettings.from_config(self.cfg.get("inference"))
-        if len(rig) < 2:
-            settings = InferenceSettings(views="single", colour_sigma=settings.colour_sigma)
+        settings = InferenceSettings.from_config(self.cfg.get("inference")).for_views(len(rig))
         grid = settings.grid(rig, self.data.image_size) if settings.multiview else None
         for t in frames:
             views, bgs = self.data.views(int(t))
