@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.calibration import Camera
+from nsd.cameras.calibration import Camera
 
 FIXTURES = Path(__file__).parent / "fixtures"
 

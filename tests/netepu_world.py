@@ -1,7 +1,7 @@
 """A tiny analytic world for NeTePu tests: balls on the keypoints of a toy skeleton.
 
 Every keypoint carries a ball of radius ``BALL``; views are ray-cast exactly
-(rays from :func:`nsd.projection.pixel_to_normalized`, so lens distortion is
+(rays from :func:`nsd.cameras.projection.pixel_to_normalized`, so lens distortion is
 honoured). Depth is the camera Z of the first hit; the "NNOPCS" of a hit is
 its keypoint's fixed colour plus a small offset along the ball's surface, so
 it is pose- and view-independent like the real thing.
@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from netepu.data import DataConfig, GeometryData, ViewSet, make_point_pools
-from nsd.calibration import Camera, CameraRig
-from nsd.projection import pixel_to_normalized
+from netepu.geometry.data import DataConfig, GeometryData, ViewSet, make_point_pools
+from nsd.cameras.calibration import Camera, CameraRig
+from nsd.cameras.projection import pixel_to_normalized
 from tests.conftest import look_at_camera
 
 BALL = 0.22  # metres
@@ -184,11 +184,11 @@ def trained_toy(steps: int = 300):
     """
     import tempfile
 
-    from netepu.geometry_stage import GeometryStageConfig, GeometryTask
-    from netepu.losses import GeometryLossWeights
-    from netepu.maps import MapSettings
-    from netepu.model import build_geometry_model
-    from nsd.trainer import Trainer, TrainerConfig, seed_everything
+    from netepu.geometry.losses import GeometryLossWeights
+    from netepu.geometry.maps import MapSettings
+    from netepu.geometry.model import build_geometry_model
+    from netepu.geometry.stage import GeometryStageConfig, GeometryTask
+    from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
 
     seed_everything(0)
     data = toy_data(n_poses=1)

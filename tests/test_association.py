@@ -7,7 +7,7 @@ import itertools
 import pytest
 import torch
 
-from nsd.association import (
+from nsd.model.association import (
     appearance_similarity,
     apply_association,
     association_softmax,

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from nsd.atomic import atomic_directory, atomic_write_text
+from nsd.core.atomic import atomic_directory, atomic_write_text
 
 
 def test_directory_appears_only_on_success(tmp_path):
@@ -31,7 +31,7 @@ def test_directory_appears_only_on_success(tmp_path):
 def test_killed_writer_leaves_only_a_partial_that_is_cleaned(tmp_path):
     code = (
         "import os, sys, time\n"
-        "from nsd.atomic import atomic_directory\n"
+        "from nsd.core.atomic import atomic_directory\n"
         f"with atomic_directory({str(tmp_path / 'out')!r}) as t:\n"
         "    (t / 'a').write_text('x'); print('ready', flush=True); time.sleep(60)\n"
     )

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from nsd.calibration import Camera, CameraRig
-from nsd.errors import CalibrationError
+from nsd.cameras.calibration import Camera, CameraRig
+from nsd.core.errors import CalibrationError
 from tests.conftest import look_at_camera
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nsd.calibration import CameraRig
-from nsd.calibration_io import (
+from nsd.cameras.calibration import CameraRig
+from nsd.cameras.calibration_io import (
     find_calibration,
     read_calibration,
     read_opencv_yaml,
@@ -17,7 +17,7 @@ from nsd.calibration_io import (
     write_opencv_yaml,
     write_toml,
 )
-from nsd.errors import CalibrationError
+from nsd.core.errors import CalibrationError
 from tests.conftest import FIXTURES
 
 
@@ -108,7 +108,7 @@ class TestOpenCVYaml:
 
 
 def _qca_xml(rig: CameraRig, left: int = 0, top: int = 0) -> str:
-    """Write cameras the way a Qualisys export stores them (see nsd.calibration_io)."""
+    """Write cameras the way a Qualisys export stores them (see nsd.cameras.calibration_io)."""
     rows = []
     for c in rig:
         w, h = c.size

@@ -6,8 +6,8 @@ import json
 
 from pycocotools.coco import COCO
 
-from nsd.coco_writer import CocoStreamWriter
-from nsd.export_coco import encode_rle
+from nsd.io.coco import CocoStreamWriter
+from nsd.io.coco_results import encode_rle
 
 
 def test_streamed_file_loads_with_pycocotools(tmp_path):

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from nsd.compositor import additive_composite, blend, erf_transmittance_composite
+from nsd.model.compositor import additive_composite, blend, erf_transmittance_composite
 from tests.base import DTYPES, BaseTester
 
 
@@ -142,7 +142,7 @@ class TestAdditive(BaseTester):
 
 class TestSkippingOcclusion(BaseTester):
     def test_separate_equals_erf_without_overlap(self):
-        from nsd.compositor import masks_overlap, separate_composite
+        from nsd.model.compositor import masks_overlap, separate_composite
 
         g = torch.Generator().manual_seed(5)
         owner = torch.randint(-1, 3, (2, 6, 7), generator=g)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nsd.crops_io import CropWriter, cut_crop, read_crop_index, read_crops, square_crop_box
+from nsd.io.crops import CropWriter, cut_crop, read_crop_index, read_crops, square_crop_box
 
 
 def test_square_crop_box_known_values():

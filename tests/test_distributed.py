@@ -1,8 +1,8 @@
 """Data-parallel training on 2 CPU processes (gloo): identical replicas, one run folder.
 
 The fast test spawns 2 ranks that train the tiny NSD config of
-``test_nsd_train.py`` through :class:`nsd.trainer.Trainer` (straight, and
-stopped + resumed); the slow one runs ``torchrun -m nsd.train`` end to end.
+``test_nsd_train.py`` through :class:`nsd.core.trainer.Trainer` (straight, and
+stopped + resumed); the slow one runs ``torchrun -m nsd.cli.train`` end to end.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
-from nsd import distributed
-from nsd.trainer import load_checkpoint
+from nsd.core import distributed
+from nsd.core.trainer import load_checkpoint
 from tests.conftest import FIXTURES
 
 STEPS = 4
@@ -42,9 +42,9 @@ def _worker(rank: int, world: int, port: int, scene: str, root: str) -> None:
         NSD_DIST_TIMEOUT_MINUTES="3",  # a hang fails the test instead of blocking CI
     )
     torch.set_num_threads(1)
-    from nsd.data import SceneData
-    from nsd.train import NSDTask
-    from nsd.trainer import Trainer, TrainerConfig, seed_everything
+    from nsd.cli.train import NSDTask
+    from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
+    from nsd.training.data import SceneData
     from tests.test_nsd_train import tiny_cfg
 
     assert distributed.init_from_env()
@@ -62,7 +62,7 @@ def _worker(rank: int, world: int, port: int, scene: str, root: str) -> None:
         data.sample = recording_sample
         out = {}
         for name, steps in (("a", STEPS), ("b", STEPS // 2), ("b", STEPS)):
-            seed_everything(3)  # model initialisation, as nsd.train.run does
+            seed_everything(3)  # model initialisation, as nsd.cli.train.run does
             task = NSDTask(cfg, data)
             init = {k: v.clone() for k, v in task.model.state_dict().items()}
             tc = TrainerConfig(max_steps=steps, log_every=1, checkpoint_every=2, progress=False,
@@ -145,14 +145,14 @@ def test_world_size_without_torchrun_variables_is_a_clear_error(monkeypatch):
 
 @pytest.mark.slow
 def test_torchrun_nsd_train_writes_one_run_directory(tmp_path):
-    """``torchrun --nproc_per_node=2 -m nsd.train``: one run folder, one log, one .hydra."""
+    """``torchrun --nproc_per_node=2 -m nsd.cli.train``: one run folder, one log, one .hydra."""
     from tests.test_nsd_train import TINY
 
     scene = tmp_path / "tiny_scene"
     shutil.copytree(FIXTURES / "tiny_scene", scene)
     cmd = [
         sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-        "-m", "nsd.train", *TINY, f"data.scene={scene}", "trainer.max_steps=3",
+        "-m", "nsd.cli.train", *TINY, f"data.scene={scene}", "trainer.max_steps=3",
         "trainer.log_every=1", "trainer.progress=false",
     ]
     env = {**os.environ, "NSD_DIST_TIMEOUT_MINUTES": "3"}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nsd.embeddings_io import EmbeddingWriter, add_columns, read_embeddings
+from nsd.io.embeddings import EmbeddingWriter, add_columns, read_embeddings
 
 
 def _rows(n, start, rng):

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.evaluation import box_iou, coco_ap, fg_ari, mask_iou, match, score_frame
-from nsd.export_coco import encode_rle
-from nsd.inference import associate_views, mask_boxes
+from nsd.evaluation.decomposition import box_iou, coco_ap, fg_ari, mask_iou, match, score_frame
+from nsd.inference.single import associate_views, mask_boxes
+from nsd.io.coco_results import encode_rle
 
 
 def _rect(H, W, x0, y0, x1, y1):

@@ -18,11 +18,11 @@ import pytest
 import torch
 from pycocotools.coco import COCO
 
-from nsd.crops_io import read_crop_index, read_crops
-from nsd.embeddings_io import read_embeddings
-from nsd.errors import CheckpointError, ConfigError, FootageError
-from nsd.export import export_subjects, load_export_config
-from nsd.mot import read_mot
+from nsd.core.errors import CheckpointError, ConfigError, FootageError
+from nsd.export.subjects import export_subjects, load_export_config
+from nsd.io.crops import read_crop_index, read_crops
+from nsd.io.embeddings import read_embeddings
+from nsd.io.mot import read_mot
 
 ROOT = Path(__file__).resolve().parents[1]
 NO_VIEWS = {"views.tensorboard": False, "views.tsne": False, "progress": False}
@@ -31,8 +31,8 @@ NO_VIEWS = {"views.tensorboard": False, "views.tsne": False, "progress": False}
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> tuple[Path, Path]:
     """(checkpoint.pt, scene) of a tiny decomposition trained for a few steps."""
+    from nsd.cli.train import run
     from nsd.synth import tiny_config, write_scene
-    from nsd.train import run
     from tests.test_nsd_train import tiny_cfg
 
     root = tmp_path_factory.mktemp("export")
@@ -59,9 +59,9 @@ def _export(ckpt, scene, out, **changes):
 def _reference(ckpt, scene):
     """The model's own outputs on every frame, one frame (all views) at a time, with the
     export's default (multi-view) inference."""
-    from nsd.data import SceneData
-    from nsd.model_io import load_decomposition
-    from nsd.multiview import InferenceSettings, decompose_views
+    from nsd.inference.multiview import InferenceSettings, decompose_views
+    from nsd.model.checkpoint import load_decomposition
+    from nsd.training.data import SceneData
 
     trained = load_decomposition(ckpt)
     H, W = trained.image_size
@@ -139,9 +139,9 @@ def test_crops_index_and_manifest_checksums(trained, tmp_path):
 
 
 def test_coco_ap_equals_nsd_eval(trained, tmp_path):
-    from nsd.evaluate import evaluate_checkpoint
-    from nsd.evaluation import coco_ap
-    from nsd.ground_truth import GroundTruth
+    from nsd.cli.evaluate import evaluate_checkpoint
+    from nsd.evaluation.decomposition import coco_ap
+    from nsd.io.ground_truth import GroundTruth
 
     ckpt, scene = trained
     s = _export(ckpt, scene, tmp_path / "out")
@@ -248,7 +248,7 @@ def test_own_image_ids_without_ground_truth(trained, tmp_path):
 
 
 def test_unreadable_frame_mid_export(trained, tmp_path):
-    from nsd.footage import MultiViewFootage
+    from nsd.io.footage import MultiViewFootage
 
     ckpt, scene = trained
     other = tmp_path / "scene"
@@ -265,7 +265,7 @@ def test_killed_export_leaves_no_export_folder(trained, tmp_path):
     out = tmp_path / "out"
     code = (
         "import time, sys\n"
-        "import nsd.export as e\n"
+        "import nsd.export.subjects as e\n"
         "orig = e._Exporter.batch\n"
         "def batch(self, items):\n"
         "    orig(self, items); print('written', flush=True); time.sleep(120)\n"
@@ -297,7 +297,7 @@ def test_cli_runs_and_reports_bad_input(trained, tmp_path):
     cmd = [
         sys.executable,
         "-m",
-        "nsd.export",
+        "nsd.export.subjects",
         f"checkpoint={ckpt}",
         f"scene={scene}",
         f"out={tmp_path / 'out'}",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from nsd.focal_st import box_to_pixels, crop, focal_bump, focal_bump_at, paste
+from nsd.model.focal_st import box_to_pixels, crop, focal_bump, focal_bump_at, paste
 from tests.base import DTYPES, BaseTester
 
 

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from nsd.calibration_io import read_toml, write_toml
-from nsd.errors import CalibrationError, FootageError
-from nsd.footage import MultiViewFootage
+from nsd.cameras.calibration_io import read_toml, write_toml
+from nsd.core.errors import CalibrationError, FootageError
+from nsd.io.footage import MultiViewFootage
 from tests.conftest import write_video
 
 

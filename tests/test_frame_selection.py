@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nsd.errors import ConfigError
-from nsd.footage import MultiViewFootage
-from nsd.frame_selection import iter_selected, select_frames
+from nsd.core.errors import ConfigError
+from nsd.io.footage import MultiViewFootage
+from nsd.io.frame_selection import iter_selected, select_frames
 from tests.conftest import write_video
 
 

@@ -49,7 +49,7 @@ def test_joblib_sweep_over_a_prior_weight(tmp_path):
     shutil.copytree(FIXTURES / "tiny_scene", scene)
     sweep = tmp_path / "sweep"
     cmd = [
-        sys.executable, "-m", "nsd.train", "-m", "prior_position.weight=0,0.1",
+        sys.executable, "-m", "nsd.cli.train", "-m", "prior_position.weight=0,0.1",
         "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}",
         *TINY, f"data.scene={scene}", "trainer.max_steps=3", "trainer.progress=false",
     ]

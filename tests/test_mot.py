@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nsd.mot import MOT_COLUMNS, MotWriter, format_mot_line, read_mot
+from nsd.io.mot import MOT_COLUMNS, MotWriter, format_mot_line, read_mot
 
 
 def test_write_then_read_round_trip(tmp_path):

@@ -8,13 +8,13 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from nsd.data import SceneData
-from nsd.detector import Detections
-from nsd.errors import ConfigError
-from nsd.evaluation import association_scores
-from nsd.inference import decompose, ownership
-from nsd.multiview import InferenceSettings, decompose_views, fuse_detections
-from nsd.train import build_model
+from nsd.cli.train import build_model
+from nsd.core.errors import ConfigError
+from nsd.evaluation.decomposition import association_scores
+from nsd.inference.multiview import InferenceSettings, decompose_views, fuse_detections
+from nsd.inference.single import decompose, ownership
+from nsd.model.detector import Detections
+from nsd.training.data import SceneData
 from tests.test_nsd_train import tiny_cfg
 
 

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from netepu.attention import (
+from netepu.geometry.attention import (
     PointTransformerBlock,
     VectorCrossAttention,
     fourier_features,

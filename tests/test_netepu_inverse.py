@@ -7,14 +7,14 @@ import math
 import numpy as np
 import torch
 
-from netepu.inverse import (
+from netepu.geometry.inverse import (
     InverseSettings,
     invert_silhouettes,
     rotate_about_up,
     triangulate_centroids,
 )
-from netepu.maps import MapSettings, render_maps
-from netepu.metrics import mpjpe, silhouette_iou
+from netepu.geometry.maps import MapSettings, render_maps
+from nsd.evaluation.maps import mpjpe, silhouette_iou
 from tests.base import BaseTester
 from tests.netepu_world import toy_pose, trained_toy
 

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from netepu.losses import (
+from netepu.geometry.losses import (
     GeometryLossWeights,
     depth_loss,
     geometry_loss,
@@ -15,7 +15,7 @@ from netepu.losses import (
     nnopcs_loss,
     silhouette_loss,
 )
-from netepu.metrics import depth_mae, mpjpe, nnopcs_mse, silhouette_iou
+from nsd.evaluation.maps import depth_mae, mpjpe, nnopcs_mse, silhouette_iou
 from tests.base import BaseTester
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from netepu.maps import BACKGROUND_LOGIT, MapSettings, candidate_region, render_maps
-from netepu.renderer import RenderContext, ViewFrame
+from netepu.geometry.maps import BACKGROUND_LOGIT, MapSettings, candidate_region, render_maps
+from netepu.geometry.renderer import RenderContext, ViewFrame
 from tests.base import BaseTester
 
 W, H = 96, 72
@@ -109,7 +109,7 @@ class TestRenderMaps(BaseTester):
 
 @pytest.mark.parametrize("stride", [1, 2, 4, 8])
 def test_coarse_points_are_the_grid_points_whose_cells_meet_the_region(stride):
-    from netepu.maps import _coarse_points
+    from netepu.geometry.maps import _coarse_points
 
     rng = np.random.default_rng(stride)
     fy, fx = 5 * stride + 1, 3 * stride + 1

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from netepu.geometry import KeypointEncoder, denormalise_keypoints, normalise_keypoints
-from netepu.model import build_geometry_model
-from netepu.renderer import to_frame, view_frame
+from netepu.geometry.model import build_geometry_model
+from netepu.geometry.networks import KeypointEncoder, denormalise_keypoints, normalise_keypoints
+from netepu.geometry.renderer import to_frame, view_frame
 from tests.base import BaseTester
 from tests.netepu_world import K_TOY, RADIUS, ring, toy_pose
 

@@ -5,7 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from netepu.sampling import boundary_pixels, sample_foreground_points, sample_silhouette_points
+from netepu.geometry.sampling import (
+    boundary_pixels,
+    sample_foreground_points,
+    sample_silhouette_points,
+)
 
 
 def _disc(h=60, w=80, r=15):

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from netepu.model import build_geometry_model
-from netepu.texture import (
+from netepu.geometry.model import build_geometry_model
+from netepu.texture.model import (
     TextureConfig,
     build_texture_model,
     code_contrast_loss,
@@ -53,7 +53,7 @@ def _models(seed: int = 0, **texture):
 
 @functools.cache
 def _tiny_data(textures: tuple[int, ...] = (0, 2), poses: int = 2, per_view: int = 2):
-    from netepu.texture_data import build_texture_data
+    from netepu.texture.data import build_texture_data
 
     cache = tempfile.mkdtemp(prefix="netepu-texture-")
     return build_texture_data(
@@ -226,7 +226,7 @@ def test_codes_of_a_crop_with_its_window_equal_codes_of_the_frame():
 
 # ----------------------------------------------------------------------------- data
 def test_shaded_texture_equals_the_synthetic_renderer():
-    from netepu.texture_data import shade_texture
+    from netepu.texture.data import shade_texture
     from nsd.synth import make_individual, render_views, ring_rig
 
     ind = make_individual("biped", texture_id=9, proportion_variation=0.0)
@@ -252,8 +252,8 @@ def test_texture_data_is_balanced_and_consistent():
 
 # ----------------------------------------------------------------------------- training
 def _task(textures=(0, 2), per_view=2, **optim):
-    from netepu.texture_data import predicted_nnopcs_crops
-    from netepu.texture_stage import TextureStageConfig, TextureTask
+    from netepu.texture.data import predicted_nnopcs_crops
+    from netepu.texture.stage import TextureStageConfig, TextureTask
 
     data = _tiny_data(textures, 2, per_view)
     tex, geo = _models()
@@ -276,7 +276,7 @@ def _task(textures=(0, 2), per_view=2, **optim):
 @pytest.mark.slow
 def test_tiny_model_overfits_one_individuals_views():
     """One individual (texture 6), its training views: the colour error falls far below start."""
-    from nsd.trainer import Trainer, TrainerConfig, seed_everything
+    from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
 
     seed_everything(0)
     task = _task(textures=(6,), per_view=1, batch_size=4, points=64)
@@ -309,7 +309,7 @@ def test_geometry_stays_frozen_and_only_texture_is_optimised():
 
 
 def test_occlusion_keeps_a_quarter_and_only_removes_pixels():
-    from netepu.texture_stage import occlude
+    from netepu.texture.stage import occlude
 
     inside = torch.zeros(50, 16, 16, dtype=torch.bool)
     inside[:, 2:14, 4:12] = True
@@ -340,9 +340,9 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
     """netepu-train stage=texture on a tiny geometry checkpoint; load; resume does no work."""
     from hydra import compose, initialize_config_module
 
-    from netepu.texture import load_texture_model
-    from netepu.train import run
-    from nsd.atomic import atomic_save_torch
+    from netepu.cli.train import run
+    from netepu.texture.model import load_texture_model
+    from nsd.core.atomic import atomic_save_torch
 
     _, geo = _models()
     data = {**TINY_GEOMETRY_DATA, "n_keypoints": K_BIPED}
@@ -371,8 +371,8 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
     )
     assert sorted((tmp_path / "run" / "grids").glob("texture_heldout_cameras_*.png"))
     # the final checkpoint holds the re-id whitening, fitted on the trained model's codes
-    from netepu.reid import within_class_whitening
-    from netepu.texture_stage import build_texture_stage
+    from netepu.reid.metrics import within_class_whitening
+    from netepu.texture.stage import build_texture_stage
 
     tex2 = load_texture_model(tmp_path / "run" / "checkpoint.pt")[0]
     assert tex2.cfg.reid_colour and tex2.cfg.reid_dims == tex2.cfg.latent + 6  # the default
@@ -391,8 +391,8 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
         for m, p in fits
     )
     # refitting a finished checkpoint without the colour statistics: the code's whitening
-    from netepu.texture_stage import add_reid_whitening
-    from nsd.errors import ConfigError
+    from netepu.texture.stage import add_reid_whitening
+    from nsd.core.errors import ConfigError
 
     ckpt = tmp_path / "run" / "checkpoint.pt"
     before = ckpt.read_bytes()
@@ -425,7 +425,7 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
 
 
 def test_texture_config_rejects_unknown_keys():
-    from nsd.errors import ConfigError
+    from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="unknown keys \\['colour'\\]"):
         TextureConfig.from_mapping({"colour": 1})
@@ -484,8 +484,8 @@ def test_contrastive_step_pairs_views_of_one_texture_and_trains_the_encoder():
 
 
 def test_contrast_settings_are_checked():
-    from netepu.texture_stage import TextureStageConfig
-    from nsd.errors import ConfigError
+    from netepu.texture.stage import TextureStageConfig
+    from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="contrast_temperature"):
         TextureStageConfig.from_mapping({"contrast_temperature": 0.0})
@@ -506,8 +506,8 @@ def test_texture_batches_hold_every_texture_of_the_pool():
 
 
 def test_batch_sampling_is_checked():
-    from netepu.texture_stage import TextureStageConfig
-    from nsd.errors import ConfigError
+    from netepu.texture.stage import TextureStageConfig
+    from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"batch_sampling.*'identity'"):
         TextureStageConfig.from_mapping({"batch_sampling": "identity"})
@@ -582,7 +582,7 @@ def test_surface_normals_of_a_sphere_are_radial():
 
 
 def test_normals_need_the_nnopcs_encoder():
-    from nsd.errors import ConfigError
+    from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="use_normals needs use_nnopcs"):
         TextureConfig.from_mapping({"use_normals": True, "use_nnopcs": False})

@@ -7,15 +7,15 @@ import pytest
 import torch
 from hydra import compose, initialize_config_module
 
-from netepu.evaluation import render_view_set
-from netepu.geometry_stage import GeometryStageConfig, GeometryTask
-from netepu.losses import GeometryLossWeights
-from netepu.maps import MapSettings
-from netepu.metrics import silhouette_iou
-from netepu.model import build_geometry_model, load_geometry_model
-from netepu.train import run
-from nsd.errors import ConfigError
-from nsd.trainer import Trainer, TrainerConfig, seed_everything
+from netepu.cli.train import run
+from netepu.geometry.evaluation import render_view_set
+from netepu.geometry.losses import GeometryLossWeights
+from netepu.geometry.maps import MapSettings
+from netepu.geometry.model import build_geometry_model, load_geometry_model
+from netepu.geometry.stage import GeometryStageConfig, GeometryTask
+from nsd.core.errors import ConfigError
+from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
+from nsd.evaluation.maps import silhouette_iou
 from tests.netepu_world import K_TOY, RADIUS, TINY_MODEL, toy_data, trained_toy
 
 
@@ -94,7 +94,7 @@ def test_exact_resume(tmp_path):
 def test_loss_terms_decrease_on_one_batch():
     task = _task(lr=3e-3)
     rng = np.random.default_rng(0)
-    from netepu.data import sample_batch
+    from netepu.geometry.data import sample_batch
 
     batch = sample_batch(task.data, rng, 2, 40, 40, 30)
     first = None
@@ -138,7 +138,7 @@ def test_end_to_end_run_on_the_synthetic_world(tmp_path):
 def test_render_losses_reach_the_encoder_only_when_asked(reach):
     task = _task()
     task.cfg.render_grad_to_encoder = reach
-    from netepu.data import sample_batch
+    from netepu.geometry.data import sample_batch
 
     batch = sample_batch(task.data, np.random.default_rng(0), 2, 40, 40, 30)
     task.weights = GeometryLossWeights(keypoints=0.0, latent=0.0)  # render terms only

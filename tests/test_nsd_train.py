@@ -7,9 +7,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_module
 
-from nsd.data import SceneData
-from nsd.train import NSDTask, build_model
-from nsd.trainer import Trainer, TrainerConfig, seed_everything
+from nsd.cli.train import NSDTask, build_model
+from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
+from nsd.training.data import SceneData
 
 TINY = [
     "model.num_windows=2",
@@ -39,7 +39,7 @@ def tiny_data(tiny_scene):
 
 
 def _trainer(cfg, data, out, steps):
-    seed_everything(3)  # model initialisation, as nsd.train.run does
+    seed_everything(3)  # model initialisation, as nsd.cli.train.run does
     tc = TrainerConfig(max_steps=steps, log_every=5, checkpoint_every=0, progress=False, seed=3)
     return Trainer(NSDTask(cfg, data), tc, out)
 
@@ -106,7 +106,7 @@ def test_stage_switch_reinitialises_encoder_and_decoder(tiny_data):
 
 
 def test_build_model_rejects_bad_sizes():
-    from nsd.errors import ConfigError
+    from nsd.core.errors import ConfigError
 
     cfg = tiny_cfg("model.crop_size=18")
     with pytest.raises(ConfigError, match="divisible"):
@@ -133,7 +133,7 @@ def test_association_prior_on_appearance_ignores_the_geometric_term(tiny_data):
 
 
 def test_association_prior_score_is_validated(tiny_data):
-    from nsd.errors import ConfigError
+    from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"prior_association\.score"):
         NSDTask(tiny_cfg("prior_association.score=geometry"), tiny_data)
@@ -142,8 +142,8 @@ def test_association_prior_score_is_validated(tiny_data):
 def test_same_view_pairs_share_and_default_draws(tiny_scene):
     """data.same_view: that share of the pairs re-synthesises a view from itself; at 0 the
     draws are exactly the Bi-NVS pairs (v != w); out-of-range values are config errors."""
-    from nsd.data import SceneData
-    from nsd.errors import ConfigError
+    from nsd.core.errors import ConfigError
+    from nsd.training.data import SceneData
 
     data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
     a = data.sample(np.random.default_rng(0), 400)

@@ -19,15 +19,15 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nsd.association import (
+from nsd.model.association import (
     appearance_similarity,
     apply_association,
     association_softmax,
     hard_association,
 )
-from nsd.compositor import additive_composite, blend, erf_transmittance_composite
-from nsd.detector import Detector
-from nsd.focal_st import crop, focal_bump_at, inverse_theta, paste
+from nsd.model.compositor import additive_composite, blend, erf_transmittance_composite
+from nsd.model.detector import Detector
+from nsd.model.focal_st import crop, focal_bump_at, inverse_theta, paste
 from nsd.synth.nnopcs import canonical_points, nnopcs_bounds, nnopcs_of
 from nsd.synth.skeleton import BIPED
 from tests.base import DTYPES, BaseTester
@@ -448,7 +448,7 @@ class TestRendererExtremes(BaseTester):
 
     @pytest.mark.parametrize("mode", ["culled", "coarse_to_fine"])
     def test_all_keypoints_outside_the_image_render_background(self, mode):
-        from netepu.maps import BACKGROUND_LOGIT, MapSettings, render_maps
+        from netepu.geometry.maps import BACKGROUND_LOGIT, MapSettings, render_maps
 
         model, cam_obj, cam, kps = _renderer_case("outside_image", torch.float64)
         with torch.no_grad():
@@ -461,7 +461,7 @@ class TestRendererExtremes(BaseTester):
 
     @pytest.mark.parametrize("case", ["some_behind", "on_camera_plane", "coincident"])
     def test_maps_finite(self, case):
-        from netepu.maps import MapSettings, render_maps
+        from netepu.geometry.maps import MapSettings, render_maps
 
         model, cam_obj, cam, kps = _renderer_case(case, torch.float32)
         with torch.no_grad():
@@ -493,7 +493,7 @@ class TestTextureVAEExtremes:
     )
     @settings(max_examples=60, deadline=None)
     def test_kld_finite_and_equal_to_its_float64_closed_form(self, mu, logvar):
-        from netepu.texture import kld
+        from netepu.texture.model import kld
 
         m = torch.tensor([[mu, -mu]], dtype=torch.float32, requires_grad=True)
         lv = torch.tensor([[logvar, -logvar]], dtype=torch.float32, requires_grad=True)
@@ -511,7 +511,7 @@ class TestTextureVAEExtremes:
         assert math.isclose(m.grad[0, 0].item(), mu, rel_tol=1e-5, abs_tol=1e-6)
 
     def test_kld_limits(self):
-        from netepu.texture import kld
+        from netepu.texture.model import kld
 
         # zero exactly at the prior; grows like exp(logvar) / 2 and like -logvar / 2 at the extremes
         assert kld(torch.zeros(1, 4), torch.zeros(1, 4)).item() == 0.0
@@ -526,7 +526,7 @@ class TestTextureVAEExtremes:
 
     @pytest.mark.parametrize("logvar", [-50.0, 50.0])
     def test_reparameterise_finite_with_gradients(self, logvar):
-        from netepu.texture import reparameterise
+        from netepu.texture.model import reparameterise
 
         mu = torch.zeros(3, 8, requires_grad=True)
         lv = torch.full((3, 8), logvar, requires_grad=True)

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.evaluation import box_iou, match
-from nsd.occupancy import (
+from nsd.cues.occupancy import (
     cluster_individuals,
     multiview_proposals,
     occupied_voxels,
@@ -15,6 +14,7 @@ from nsd.occupancy import (
     voxel_grid,
     working_volume,
 )
+from nsd.evaluation.decomposition import box_iou, match
 from nsd.synth import corner_rig, make_individual, render_views, sample_pose
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nsd.footage import MultiViewFootage
+from nsd.io.footage import MultiViewFootage
 from tools.pose2sim_demo import build_scene
 
 

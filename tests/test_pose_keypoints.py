@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from nsd.errors import ConfigError
-from nsd.pose_keypoints import world_keypoints
-from nsd.run import run_pipeline
-from nsd.triangulation import nearest_point_to_rays
+from netepu.pipeline.pose_keypoints import world_keypoints
+from netepu.pipeline.run import run_pipeline
+from nsd.core.errors import ConfigError
+from nsd.cues.triangulation import nearest_point_to_rays
 from tests.conftest import FIXTURES
 from tests.test_run import _cfg
 
@@ -80,7 +80,7 @@ def test_pipeline_regresses_keypoints_where_3d_labels_exist(regressor_run):
     """source=regressor: NSD's pose regressor trained on the scene's few labels gives every
     exported subject of the chosen frames world keypoints whose centroid lies on the point
     nearest to its box-centre rays; the texture stage is not needed for it."""
-    from nsd.calibration_io import read_calibration
+    from nsd.cameras.calibration_io import read_calibration
 
     scene, out, res = regressor_run
     kp_summary = res["keypoints"].summary
@@ -124,8 +124,8 @@ def test_regressor_source_needs_3d_labels_and_fails_before_training(tmp_path):
 
 
 def test_a_decomposition_checkpoint_is_not_a_pose_checkpoint(regressor_run):
-    from nsd.errors import CheckpointError
-    from nsd.pose_keypoints import load_pose_checkpoint
+    from netepu.pipeline.pose_keypoints import load_pose_checkpoint
+    from nsd.core.errors import CheckpointError
 
     _, out, _ = regressor_run
     with pytest.raises(CheckpointError, match="stage=pose"):

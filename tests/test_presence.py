@@ -1,4 +1,4 @@
-"""Label-free presence target (nsd/presence.py), the ungated compositor and its training term."""
+"""Label-free presence target (nsd/priors/presence.py), the ungated compositor, its loss term."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.presence import marginal_presence_target, presence_target_loss, window_area
-from nsd.train import build_model
+from nsd.cli.train import build_model
+from nsd.priors.presence import marginal_presence_target, presence_target_loss, window_area
 from tests.test_nsd_train import tiny_cfg
 
 H = W = 16
@@ -166,7 +166,7 @@ def test_hard_gate_keeps_off_windows_out_of_the_other_view():
 
 
 def test_bad_presence_gate_raises():
-    from nsd.errors import ConfigError
+    from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"presence_gate"):
         build_model(tiny_cfg("model.presence_gate=straight").model)
@@ -174,8 +174,8 @@ def test_bad_presence_gate_raises():
 
 def test_marginal_group_ungates_and_trains_presence(tiny_scene):
     """prior_presence=marginal: hard gate, the BCE term is logged and moves only presence."""
-    from nsd.data import SceneData
-    from nsd.train import NSDTask
+    from nsd.cli.train import NSDTask
+    from nsd.training.data import SceneData
 
     assert tiny_cfg().model.presence_gate == "soft"  # fixed-N default unchanged
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence=marginal")
@@ -197,9 +197,9 @@ def test_marginal_group_ungates_and_trains_presence(tiny_scene):
 
 
 def test_unknown_presence_target_raises(tiny_scene):
-    from nsd.data import SceneData
-    from nsd.errors import ConfigError
-    from nsd.train import NSDTask
+    from nsd.cli.train import NSDTask
+    from nsd.core.errors import ConfigError
+    from nsd.training.data import SceneData
 
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence.target=oracle")
     with pytest.raises(ConfigError, match=r"prior_presence\.target"):
@@ -225,9 +225,9 @@ def test_cap_keeps_at_most_max_on_windows_in_presence_order():
 
 
 def test_presence_cap_is_checked(tiny_scene):
-    from nsd.data import SceneData
-    from nsd.errors import ConfigError
-    from nsd.train import NSDTask
+    from nsd.cli.train import NSDTask
+    from nsd.core.errors import ConfigError
+    from nsd.training.data import SceneData
 
     data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
     for bad, match in (
@@ -245,8 +245,8 @@ def test_presence_cap_is_checked(tiny_scene):
 
 
 def test_capped_target_trains_and_never_exceeds_the_hull_count(tiny_scene):
-    from nsd.data import SceneData
-    from nsd.train import NSDTask
+    from nsd.cli.train import NSDTask
+    from nsd.training.data import SceneData
 
     cfg = tiny_cfg(
         "model.detector.presence=true", "prior_presence=marginal", "prior_presence.cap=proposals"
@@ -260,7 +260,7 @@ def test_capped_target_trains_and_never_exceeds_the_hull_count(tiny_scene):
 
 
 def test_ranked_target_keeps_the_count_most_present_windows():
-    from nsd.presence import ranked_presence_target
+    from nsd.priors.presence import ranked_presence_target
 
     p = torch.tensor([[0.2, 0.9, 0.5, 0.7], [0.1, 0.1, 0.3, 0.2], [0.6, 0.4, 0.8, 0.1]])
     got = ranked_presence_target(p, torch.tensor([2, 0, 4]))
@@ -280,7 +280,7 @@ def test_ranked_target_keeps_the_count_most_present_windows():
 
 
 def test_matching_gives_valid_proposals_to_active_windows():
-    from nsd.proposals import match_proposals
+    from nsd.cues.proposals import match_proposals
 
     boxes = torch.tensor([[[0.3, 0.3, 0.0, 0.0], [0.3, 0.3, 0.8, 0.0]]])
     props = torch.tensor([[[0.3, 0.3, 0.05, 0.0], [0.3, 0.3, -0.5, 0.5]]])
@@ -291,9 +291,9 @@ def test_matching_gives_valid_proposals_to_active_windows():
 
 
 def test_hull_target_trains_the_most_present_windows(tiny_scene):
-    from nsd.data import SceneData
-    from nsd.errors import ConfigError
-    from nsd.train import NSDTask
+    from nsd.cli.train import NSDTask
+    from nsd.core.errors import ConfigError
+    from nsd.training.data import SceneData
 
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence=hull")
     assert cfg.model.presence_gate == "hard"
@@ -310,7 +310,7 @@ def test_hull_target_trains_the_most_present_windows(tiny_scene):
 
 
 def test_smoothed_counts_match_a_slow_running_median():
-    from nsd.presence import smoothed_counts
+    from nsd.priors.presence import smoothed_counts
 
     g = torch.Generator().manual_seed(3)
     counts = torch.randint(0, 4, (23, 3), generator=g)
@@ -332,7 +332,7 @@ def test_smoothed_counts_match_a_slow_running_median():
 
 
 def test_scene_population_adds_back_individuals_merged_for_long():
-    from nsd.presence import smoothed_counts
+    from nsd.priors.presence import smoothed_counts
 
     # 4 individuals in 2 views; in frames 10-29 two of them merge into one hull component
     # (slot 3 empty everywhere), and view 1 does not see slot 0 in frames 0-39
@@ -349,10 +349,10 @@ def test_scene_population_adds_back_individuals_merged_for_long():
 
 
 def test_hull_target_uses_the_smoothed_count(tiny_scene):
-    from nsd.data import SceneData
-    from nsd.errors import ConfigError
-    from nsd.presence import smoothed_counts
-    from nsd.train import NSDTask
+    from nsd.cli.train import NSDTask
+    from nsd.core.errors import ConfigError
+    from nsd.priors.presence import smoothed_counts
+    from nsd.training.data import SceneData
 
     data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence=hull",
@@ -379,8 +379,8 @@ def test_hull_target_uses_the_smoothed_count(tiny_scene):
 def test_hull_target_needs_no_other_proposal_prior(tiny_scene):
     """The hull's count is computed for the presence target even when every prior that
     reads the proposals is off."""
-    from nsd.data import SceneData
-    from nsd.train import NSDTask
+    from nsd.cli.train import NSDTask
+    from nsd.training.data import SceneData
 
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence=hull",
                    "prior_proposal.weight=0", "prior_association.weight=0", "prior_depth=off")

@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 from torch.utils.flop_counter import FlopCounterMode
 
-from nsd.train import build_model
+from nsd.cli.train import build_model
 
 PRESETS = ("fast", "balanced", "accurate")
 # the knobs a preset may set (docs/tradeoff.md "Presets")
@@ -100,7 +100,7 @@ def test_presets_are_ordered_by_cost():
 
 def test_preset_selectable_on_the_command_line():
     out = subprocess.run(
-        [sys.executable, "-m", "nsd.train", "+preset=fast", "--cfg", "job"],
+        [sys.executable, "-m", "nsd.cli.train", "+preset=fast", "--cfg", "job"],
         capture_output=True,
         text=True,
         timeout=120,

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from nsd.priors import aspect_prior, position_prior, presence_prior, scale_prior
+from nsd.priors.window import aspect_prior, position_prior, presence_prior, scale_prior
 
 
 def test_position_prior_uses_batch_mean_per_window():

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.projection import (
+from nsd.cameras.projection import (
     distort_normalized,
     pixel_to_normalized,
     project_points,

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.calibration import CameraRig
-from nsd.proposals import evidence_proposals, proposal_prior
-from nsd.triangulation import depth_prior, ray_distances, triangulate_midpoints, window_rays
+from nsd.cameras.calibration import CameraRig
+from nsd.cues.proposals import evidence_proposals, proposal_prior
+from nsd.cues.triangulation import depth_prior, ray_distances, triangulate_midpoints, window_rays
 from tests.base import BaseTester
 from tests.conftest import look_at_camera
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from netepu.reid import (
+from netepu.reid.metrics import (
     ReidCNN,
     batch_hard_triplet_loss,
     nearest_candidates,
@@ -94,7 +94,7 @@ def test_batch_hard_triplet_loss_matches_loops():
 
 
 def test_baseline_cnn_shapes_and_training_lowers_loss():
-    from netepu.reid import train_reid_baseline
+    from netepu.reid.metrics import train_reid_baseline
 
     torch.manual_seed(0)
     model = ReidCNN(3, [8, 16], 1, dims=16)
@@ -131,7 +131,7 @@ def test_figures_are_written_and_separation_summary(tmp_path):
 
 # ----------------------------------------------------------------------------- embeddings
 def test_embedding_file_round_trip_with_texture_columns(tmp_path):
-    from nsd.embeddings_io import EmbeddingWriter, add_columns, read_embeddings
+    from nsd.io.embeddings import EmbeddingWriter, add_columns, read_embeddings
 
     rng = np.random.default_rng(0)
     for fmt in ("parquet", "npz"):
@@ -153,7 +153,7 @@ def test_embedding_file_round_trip_with_texture_columns(tmp_path):
 
 
 def _texture_checkpoint(path, use_nnopcs: bool, reid_colour: bool = False):
-    from nsd.atomic import atomic_save_torch
+    from nsd.core.atomic import atomic_save_torch
     from tests.netepu_world import TINY_MODEL
     from tests.test_netepu_texture import K_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE, _models
 
@@ -177,10 +177,10 @@ def _fake_export(folder):
 
     The table's rows are in the reverse order of the crops, and one crop has no keypoints.
     """
-    from netepu.texture_data import _rig
-    from nsd.calibration_io import write_toml
-    from nsd.crops_io import CropWriter
-    from nsd.embeddings_io import EmbeddingWriter
+    from netepu.texture.data import _rig
+    from nsd.cameras.calibration_io import write_toml
+    from nsd.io.crops import CropWriter
+    from nsd.io.embeddings import EmbeddingWriter
     from nsd.synth.render import mask_boxes
     from tests.test_netepu_texture import TINY_GEOMETRY_DATA, _tiny_data
 
@@ -219,11 +219,11 @@ def _fake_export(folder):
 
 @pytest.mark.parametrize(("use_nnopcs", "reid_colour"), [(True, True), (False, False)])
 def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs, reid_colour):
-    from netepu.embed import embed_export
-    from netepu.texture import texture_codes
-    from nsd.crops_io import read_crop_index, read_crops
-    from nsd.embeddings_io import read_embeddings
-    from nsd.errors import ConfigError
+    from netepu.pipeline.embed import embed_export
+    from netepu.texture.model import texture_codes
+    from nsd.core.errors import ConfigError
+    from nsd.io.crops import read_crop_index, read_crops
+    from nsd.io.embeddings import read_embeddings
 
     tex, geo = _texture_checkpoint(tmp_path / "tex.pt", use_nnopcs, reid_colour)
     rig, ids, kps = _fake_export(tmp_path)
@@ -359,7 +359,7 @@ def test_reid_embedding_is_the_code_until_a_whitening_is_set_and_old_checkpoints
 
 
 def test_colour_statistics_known_values_and_the_mask():
-    from netepu.reid import colour_statistics
+    from netepu.reid.metrics import colour_statistics
 
     rgb = torch.rand(3, 8, 8, 3, dtype=torch.float64)  # noise outside the masks
     inside = torch.zeros(3, 8, 8, dtype=torch.bool)
@@ -381,7 +381,7 @@ def test_colour_statistics_known_values_and_the_mask():
 
 
 def test_select_shrinkage_finds_the_weak_identity_direction_and_breaks_ties_upwards():
-    from netepu.reid import select_shrinkage
+    from netepu.reid.metrics import select_shrinkage
 
     rng = np.random.default_rng(0)
     n = 400
@@ -404,7 +404,7 @@ def test_select_shrinkage_finds_the_weak_identity_direction_and_breaks_ties_upwa
 
 
 def test_reid_colour_reads_the_crop_and_keeps_old_checkpoints():
-    from netepu.reid import colour_statistics
+    from netepu.reid.metrics import colour_statistics
     from tests.test_netepu_texture import _models
 
     tex, _ = _models(reid_colour=True)

@@ -11,10 +11,10 @@ import pytest
 import torch
 from pycocotools.coco import COCO
 
-import nsd.export
-import nsd.train
-from nsd.errors import ConfigError
-from nsd.run import load_run_config, run_pipeline
+import nsd.cli.train
+import nsd.export.subjects
+from netepu.pipeline.run import load_run_config, run_pipeline
+from nsd.core.errors import ConfigError
 from tests.conftest import FIXTURES
 from tests.test_nsd_train import TINY
 
@@ -68,8 +68,8 @@ def test_tiny_run_then_rerun_does_no_work(tiny_run, monkeypatch):
     def no_work(*args, **kwargs):
         raise AssertionError("a finished stage was recomputed")
 
-    monkeypatch.setattr(nsd.train, "run", no_work)
-    monkeypatch.setattr(nsd.export, "export_subjects", no_work)
+    monkeypatch.setattr(nsd.cli.train, "run", no_work)
+    monkeypatch.setattr(nsd.export.subjects, "export_subjects", no_work)
     again = run_pipeline(_cfg(tiny_scene, out))
     assert all(r.skipped for r in again.values())
     assert again["export"].summary == res["export"].summary
@@ -80,15 +80,15 @@ def test_tiny_run_then_rerun_does_no_work(tiny_run, monkeypatch):
 def test_a_trained_decomposition_is_loaded_instead_of_trained(tiny_run, tmp_path, monkeypatch):
     """checkpoint=<nsd-train checkpoint>: the train stage copies it (no training), and the
     export is the trained run's; a missing file or another kind of checkpoint is an error."""
-    from nsd.atomic import atomic_save_torch
-    from nsd.errors import CheckpointError
+    from nsd.core.atomic import atomic_save_torch
+    from nsd.core.errors import CheckpointError
 
     tiny_scene, first, _ = tiny_run
 
     def no_training(*args, **kwargs):
         raise AssertionError("trained although a checkpoint was given")
 
-    monkeypatch.setattr(nsd.train, "run", no_training)
+    monkeypatch.setattr(nsd.cli.train, "run", no_training)
     ckpt = first / "train" / "checkpoint.pt"
     res = run_pipeline(_cfg(tiny_scene, tmp_path / "run", f"checkpoint={ckpt}"))
     assert res["train"].summary["loaded_from"] == str(ckpt)
@@ -107,21 +107,21 @@ def test_a_trained_decomposition_is_loaded_instead_of_trained(tiny_run, tmp_path
 def test_changed_grid_setting_reruns_only_grids(tiny_run, tmp_path, monkeypatch):
     tiny_scene, first, _ = tiny_run
     out = shutil.copytree(first, tmp_path / "run")
-    monkeypatch.setattr(nsd.train, "run", lambda *a, **k: pytest.fail("train re-ran"))
+    monkeypatch.setattr(nsd.cli.train, "run", lambda *a, **k: pytest.fail("train re-ran"))
     res = run_pipeline(_cfg(tiny_scene, out, "grids.frames=1"))
     assert res["train"].skipped and res["export"].skipped and not res["grids"].skipped
     assert [g.name for g in (out / "grids").glob("*.png")] == ["frame_000000.png"]
 
 
 def test_missing_scene_is_a_clear_error(tmp_path):
-    from nsd.errors import NSDError
+    from nsd.core.errors import NSDError
 
     with pytest.raises(NSDError, match="nope"):
         run_pipeline(_cfg(tmp_path / "nope", tmp_path / "run"))
 
 
 def test_unknown_identity_method_fails_before_any_stage(tmp_path):
-    from nsd.errors import ConfigError
+    from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"netepu\.identities\.method"):
         run_pipeline(_cfg(FIXTURES / "tiny_scene", tmp_path / "run", "netepu.identities.method=x"))
@@ -135,10 +135,10 @@ def test_switched_off_windows_get_no_export_rows(tmp_path):
     zeroed, bias -20: presence ~2e-9 for every input), as a trained model does for windows
     it does not need (docs/benchmarks/count.md measures whether training gets there).
     """
-    from nsd.embeddings_io import read_embeddings
-    from nsd.export import export_subjects, load_export_config
-    from nsd.inference import decompose
-    from nsd.model_io import load_decomposition
+    from nsd.export.subjects import export_subjects, load_export_config
+    from nsd.inference.single import decompose
+    from nsd.io.embeddings import read_embeddings
+    from nsd.model.checkpoint import load_decomposition
     from nsd.synth import tiny_config, write_scene
 
     scene = write_scene(tiny_config(num_individuals=1), tmp_path / "scene")
@@ -163,7 +163,7 @@ def test_switched_off_windows_get_no_export_rows(tmp_path):
     ckpt = tmp_path / "off.pt"
     torch.save(state, ckpt)
     trained = load_decomposition(ckpt)
-    from nsd.data import SceneData
+    from nsd.training.data import SceneData
 
     data = SceneData(scene, (48, 48), val_fraction=0.0)
     dec = decompose(trained.model, *data.views(0))
@@ -186,10 +186,10 @@ def test_switched_off_windows_get_no_export_rows(tmp_path):
 def test_netepu_stages_with_tiny_models(tmp_path):
     """Keypoints, texture codes and identities with tiny (untrained) NeTePu models: the files
     hold one keypoint set and one code per inverted exported row, identities cover every track."""
-    from netepu.model import build_geometry_model
-    from netepu.texture import build_texture_model
-    from nsd.atomic import atomic_save_torch
-    from nsd.embeddings_io import read_embeddings
+    from netepu.geometry.model import build_geometry_model
+    from netepu.texture.model import build_texture_model
+    from nsd.core.atomic import atomic_save_torch
+    from nsd.io.embeddings import read_embeddings
     from nsd.synth import tiny_config, write_scene
     from tests.netepu_world import TINY_MODEL
     from tests.test_netepu_texture import K_BIPED, R_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE
@@ -270,7 +270,7 @@ def _track_table(spec, rng, cameras=("a",)):
 
 @pytest.mark.parametrize("method", ["rows", "tracks"])
 def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(method):
-    from netepu.identities import assign_identities
+    from netepu.reid.identities import assign_identities
 
     rng = np.random.default_rng(0)
     a, b = np.eye(8)[0], np.eye(8)[1]
@@ -295,7 +295,7 @@ def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(
 def test_row_identities_follow_the_codes_when_tracks_swap_individuals():
     """Two tracks swap individuals at frame 10 (a crossing): each track is one identity under
     ``tracks``, which is then wrong for half the rows; ``rows`` follows every row's code."""
-    from netepu.identities import assign_identities
+    from netepu.reid.identities import assign_identities
 
     rng = np.random.default_rng(1)
     a, b = np.eye(8)[0], np.eye(8)[1]
@@ -312,7 +312,7 @@ def test_row_identities_follow_the_codes_when_tracks_swap_individuals():
 
 
 def test_rows_without_a_code_take_their_tracks_identity():
-    from netepu.identities import assign_identities
+    from netepu.reid.identities import assign_identities
 
     rng = np.random.default_rng(2)
     a, b = np.eye(8)[0], np.eye(8)[1]
@@ -331,7 +331,7 @@ def test_constrained_kmeans_against_exhaustive_search():
     assignment of least total cosine distance among all that keep each group's rows apart."""
     import itertools
 
-    from netepu.identities import constrained_kmeans
+    from netepu.reid.identities import constrained_kmeans
 
     rng = np.random.default_rng(3)
     centres = np.eye(6)[:3]
@@ -362,7 +362,7 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
     """An 'export' made of the ground-truth masks: the true identities score 1, a mapping
     that swaps identities in later frames is wrong there in time but not across views;
     only the rows given an identity are scored."""
-    from netepu.identities import identity_accuracy
+    from netepu.reid.identities import identity_accuracy
     from nsd.synth import tiny_config, write_scene
 
     scene = write_scene(tiny_config(num_frames=20), tmp_path / "scene")
@@ -392,8 +392,8 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
 
 def test_presence_is_one_until_its_start_step(tiny_scene):
     """prior_presence.from_step: the detector's presence is 1 before it, learned after it."""
-    from nsd.data import SceneData
-    from nsd.train import NSDTask
+    from nsd.cli.train import NSDTask
+    from nsd.training.data import SceneData
     from tests.test_nsd_train import tiny_cfg
 
     cfg = tiny_cfg(
@@ -415,7 +415,7 @@ def test_presence_is_one_until_its_start_step(tiny_scene):
 
 
 def test_constrained_linkage_never_joins_co_visible_tracks():
-    from netepu.identities import constrained_average_linkage
+    from netepu.reid.identities import constrained_average_linkage
 
     dist = np.array([[0, 0.1, 0.9], [0.1, 0, 0.8], [0.9, 0.8, 0]])
     apart = np.zeros((3, 3), bool)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from nsd.stages import Stage, StageRunner
+from nsd.core.stages import Stage, StageRunner
 
 
 def _stages(calls, a_value=1):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 from nsd.synth.body import (
     GROUND_CLEARANCE,
     KEYPOINT_HOLD_MARGIN,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 from nsd.synth.body import GROUND_CLEARANCE, make_individual
 from nsd.synth.motion import MotionConfig, _gap, gait_angles, sample_pose, simulate_motion
 from nsd.synth.skeleton import BIPED, QUADRUPED

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 from nsd.synth.body import make_individual
 from nsd.synth.motion import sample_pose
 from nsd.synth.raycast import (
@@ -143,7 +143,7 @@ class TestRays:
         uv, _ = cam.project(X)
         rays = camera_rays([cam], dtype=torch.float64)
         # ray through a non-integer pixel: build it the same way as camera_rays
-        from nsd.projection import pixel_to_normalized
+        from nsd.cameras.projection import pixel_to_normalized
 
         p = cam.tensors(torch.float64)
         xy = pixel_to_normalized(torch.as_tensor(uv), p["K"], p["dist"]).numpy()

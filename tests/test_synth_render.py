@@ -7,7 +7,7 @@ import pytest
 import torch
 from pycocotools import mask as mask_utils
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 from nsd.synth.body import Pose, make_individual
 from nsd.synth.coco import encode_masks
 from nsd.synth.motion import sample_pose

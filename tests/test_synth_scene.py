@@ -17,9 +17,9 @@ from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
 import nsd.synth.scene as scene_mod
-from nsd.calibration_io import read_calibration
-from nsd.errors import ConfigError
-from nsd.footage import MultiViewFootage
+from nsd.cameras.calibration_io import read_calibration
+from nsd.core.errors import ConfigError
+from nsd.io.footage import MultiViewFootage
 from nsd.synth import (
     SceneConfig,
     SyntheticScene,

@@ -7,7 +7,7 @@ import itertools
 import pytest
 import torch
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 from nsd.synth.body import make_individual
 from nsd.synth.render import render_views
 from nsd.synth.rigs import ring_rig

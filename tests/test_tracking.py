@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nsd.tracking import SubjectObservation, SubjectTracker, track_similarity
+from nsd.inference.tracking import SubjectObservation, SubjectTracker, track_similarity
 
 A, B = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
 

@@ -1,14 +1,14 @@
-"""Per-window mask normalisation (nsd/window_masks.py): known values, invariants, gradients."""
+"""Per-window mask normalisation (nsd/model/window_masks.py): known values, invariants, grads."""
 
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nsd.bi_nvs import BiNVSConfig
-from nsd.errors import ConfigError
-from nsd.focal_st import focal_bump
-from nsd.window_masks import normalise_window_masks
+from nsd.core.errors import ConfigError
+from nsd.model.bi_nvs import BiNVSConfig
+from nsd.model.focal_st import focal_bump
+from nsd.model.window_masks import normalise_window_masks
 
 
 def _edge_mask(size: int = 32) -> torch.Tensor:

@@ -8,7 +8,7 @@ frames, close interaction) is written with nsd-synth and nsd-train trains on it
 with ``model.num_windows=4``, the learned window presence on
 (``model.detector.presence=true``) and presence learned from a label-free target
 (``--presence``: the ``prior_presence`` group, ``hull`` or ``marginal``,
-:mod:`nsd.presence`), only the windows that are on in the image loss,
+:mod:`nsd.priors.presence`), only the windows that are on in the image loss,
 everything else at the defaults (``--extra`` overrides are in the variant column).
 Counts are measured on 30 frames spread over the sequence (the transductive
 use; no labels are used in training):
@@ -22,14 +22,14 @@ use; no labels are used in training):
   the mean presence of the windows sorted from most to least present;
 * ``detection_rate`` and ``mask_miou`` (nsd-eval's definitions) on the same frames;
 * ``hull frame count accuracy (no training)``: the same, for the individuals the
-  label-free multi-view visual hull alone finds per frame (:mod:`nsd.occupancy`,
+  label-free multi-view visual hull alone finds per frame (:mod:`nsd.cues.occupancy`,
   ``split=False``): what the count would be without NSD;
 * ``background ghost %``: per camera, the share of pixels where the median
   background differs from the true backdrop (an individual that stood still long
   enough stays in the median, and there the foreground evidence is lost);
 * identities: every frame exported (``nsd-export``), tracks grouped into identities
   by NSD's appearance vectors with the label-free count (``netepu.identities``; no
-  texture model here), scored as in ``netepu.identities.identity_accuracy``.
+  texture model here), scored as in ``netepu.reid.identities.identity_accuracy``.
 
 Run ``one`` for each N (one core each, e.g. ``taskset -c 1``), then ``report``.
 ``rescore`` measures every trained run again with the current code (the checkpoints
@@ -71,11 +71,11 @@ def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -
 
     import torch
 
-    from nsd.data import SceneData
-    from nsd.evaluation import association_scores, evaluate_model
-    from nsd.ground_truth import GroundTruth
-    from nsd.inference import associate_views, decompose
-    from nsd.model_io import load_decomposition
+    from nsd.evaluation.decomposition import association_scores, evaluate_model
+    from nsd.inference.single import associate_views, decompose
+    from nsd.io.ground_truth import GroundTruth
+    from nsd.model.checkpoint import load_decomposition
+    from nsd.training.data import SceneData
 
     trained = load_decomposition(checkpoint)
     H, W = trained.image_size
@@ -132,7 +132,7 @@ def _hull_data(scene: Path, frames: int = 0):
     import torch
     from hydra import compose, initialize_config_module
 
-    from nsd.data import SceneData
+    from nsd.training.data import SceneData
 
     with initialize_config_module("nsd.conf", version_base="1.3"):
         cfg = compose("train", overrides=[f"data.scene={scene}", *TRAIN])
@@ -153,7 +153,7 @@ def _hull_data(scene: Path, frames: int = 0):
 
 def hull_count(scene: Path, n: int, frames: int = FRAMES) -> dict:
     """The label-free count of the multi-view visual hull alone (no training): per frame,
-    the individuals :func:`nsd.occupancy.multiview_proposals` finds with an upper bound
+    the individuals :func:`nsd.cues.occupancy.multiview_proposals` finds with an upper bound
     of 4 (``split=False``), on the same frames as :func:`count_metrics`."""
     data = _hull_data(scene, frames)
     counts = data.proposal_valid.any(1).sum(-1).numpy()
@@ -172,10 +172,10 @@ COUNT_SETTINGS = {  # the hull target's count settings: (count_window, count_pop
 
 def hull_target_accuracy(scene: Path) -> dict:
     """Per count setting, the share of camera-frames (all frames) where the hull target's
-    count (:func:`nsd.presence.smoothed_counts`) equals the individuals visible in the
+    count (:func:`nsd.priors.presence.smoothed_counts`) equals the individuals visible in the
     ground truth (visible area >= 4 pixels): how right the label-free target is."""
-    from nsd.ground_truth import GroundTruth
-    from nsd.presence import smoothed_counts
+    from nsd.io.ground_truth import GroundTruth
+    from nsd.priors.presence import smoothed_counts
 
     data = _hull_data(scene)
     gt = GroundTruth.load(scene)
@@ -210,9 +210,9 @@ def background_ghosts(data, gt) -> list[float]:
 def identities(checkpoint: Path, scene: Path, out: Path, overwrite: bool = False) -> dict:
     """Export every frame, group the tracks into identities by NSD's appearance vectors
     (``netepu.identities``, label-free k) and score them against the ground truth."""
-    from netepu.identities import assign_identities, identity_accuracy
-    from nsd.embeddings_io import read_embeddings
-    from nsd.export import export_subjects, load_export_config
+    from netepu.reid.identities import assign_identities, identity_accuracy
+    from nsd.export.subjects import export_subjects, load_export_config
+    from nsd.io.embeddings import read_embeddings
 
     cfg = load_export_config(
         checkpoint=str(checkpoint),
@@ -237,8 +237,8 @@ def one(n: int, minutes: float, extra: list[str], presence: str = "marginal") ->
     import torch
     from hydra import compose, initialize_config_module
 
+    from nsd.cli.train import run as train
     from nsd.synth.cli import run as synth
-    from nsd.train import run as train
 
     torch.set_num_threads(1)
     scene = WORK / f"scene{n}"

@@ -39,7 +39,7 @@ def train_checkpoint(out: Path) -> Path:
     """A default-config decomposition after a few steps on the default scene."""
     from hydra import compose, initialize_config_module
 
-    from nsd.train import run
+    from nsd.cli.train import run
 
     with initialize_config_module("nsd.conf", version_base="1.3"):
         cfg = compose(
@@ -57,7 +57,7 @@ def train_checkpoint(out: Path) -> Path:
 
 def looped_scene(src: Path, dst: Path, frames: int) -> Path:
     """``src``'s footage repeated to ``frames`` frames per camera (symlinks, no ground truth)."""
-    from nsd.calibration_io import read_calibration
+    from nsd.cameras.calibration_io import read_calibration
 
     dst.mkdir(parents=True)
     (dst / "calibration.toml").symlink_to((src / "calibration.toml").resolve())
@@ -73,18 +73,18 @@ def child(checkpoint: str, scene: str, out: str) -> None:
     """One export with the default settings; prints its figures as JSON."""
     import torch
 
-    import nsd.export
-    from nsd.export import export_subjects, load_export_config
+    import nsd.export.subjects
+    from nsd.export.subjects import export_subjects, load_export_config
 
     torch.set_num_threads(2)
     streaming_peak = {}
-    projector = nsd.export.write_projector
+    projector = nsd.export.subjects.write_projector
 
     def note_peak_then_write_projector(*args, **kwargs):  # the views start here
         streaming_peak["mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         return projector(*args, **kwargs)
 
-    nsd.export.write_projector = note_peak_then_write_projector
+    nsd.export.subjects.write_projector = note_peak_then_write_projector
     t0 = time.perf_counter()
     s = export_subjects(
         load_export_config(checkpoint=checkpoint, scene=scene, out=out, progress=False)

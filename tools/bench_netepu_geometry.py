@@ -38,10 +38,10 @@ from torch.utils.flop_counter import FlopCounterMode
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from netepu.data import build_geometry_data, sample_batch  # noqa: E402
-from netepu.evaluation import evaluate_views  # noqa: E402
-from netepu.maps import MapSettings, render_maps  # noqa: E402
-from netepu.model import build_geometry_model, load_geometry_model  # noqa: E402
+from netepu.geometry.data import build_geometry_data, sample_batch  # noqa: E402
+from netepu.geometry.evaluation import evaluate_views  # noqa: E402
+from netepu.geometry.maps import MapSettings, render_maps  # noqa: E402
+from netepu.geometry.model import build_geometry_model, load_geometry_model  # noqa: E402
 from tools.benchlib import markdown_table, median_time, peak_rss_mb, write_report  # noqa: E402
 
 PAPER = {"nnopcs_mse": 1.6e-4, "depth_mae_mm": 17.8, "body_length_m": 2.2}
@@ -132,7 +132,7 @@ def accuracy(
 # ------------------------------------------------------------------ cost
 def _square_rig_views(data, size: int, n: int = 4):
     """Held-out poses seen by the training rig's cameras at size x size (same field of view)."""
-    from netepu.data import _make_rig  # the data module's rig builder
+    from netepu.geometry.data import _make_rig  # the data module's rig builder
 
     views = data.evaluation["heldout_poses"]
     rig = _make_rig(data.config.rig, (size, size))
@@ -225,8 +225,8 @@ def cost(models: dict[str, torch.nn.Module], data, quick: bool, light: bool = Fa
 # ------------------------------------------------------------------ training
 def train_step_child(model_name: str, batch: int, steps: int, species: str) -> dict:
     """Run in a fresh process: median step time and peak RSS of training at ``batch``."""
-    from netepu.geometry_stage import GeometryStageConfig, GeometryTask
-    from netepu.losses import GeometryLossWeights
+    from netepu.geometry.losses import GeometryLossWeights
+    from netepu.geometry.stage import GeometryStageConfig, GeometryTask
 
     cfg = _config([f"netepu/model={model_name}", f"netepu/data={species}"])
     net = cfg["netepu"]
@@ -240,7 +240,7 @@ def train_step_child(model_name: str, batch: int, steps: int, species: str) -> d
     task = GeometryTask(model, data, stage, GeometryLossWeights(**net["loss"]), MapSettings())
     rng = np.random.default_rng(0)
 
-    def step():  # what nsd.trainer.Trainer does per step
+    def step():  # what nsd.core.trainer.Trainer does per step
         opts = task.optimizers().values()
         for o in opts:
             o.zero_grad()

@@ -2,7 +2,7 @@
 
 For held-out poses of the synthetic individual (a pose seed never used in
 training) rendered by the training rig, the ground-truth silhouettes of V
-input cameras go into :func:`netepu.inverse.invert_silhouettes` with a
+input cameras go into :func:`netepu.geometry.inverse.invert_silhouettes` with a
 trained geometry model. Reported per V: MPJPE of the recovered keypoints,
 silhouette IoU of the recovered body re-rendered in the input views and in all
 other cameras of the rig (views the optimisation never saw), and seconds per
@@ -26,11 +26,11 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from netepu.data import build_geometry_data, render_new_poses  # noqa: E402
-from netepu.inverse import InverseSettings, invert_silhouettes  # noqa: E402
-from netepu.maps import MapSettings, render_maps  # noqa: E402
-from netepu.metrics import mpjpe, silhouette_iou  # noqa: E402
-from netepu.model import load_geometry_model  # noqa: E402
+from netepu.geometry.data import build_geometry_data, render_new_poses  # noqa: E402
+from netepu.geometry.inverse import InverseSettings, invert_silhouettes  # noqa: E402
+from netepu.geometry.maps import MapSettings, render_maps  # noqa: E402
+from netepu.geometry.model import load_geometry_model  # noqa: E402
+from nsd.evaluation.maps import mpjpe, silhouette_iou  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 POSE_SEED = 12345  # held-out poses: a seed the data set never uses

@@ -107,7 +107,7 @@ DEFAULT_RUN = "contrast_w02_normals_colour"  # conf/netepu/texture/default.yaml'
 
 
 def _load(run: str):
-    from netepu.texture import load_texture_model
+    from netepu.texture.model import load_texture_model
 
     return load_texture_model(ROOT / run / "checkpoint.pt")
 
@@ -116,7 +116,7 @@ def _task_for(run: str):
     """Rebuild the run's data and predicted NNOPCS crops (cached) from its config."""
     from omegaconf import OmegaConf
 
-    from netepu.texture_stage import build_texture_stage
+    from netepu.texture.stage import build_texture_stage
 
     state = torch.load(ROOT / run / "checkpoint.pt", map_location="cpu", weights_only=True)
     cfg = OmegaConf.create(state["config"])
@@ -127,7 +127,7 @@ def _task_for(run: str):
 
 
 def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[str, float]:
-    from netepu.reid import nearest_candidates, reid_metrics
+    from netepu.reid.metrics import nearest_candidates, reid_metrics
 
     E, T = codes.shape[:2]
     ids = np.tile(np.arange(T), E)
@@ -160,14 +160,14 @@ def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[
 
 
 def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = False) -> None:
-    from netepu.reid import (
+    from netepu.reid.metrics import (
         ReidCNN,
         reid_metrics,
         separation_figure,
         train_reid_baseline,
         tsne_kde_figure,
     )
-    from netepu.texture_evaluation import evaluate_colour, heldout_codes, synthesis_grid
+    from netepu.texture.evaluation import evaluate_colour, heldout_codes, synthesis_grid
 
     torch.set_num_threads(1)
     WORK.mkdir(parents=True, exist_ok=True)
@@ -270,7 +270,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
     print("baseline", json.dumps(results["baseline"]), flush=True)
     # the same post-hoc whitening as the texture model's, fitted on the baseline's training
     # embeddings, so that the comparison does not credit the whitening to the texture code
-    from netepu.reid import within_class_whitening
+    from netepu.reid.metrics import within_class_whitening
 
     idx = task.spaced_training_samples(4096)
     with torch.no_grad():
@@ -283,7 +283,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
     print("baseline whitened", json.dumps(results["baseline_whitened"]), flush=True)
     # and the default's re-id input: [embedding, the crop's colour statistics], the shrinkage
     # chosen on two folds of training views, as TextureTask.fit_reid_whitening does
-    from netepu.reid import colour_statistics, select_shrinkage
+    from netepu.reid.metrics import colour_statistics, select_shrinkage
 
     def stats(rgb: np.ndarray, inside: np.ndarray) -> np.ndarray:
         return colour_statistics(torch.from_numpy(rgb).float() / 255, torch.from_numpy(inside))
@@ -337,8 +337,8 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
 
 def _speed_fns(texture, geometry, image, mask, kps, cam, size: int) -> dict:
     """The two ways of encoding a batch of frames, as callables (see the module docstring)."""
-    from netepu.maps import MapSettings, render_maps
-    from netepu.texture import encode_texture, surface_normals, texture_codes
+    from netepu.geometry.maps import MapSettings, render_maps
+    from netepu.texture.model import encode_texture, surface_normals, texture_codes
 
     def visible_mode():  # the code and its re-id embedding, as netepu-embed writes them
         mu, rgb, inside, _ = texture_codes(
@@ -549,7 +549,7 @@ def whiten(source: str, target: str, samples: int, shrinkage: float | str, colou
     (``colour``: with the crops' colour statistics)."""
     import shutil
 
-    from netepu.texture_stage import add_reid_whitening
+    from netepu.texture.stage import add_reid_whitening
 
     out = ROOT / target
     out.mkdir(parents=True, exist_ok=True)

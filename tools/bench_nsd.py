@@ -91,7 +91,7 @@ CHILD = r"""
 import json, resource, sys, torch
 from hydra import compose, initialize_config_module
 from pathlib import Path
-from nsd.train import run
+from nsd.cli.train import run
 overrides = json.loads(sys.argv[1]); out = Path(sys.argv[2])
 with initialize_config_module("nsd.conf", version_base="1.3"):
     cfg = compose("train", overrides=overrides)
@@ -175,7 +175,7 @@ def bench_main(minutes: list[float], out_root: Path) -> None:
         "20 %, never trained on) and on 30 training frames (the transductive use: no labels are "
         "used in training, and users decompose the footage they trained on).",
         "",
-        "Inference (`nsd/multiview.py`, the `inference` config block): *multi-view* (the "
+        "Inference (`nsd/inference/multiview.py`, the `inference` config block): *multi-view* (the "
         "default) fuses each instant's detector windows with the label-free visual hull of its "
         "4 cameras (windows moved 3/4 of the way to their hull individual, depths from the "
         "hull, the hull's individual as an association term); *single-image* is NSD's own "
@@ -294,7 +294,7 @@ def ablations_report(out_root: Path) -> None:
         "uses the reference code's mask max-normalisation. 'merge_rate': "
         "camera-frames where one window covers half of two subjects; "
         "'overlap_ownership': visible pixels of amodal overlaps given to their owner's "
-        "window (nsd/evaluation.py). Each run trained with 1 thread on its own core "
+        "window (nsd/evaluation/decomposition.py). Each run trained with 1 thread on its own core "
         "(the stamp gives the report process's threads)."
         "\n\n## Convergence (detection rate / mask mIoU / raw decoder mask mIoU)\n\n"
         + markdown_table(curve)
@@ -308,8 +308,8 @@ def ablations_inference(out_root: Path) -> None:
     """Re-score every ablation run's final checkpoint under ``out_root`` with multi-view and
     single-image inference (``<run>/inference.json``; the same 30 held-out frames as
     training's evaluations), then rewrite the report."""
-    from nsd.evaluate import evaluate_checkpoint
-    from nsd.multiview import InferenceSettings
+    from nsd.cli.evaluate import evaluate_checkpoint
+    from nsd.inference.multiview import InferenceSettings
 
     for name in ABLATIONS:
         folder = out_root / _slug(name)
@@ -334,10 +334,10 @@ def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> No
     import numpy as np
     import torch
 
-    from nsd.data import SceneData
-    from nsd.model_io import load_decomposition
-    from nsd.multiview import InferenceSettings, decompose_views
-    from nsd.train import resolve_scene
+    from nsd.cli.train import resolve_scene
+    from nsd.inference.multiview import InferenceSettings, decompose_views
+    from nsd.model.checkpoint import load_decomposition
+    from nsd.training.data import SceneData
     from tools.benchlib import median_time
 
     torch.set_num_threads(2)

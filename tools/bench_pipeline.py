@@ -39,7 +39,7 @@ def main() -> None:
 
     import torch
 
-    from nsd.run import load_run_config, run_pipeline
+    from netepu.pipeline.run import load_run_config, run_pipeline
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     torch.set_num_threads(2)

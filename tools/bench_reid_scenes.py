@@ -27,7 +27,7 @@ variants that match a ground-truth visible mask at IoU >= 0.5):
   same individual; ``cross_time_rank1``: the same among rows of the same camera
   ten or more frames away; ``chance``: 1 / N;
 * ``identity_accuracy`` and its cross-view / cross-time pair accuracies: the
-  pipeline's identities (each row by its own texture code, :mod:`netepu.identities`)
+  pipeline's identities (each row by its own texture code, :mod:`netepu.reid.identities`)
   scored on those rows; ``tracks_identity_accuracy``: each row its track's identity
   (tracks grouped by their mean texture code), on the same rows.
 """
@@ -75,7 +75,7 @@ def rank1(codes: np.ndarray, ident: np.ndarray, candidates: np.ndarray) -> float
     Args:
         codes: (R, D); ident: (R,); candidates: (R, R) bool, row i may retrieve row j.
     """
-    from netepu.reid import nearest_candidates
+    from netepu.reid.metrics import nearest_candidates
 
     best = nearest_candidates(codes, candidates)
     has = best >= 0
@@ -84,8 +84,8 @@ def rank1(codes: np.ndarray, ident: np.ndarray, candidates: np.ndarray) -> float
 
 def _gt_keypoints(export: Path, scene: Path, label_free: Path, out: Path) -> None:
     """Ground-truth keypoints (npz id, keypoints) for the rows the label-free file covers."""
-    from netepu.identities import ground_truth_identities
-    from nsd.ground_truth import GroundTruth
+    from netepu.reid.identities import ground_truth_identities
+    from nsd.io.ground_truth import GroundTruth
 
     truth = GroundTruth.load(scene).scene.keypoints3d
     matched = ground_truth_identities(export, scene)
@@ -100,13 +100,13 @@ def _scores(
 ) -> dict[str, dict]:
     """Row-level rank-1 and pipeline identity accuracy of each table's ``column`` (the codes
     or their re-id embeddings), on the rows coded in every table."""
-    from netepu.identities import (
+    from netepu.reid.identities import (
         IDENTITY_METHODS,
         assign_identities,
         ground_truth_identities,
         identity_accuracy,
     )
-    from nsd.embeddings_io import read_embeddings
+    from nsd.io.embeddings import read_embeddings
 
     matched = ground_truth_identities(export, scene)
     cols = ["id", "camera", "subject_id", "frame", column, "texture_valid"]
@@ -154,8 +154,8 @@ def one(
 ) -> None:
     import torch
 
-    from netepu.embed import embed_into_copy
-    from nsd.run import load_run_config, run_pipeline
+    from netepu.pipeline.embed import embed_into_copy
+    from netepu.pipeline.run import load_run_config, run_pipeline
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     torch.set_num_threads(threads)
@@ -205,7 +205,7 @@ def one(
     t1 = time.perf_counter()
     embed_into_copy(export, gt_dir, texture, gt_kp, scene)
     seconds["texture (ground-truth keypoints)"] = round(time.perf_counter() - t1, 1)
-    from nsd.embeddings_io import embeddings_path
+    from nsd.io.embeddings import embeddings_path
 
     tables = {
         KEYPOINT_VARIANTS[source]: embeddings_path(results["texture"].folder),
@@ -238,7 +238,7 @@ def one(
 
 def rescore() -> None:
     """Recompute the scores of every result file from its stored export and tables."""
-    from nsd.embeddings_io import embeddings_path
+    from nsd.io.embeddings import embeddings_path
 
     for path in sorted(WORK.glob("result*.json")):
         r = json.loads(path.read_text())

@@ -36,7 +36,7 @@ from torch.utils.flop_counter import FlopCounterMode
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nsd.compositor import erf_transmittance_composite  # noqa: E402
+from nsd.model.compositor import erf_transmittance_composite  # noqa: E402
 from tools.benchlib import median_time, write_report  # noqa: E402
 
 SCALING_FRAMES = 40  # frames loaded per data set (timing only: the content does not matter)
@@ -62,8 +62,8 @@ def gemm_peak(n: int = 4096) -> dict:
 
 
 def _task(overrides: list[str]):
-    from nsd.data import SceneData
-    from nsd.train import NSDTask, resolve_scene
+    from nsd.cli.train import NSDTask, resolve_scene
+    from nsd.training.data import SceneData
 
     cfg = _compose("train", [f"data.max_frames={SCALING_FRAMES}", *overrides])
     d = cfg.data
@@ -136,7 +136,7 @@ def subjects(batch: int = 16, size: int = 128) -> list[dict]:
 
 def _frame_inference(task, data, views: int) -> float:
     """Median seconds to decompose all ``views`` views of a frame and associate them."""
-    from nsd.inference import associate_views, decompose
+    from nsd.inference.single import associate_views, decompose
 
     imgs, bgs = data.views(int(data.val_frames[0]))
     idx = torch.arange(views) % imgs.shape[0]
@@ -190,7 +190,7 @@ def _rate(name: str, fn, flops_fn=None) -> dict:
 
 
 def hot_loops(peak: float) -> list[dict]:
-    from nsd.train import build_model
+    from nsd.cli.train import build_model
 
     cfg = _compose("train", [])
     model = build_model(dict(_to_container(cfg.model)))
@@ -233,8 +233,8 @@ def _to_container(node):
 
 def netepu_query() -> list[dict]:
     """NeTePu renderer query (attention + head) on a training step's points, fwd and fwd+bwd."""
-    from netepu.data import sample_batch
-    from netepu.train import build_geometry_stage
+    from netepu.cli.train import build_geometry_stage
+    from netepu.geometry.data import sample_batch
 
     cfg = _compose("netepu_train", [])
     torch.manual_seed(0)

@@ -242,9 +242,9 @@ def nsd_speed_child(name: str, steps: int) -> dict:
     import numpy as np
     import torch
 
-    from nsd.data import SceneData
-    from nsd.inference import decompose
-    from nsd.train import NSDTask, resolve_scene
+    from nsd.cli.train import NSDTask, resolve_scene
+    from nsd.inference.single import decompose
+    from nsd.training.data import SceneData
     from tools.benchlib import median_time, peak_rss_mb
 
     torch.set_num_threads(2)
@@ -256,7 +256,7 @@ def nsd_speed_child(name: str, steps: int) -> dict:
     rng = np.random.default_rng(0)
     it = iter(range(10**9))
 
-    def step() -> None:  # what nsd.trainer.Trainer does per step (no clipping by default)
+    def step() -> None:  # what nsd.core.trainer.Trainer does per step (no clipping by default)
         task.opt.zero_grad(set_to_none=True)
         task.training_step(next(it), rng)["loss"].backward()
         task.opt.step()
@@ -286,8 +286,8 @@ def netepu_speed_child(name: str, steps: int) -> dict:
     import torch
     from omegaconf import OmegaConf
 
-    from netepu.maps import MapSettings, render_maps
-    from netepu.train import build_geometry_stage
+    from netepu.cli.train import build_geometry_stage
+    from netepu.geometry.maps import MapSettings, render_maps
     from tools.benchlib import median_time, peak_rss_mb
 
     torch.set_num_threads(2)
@@ -297,7 +297,7 @@ def netepu_speed_child(name: str, steps: int) -> dict:
     rng = np.random.default_rng(0)
     clip = float(cfg.trainer.grad_clip)
 
-    def step() -> None:  # what nsd.trainer.Trainer does per step
+    def step() -> None:  # what nsd.core.trainer.Trainer does per step
         for o in task.opts.values():
             o.zero_grad(set_to_none=True)
         task.training_step(0, rng)["loss"].backward()
@@ -333,12 +333,12 @@ def netepu_speed_child(name: str, steps: int) -> dict:
 
 def texture_speed_child(name: str, steps: int) -> dict:
     """Fresh process, 2 threads: texture codes per second from frames, visible masks and
-    NNOPCS maps (:func:`netepu.texture.encode_texture`: crop, resample, encode)."""
+    NNOPCS maps (:func:`netepu.texture.model.encode_texture`: crop, resample, encode)."""
     import torch
     from omegaconf import OmegaConf
 
-    from netepu.model import build_geometry_model
-    from netepu.texture import build_texture_model, encode_texture
+    from netepu.geometry.model import build_geometry_model
+    from netepu.texture.model import build_texture_model, encode_texture
     from tools.benchlib import median_time, peak_rss_mb
 
     torch.set_num_threads(2)
@@ -551,7 +551,7 @@ def report() -> None:
 
     import torch
 
-    from nsd.atomic import atomic_write_text
+    from nsd.core.atomic import atomic_write_text
     from tools.benchlib import BENCH_DIR, markdown_table, write_report
 
     def load(kind: str) -> dict:
@@ -621,7 +621,8 @@ def report() -> None:
             "fresh process per setting, 2 threads, exclusive machine; training it/s is the "
             "median of 15 steps (batch 8 view pairs; frames/s counts both views), inference "
             "frames/s decomposes all 4 views of a held-out frame per call "
-            "(`nsd.inference.decompose`), peak RSS of that process with the whole scene loaded. "
+            "(`nsd.inference.single.decompose`), peak RSS of that process with the whole scene "
+            "loaded. "
             "`timing_sessions`: how many separate timing sessions (each a fresh process per "
             "setting, settings round-robin) measured the setting; the figures are their "
             "median. The machine is a shared VM: one session alone can be off by 30-40 % "
@@ -660,7 +661,7 @@ def report() -> None:
             "## NeTePu texture-code size (speed, and accuracy after 4 minutes)\n\n"
             + (markdown_table(tex_rows) if tex_rows else "(not measured)")
             + "\n\nTexture codes per second from 32 frames (256x192) with their visible masks "
-            "and NNOPCS maps (`netepu.texture.encode_texture`: square crop around the mask, "
+            "and NNOPCS maps (`netepu.texture.model.encode_texture`: square crop around the mask, "
             "masked resampling, CNN encoder, mu); untrained weights. Accuracy columns "
             "(where present): the texture stage (default recipe) trained with that code "
             "size on the frozen 18-minute biped geometry for the stated minutes on one "

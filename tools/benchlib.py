@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from nsd.atomic import atomic_write_text
+from nsd.core.atomic import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_DIR = ROOT / "docs" / "benchmarks"

@@ -22,8 +22,8 @@ import sys
 import zipfile
 from pathlib import Path
 
-from nsd.atomic import atomic_directory
-from nsd.calibration_io import read_qca, write_toml
+from nsd.cameras.calibration_io import read_qca, write_toml
+from nsd.core.atomic import atomic_directory
 
 PACKAGE = "pose2sim==0.10.49"
 DEMO = "Pose2Sim/Demo_MultiPerson"

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 from nsd.synth.nnopcs import ellipsoid_half_extents, species_primitives
 from nsd.synth.skeleton import Species, forward_kinematics, get_species
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from nsd.errors import NSDError
+from nsd.core.errors import NSDError
 from nsd.synth.config import SceneConfig
 from nsd.synth.scene import CLI_KEYS, write_scene
 

@@ -2,7 +2,7 @@
 
 Built from the Hydra config ``conf/synth.yaml`` (``nsd-synth``), from a plain
 dict (:meth:`SceneConfig.from_dict`) or directly. Every bad value raises
-:class:`~nsd.errors.ConfigError` naming its key. The config (with a generator
+:class:`~nsd.core.errors.ConfigError` naming its key. The config (with a generator
 version) is hashed into :meth:`SceneConfig.hash`, which names cached scenes.
 """
 
@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 from nsd.synth.backdrop import Backdrop
 from nsd.synth.motion import MotionConfig
 from nsd.synth.rigs import RIG_KINDS

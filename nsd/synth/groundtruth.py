@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from nsd.errors import FootageError
+from nsd.core.errors import FootageError
 
 __all__ = ["NNOPCS_SCALE", "SyntheticScene", "load_dense", "save_dense"]
 

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 from nsd.synth.body import Individual, Pose
 from nsd.synth.skeleton import Species
 

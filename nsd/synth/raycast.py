@@ -2,7 +2,7 @@ r"""Analytic ray casting: camera rays, ellipsoids, the ground plane and the back
 
 Rays
     :func:`camera_rays` builds one ray per pixel (or per sub-pixel sample) from
-    a calibrated camera with :func:`nsd.projection.pixel_to_normalized`, lens
+    a calibrated camera with :func:`nsd.cameras.projection.pixel_to_normalized`, lens
     distortion included: the ray of pixel ``(u, v)`` leaves the optical centre
     :math:`C = -R^T t` along :math:`d = R^T (x, y, 1) / \lVert (x, y, 1) \rVert`
     where ``(x, y)`` are the undistorted normalised coordinates. A hit at
@@ -40,9 +40,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from nsd.calibration import Camera, CameraRig
-from nsd.errors import ConfigError
-from nsd.projection import pixel_to_normalized
+from nsd.cameras.calibration import Camera, CameraRig
+from nsd.cameras.projection import pixel_to_normalized
+from nsd.core.errors import ConfigError
 
 __all__ = [
     "Ellipsoids",

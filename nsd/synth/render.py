@@ -20,7 +20,7 @@ Conventions of the returned maps (V cameras, N individuals, H x W pixels)
       ``[i, i + 1)``), i.e. COCO's ``[x, y, w, h] = [x0, y0, x1 - x0, y1 - y0]``;
       all zeros for an empty mask.
     * keypoints: pixel coordinates with (0, 0) the centre of the top-left pixel
-      (:mod:`nsd.projection`), lens distortion included.
+      (:mod:`nsd.cameras.projection`), lens distortion included.
 
 Keypoint visibility (COCO convention)
     ``0``: the keypoint projects outside the image (or behind the camera);
@@ -40,9 +40,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from nsd.calibration import Camera, CameraRig
-from nsd.errors import ConfigError
-from nsd.projection import project_points
+from nsd.cameras.calibration import Camera, CameraRig
+from nsd.cameras.projection import project_points
+from nsd.core.errors import ConfigError
 from nsd.synth.backdrop import Backdrop
 from nsd.synth.body import Individual, Pose
 from nsd.synth.nnopcs import nnopcs_of

@@ -21,8 +21,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from nsd.calibration import Camera, CameraRig
-from nsd.errors import ConfigError
+from nsd.cameras.calibration import Camera, CameraRig
+from nsd.core.errors import ConfigError
 
 __all__ = [
     "corner_rig",

@@ -3,7 +3,7 @@
 :func:`build_world` turns a :class:`~nsd.synth.config.SceneConfig` into
 cameras, individuals and their trajectories (everything in memory; frames are
 rendered with :meth:`SyntheticWorld.render`). :func:`write_scene` writes the
-footage in the layout of :mod:`nsd.footage` plus a ``gt/`` folder, atomically
+footage in the layout of :mod:`nsd.io.footage` plus a ``gt/`` folder, atomically
 (built under a temporary name and renamed: an interrupted run leaves no scene)::
 
     <scene>/calibration.toml
@@ -42,10 +42,10 @@ import cv2
 import numpy as np
 import torch
 
-from nsd.atomic import atomic_directory
-from nsd.calibration import CameraRig
-from nsd.calibration_io import write_toml
-from nsd.errors import ConfigError
+from nsd.cameras.calibration import CameraRig
+from nsd.cameras.calibration_io import write_toml
+from nsd.core.atomic import atomic_directory
+from nsd.core.errors import ConfigError
 from nsd.synth.body import Individual, Pose, make_individual
 from nsd.synth.coco import CocoBuilder
 from nsd.synth.config import GENERATOR_VERSION, SceneConfig

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nsd.errors import ConfigError
+from nsd.core.errors import ConfigError
 
 __all__ = [
     "BIPED",

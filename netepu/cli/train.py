@@ -1,0 +1,108 @@
+"""``netepu-train``: the Hydra app that trains NeTePu's stages with the shared trainer.
+
+``stage`` selects what is trained; each stage is a builder in :data:`STAGES`
+that turns the config into a :class:`nsd.core.trainer.TrainTask`. The loop,
+checkpoints (exact resume), logs, progress bar and time budgets are
+:class:`nsd.core.trainer.Trainer`'s, shared with ``nsd-train``. The texture stage
+(:mod:`netepu.texture.stage`) trains on a frozen geometry checkpoint given
+by ``init_from``.
+
+Examples::
+
+    netepu-train trainer.max_minutes=20 trainer.max_steps=0
+    netepu-train netepu/model=reference trainer.max_steps=200
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from nsd.core.errors import ConfigError
+from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
+
+__all__ = ["STAGES", "build_geometry_stage", "build_texture_stage", "main", "run"]
+
+log = logging.getLogger(__name__)
+
+
+def build_geometry_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
+    """The geometry task of ``cfg``; returns it and config values found at build time."""
+    from netepu.geometry.data import build_geometry_data
+    from netepu.geometry.losses import GeometryLossWeights
+    from netepu.geometry.maps import MapSettings
+    from netepu.geometry.model import build_geometry_model
+    from netepu.geometry.stage import GeometryStageConfig, GeometryTask
+
+    net = OmegaConf.to_container(cfg.netepu, resolve=True)
+    data = build_geometry_data(net["data"], progress=log.info)
+    model = build_geometry_model(net["model"], data.config.n_keypoints, data.config.radius)
+    stage = GeometryStageConfig.from_mapping(net["optim"], net["points"], net["eval"])
+    try:
+        weights = GeometryLossWeights(**net["loss"])
+        render = MapSettings(**net["render"])
+        render.validate()
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"netepu.loss / netepu.render: {e}") from e
+    task = GeometryTask(model, data, stage, weights, render)
+    return task, {"n_keypoints": data.config.n_keypoints}
+
+
+def build_texture_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
+    """The texture task (:mod:`netepu.texture.stage`; geometry from ``init_from``)."""
+    from netepu.texture.stage import build_texture_stage as build
+
+    return build(cfg)
+
+
+STAGES: dict[str, Callable[[DictConfig], tuple[Any, dict[str, Any]]]] = {
+    "geometry": build_geometry_stage,
+    "texture": build_texture_stage,
+}
+
+
+def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
+    """Train ``cfg.stage`` into ``out_dir``; returns the final evaluation metrics."""
+    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
+    if cfg.stage not in STAGES:
+        raise ConfigError(f"stage must be one of {sorted(STAGES)}, got {cfg.stage!r}")
+    tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
+    seed_everything(tcfg.seed)  # model initialisation is part of the seeded run
+    task, found = STAGES[cfg.stage](cfg)
+    if cfg.get("init_from"):
+        state = load_checkpoint(cfg.init_from)
+        for name, module in task.modules().items():
+            if name in state["modules"]:
+                module.load_state_dict(state["modules"][name])
+    config = OmegaConf.to_container(cfg, resolve=True)
+    found = dict(found)
+    if "model" in found:  # a stage built on a checkpoint (texture) records its geometry model
+        config["netepu"]["model"] = found.pop("model")
+    config["netepu"]["data"].update(found)
+    trainer = Trainer(task, tcfg, out_dir, config)
+    metrics = trainer.fit()
+    metrics["iterations_per_second"] = trainer.throughput()
+    return metrics
+
+
+@hydra.main(config_path="pkg://nsd.conf", config_name="netepu_train", version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    """Train; returns the validation objective (``cfg.objective``) for sweepers."""
+    from hydra.core.hydra_config import HydraConfig
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    metrics = run(cfg, out_dir)
+    log.info("final metrics: %s", metrics)
+    value = metrics.get(cfg.objective, float("nan"))
+    return float(value) if value is not None and math.isfinite(value) else float("nan")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,187 @@
+"""Label-free 3D keypoints of exported subjects: inverse rendering of their multi-view masks.
+
+For each selected frame of an ``nsd-export`` folder, the visible masks of one
+subject (one cross-view ``subject_id``) in every camera that shows it go into
+:func:`netepu.geometry.inverse.invert_silhouettes` with a trained NeTePu geometry model
+and the scene's calibration; the recovered world keypoints are written for
+every annotation (camera-frame row) of that subject in that frame, in the
+``keypoints3d.npz`` format ``netepu-embed`` reads (:mod:`nsd.io.keypoints`;
+``subject_loss`` is the inversion's final silhouette loss).
+
+Visible masks of an occluded subject are partial; the inversion then fits a
+body to what is visible in each view (the multi-view silhouette loss is a
+per-view mean, so a view where the subject is mostly hidden weighs as much as
+the others). Templates (the inversion's starting poses) are poses of the
+geometry model's own synthetic individual (:func:`template_poses`), so no
+training data is needed at run time.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pycocotools import mask as mask_utils
+
+from nsd.core.errors import ConfigError
+from nsd.io.keypoints import SubjectKeypoints, subject_groups
+
+__all__ = ["invert_export", "keypoint_error", "template_poses"]
+
+log = logging.getLogger(__name__)
+
+
+def template_poses(data_cfg: dict[str, Any], n: int = 2, seed: int = 0) -> torch.Tensor:
+    """``n`` random poses (n, K, 3) of the synthetic individual a geometry model was trained on."""
+    from netepu.geometry.data import DataConfig
+    from nsd.synth import make_individual
+    from nsd.synth.motion import sample_pose
+
+    cfg = DataConfig.from_mapping(data_cfg)
+    ind = make_individual(
+        cfg.species,
+        identity=cfg.identity,
+        seed=cfg.seed,
+        proportion_variation=cfg.proportion_variation,
+    )
+    rng = np.random.default_rng(seed)
+    return torch.stack(
+        [ind.keypoints3d(sample_pose(ind, rng, cfg.pose_variation)).float() for _ in range(n)]
+    )
+
+
+def invert_export(
+    export: str | os.PathLike,
+    scene: str | os.PathLike,
+    checkpoint: str | os.PathLike,
+    out: str | os.PathLike,
+    frame_step: int = 10,
+    min_views: int = 2,
+    min_area: int = 16,
+    steps: int = 120,
+    templates: int = 2,
+    max_subject_frames: int = 0,
+) -> dict[str, Any]:
+    """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
+
+    Args:
+        export: an ``nsd-export`` folder.
+        scene: its scene folder (for the calibration).
+        checkpoint: a ``netepu-train`` geometry checkpoint.
+        out: folder for ``keypoints3d.npz``.
+        frame_step: invert every this many exported frames.
+        min_views: subjects seen (visible area >= ``min_area`` pixels) in fewer cameras
+            are skipped.
+        steps: Adam steps per inversion.
+        templates: starting poses (each tried at 4 headings).
+        max_subject_frames: stop after this many inversions (0: no limit).
+
+    Returns:
+        counts and the mean final silhouette loss.
+    """
+    from netepu.geometry.inverse import InverseSettings, invert_silhouettes
+    from netepu.geometry.model import load_geometry_model
+    from nsd.cameras.calibration_io import read_calibration
+
+    if frame_step < 1 or min_views < 1:
+        raise ConfigError(f"frame_step and min_views must be >= 1, got {frame_step}, {min_views}")
+    model, config = load_geometry_model(checkpoint)
+    net = config["netepu"]
+    starts = template_poses(net["data"], templates)
+    settings = InverseSettings(steps=steps, margin=float(net.get("render", {}).get("margin", 0.35)))
+    rig = read_calibration(scene)
+    cams = rig.stacked(torch.float32)
+    images, groups, n_frames = subject_groups(
+        export, frame_step, lambda a, im: a["area"] >= min_area
+    )
+    fitted = SubjectKeypoints()
+    for (t, sid), anns in groups:
+        sizes = {
+            (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"]))
+            for a in anns
+        }
+        if len(sizes) > 1:  # invert_silhouettes takes one (V, H, W) stack: keep the common size
+            common = max(
+                sizes,
+                key=lambda s: sum(
+                    (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"])) == s
+                    for a in anns
+                ),
+            )
+            anns = [
+                a
+                for a in anns
+                if (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"]))
+                == common
+            ]
+        if len(anns) < min_views:
+            continue
+        if max_subject_frames and len(fitted) >= max_subject_frames:
+            break
+        cam_idx = [rig.index(images[a["image_id"]]["camera"]) for a in anns]
+        masks = torch.from_numpy(
+            np.stack([mask_utils.decode(a["segmentation"]) for a in anns]).astype(bool)
+        )
+        res = invert_silhouettes(
+            model,
+            masks,
+            {k: v[cam_idx] for k, v in cams.items()},
+            starts,
+            settings,
+            np.random.default_rng(t),
+        )
+        fitted.add(t, sid, anns, res.keypoints.float().numpy(), res.loss)
+        log.info(
+            "keypoints: frame %d subject %d from %d views, loss %.3f", t, sid, len(anns), res.loss
+        )
+    fitted.save(Path(out) / "keypoints3d.npz", starts.shape[1])
+    losses = fitted.subjects["loss"]
+    return {
+        "subject_frames": len(fitted),
+        "rows": len(fitted.row_ids),
+        "frames": n_frames,
+        "mean_loss": float(np.mean(losses)) if losses else None,
+    }
+
+
+def keypoint_error(
+    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
+) -> dict[str, float]:
+    """MPJPE (mm) of the inverted subjects against a synthetic scene's 3D keypoints.
+
+    Each inverted subject-frame is matched to the ground-truth individual most of its
+    rows match (:func:`netepu.reid.identities.ground_truth_identities`); unmatched ones are
+    counted but not scored.
+    """
+    from collections import Counter
+
+    from netepu.reid.identities import ground_truth_identities
+    from nsd.io.ground_truth import GroundTruth
+
+    truth = GroundTruth.load(scene).scene.keypoints3d
+    matched = ground_truth_identities(export, scene)
+    votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
+    for _cam, t, sid, ident in matched.values():
+        votes[(t, sid)][ident] += 1
+    with np.load(keypoints) as z:
+        frames, sids, kps = z["subject_frame"], z["subject_id"], z["subject_keypoints"]
+    errors = []
+    for t, sid, kp in zip(frames.tolist(), sids.tolist(), kps, strict=True):
+        v = votes.get((t, sid))
+        if not v:
+            continue
+        gt = truth[v.most_common(1)[0][0]][t]
+        if gt.shape != kp.shape:
+            raise ConfigError(f"keypoints: {kp.shape[0]} keypoints, the scene has {gt.shape[0]}")
+        errors.append(1000 * float(np.linalg.norm(kp - gt, axis=-1).mean()))
+    return {
+        "inverted": float(len(frames)),
+        "scored": float(len(errors)),
+        "mpjpe_mm": float(np.mean(errors)) if errors else float("nan"),
+        "mpjpe_mm_median": float(np.median(errors)) if errors else float("nan"),
+    }

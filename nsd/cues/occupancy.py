@@ -1,0 +1,351 @@
+r"""Multi-view occupancy from background residuals: label-free 3D proposals for NSD's priors.
+
+Static calibrated cameras and median backgrounds give, without any label, a
+coarse *visual hull* of the individuals: a voxel of the working volume is
+occupied when its projection shows foreground evidence (see
+:func:`nsd.training.losses.foreground_evidence`, > 0.5) in every view that sees it, and
+at least ``min_views`` views see it. The occupied voxels are counted per
+column on the horizontal plane; the ``k`` heaviest connected components of that
+map are the individuals (visual-hull *ghosts*, the regions every camera sees
+as foreground without anything being there, are lighter and dropped); when
+there are fewer components than ``k`` (individuals touching), the heaviest
+components are split by k-means. This separates individuals that overlap in
+one view but not in another. Each cluster, projected into each view, gives
+
+* a proposal window: the extent of the foreground pixels the individual owns
+  in that view (each foreground pixel goes to the nearest-in-depth individual
+  whose voxels project close to it, see :func:`owned_pixels`), divided by
+  ``fill`` as in :mod:`nsd.cues.proposals`,
+* its camera-space depth (mean over its voxels), and
+* an identity that is the same in every view of the frame (the cluster index).
+
+These feed the proposal, depth and association priors of ``nsd-train``. The
+working volume is, by default, a cube around the point closest to all optical
+axes with half-size half the median camera distance to it; "up" is the mean of
+the cameras' up directions (``-y`` of each camera). Ghost volumes of the
+visual hull (regions seen as foreground by every camera without being
+occupied) are possible with few cameras; they are small and k-means absorbs
+them into the nearest cluster.
+
+Cost: the voxel projections are precomputed once (static cameras); per frame
+the carving is one gather per view over the grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from nsd.cameras.calibration import CameraRig
+from nsd.cameras.projection import project_points
+
+__all__ = [
+    "MultiviewProposals",
+    "VoxelGrid",
+    "cluster_individuals",
+    "multiview_proposals",
+    "occupied_voxels",
+    "owned_pixels",
+    "voxel_grid",
+    "working_volume",
+]
+
+
+class MultiviewProposals(NamedTuple):
+    """Visual-hull proposals of one frame.
+
+    Attributes:
+        boxes: windows (V, k, 4) = (sx, sy, tx, ty), normalised.
+        depths: camera-space depth of each individual in each view (V, k).
+        valid: (V, k) bool.
+        owners: the individual owning each foreground pixel (V, H, W), -1 elsewhere.
+    """
+
+    boxes: Tensor
+    depths: Tensor
+    valid: Tensor
+    owners: Tensor
+
+
+@dataclass
+class VoxelGrid:
+    """A voxel grid over the working volume and its projections into every view.
+
+    Attributes:
+        centres: voxel centres (M, 3), world.
+        size: voxel side (scene units).
+        pixel: flat pixel index of each voxel in each view (V, M), int64.
+        inside: the voxel projects inside view v (and in front of it), (V, M) bool.
+        uv: projected pixel coordinates (V, M, 2).
+        depth: camera-space depth (V, M).
+        up: world up direction (3,).
+        focal: mean focal length of each view in pixels (V,).
+        image_size: (H, W).
+    """
+
+    centres: Tensor
+    size: float
+    pixel: Tensor
+    inside: Tensor
+    uv: Tensor
+    depth: Tensor
+    up: Tensor
+    focal: Tensor
+    image_size: tuple[int, int]
+
+
+def working_volume(rig: CameraRig) -> tuple[np.ndarray, float, np.ndarray]:
+    """Default working volume: (centre (3,), half-size, up (3,)) from the cameras' poses."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in rig:
+        P = np.eye(3) - np.outer(c.viewing_direction, c.viewing_direction)
+        A += P
+        b += P @ c.center
+    focus = np.linalg.lstsq(A, b, rcond=None)[0]
+    half = 0.5 * float(np.median([np.linalg.norm(c.center - focus) for c in rig]))
+    up = -np.mean([c.R[1] for c in rig], axis=0)
+    return focus, half, up / np.linalg.norm(up)
+
+
+def voxel_grid(
+    rig: CameraRig,
+    image_size: tuple[int, int],
+    resolution: int = 48,
+    centre: np.ndarray | None = None,
+    half_size: float | None = None,
+) -> VoxelGrid:
+    """Precompute a ``resolution``^3 grid over the working volume and its projections.
+
+    Args:
+        rig: cameras scaled to the frames' size.
+        image_size: (H, W) of the frames.
+        resolution: voxels per side.
+        centre, half_size: working volume (default: :func:`working_volume`).
+    """
+    focus, half, up = working_volume(rig)
+    centre = focus if centre is None else np.asarray(centre, float)
+    half = half if half_size is None else float(half_size)
+    size = 2 * half / resolution
+    ax = (np.arange(resolution) + 0.5) * size - half
+    g = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3) + centre
+    centres = torch.as_tensor(g, dtype=torch.float32)
+    cams = rig.stacked(torch.float32)
+    uv, z = project_points(
+        centres.expand(len(rig), -1, -1), cams["K"], cams["R"], cams["t"], cams["dist"]
+    )
+    H, W = image_size
+    u, v = uv[..., 0].round().long(), uv[..., 1].round().long()
+    inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    pixel = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).long()
+    focal = (cams["K"][:, 0, 0] + cams["K"][:, 1, 1]) / 2
+    return VoxelGrid(
+        centres, size, pixel, inside, uv, z, torch.as_tensor(up, dtype=torch.float32), focal, (H, W)
+    )
+
+
+def occupied_voxels(
+    evidence: Tensor, grid: VoxelGrid, min_views: int = 2, threshold: float = 0.5
+) -> Tensor:
+    """Visual-hull occupancy of one frame.
+
+    Args:
+        evidence: foreground evidence of every view (V, H, W).
+        grid: the precomputed grid.
+        min_views: a voxel must be seen by at least this many views.
+        threshold: evidence above which a pixel is foreground.
+
+    Returns:
+        (M,) bool.
+    """
+    fg = evidence.flatten(1) > threshold  # (V, P)
+    hit = torch.gather(fg, 1, grid.pixel)  # (V, M)
+    seen = grid.inside.sum(0)
+    return ((hit | ~grid.inside).all(0)) & (seen >= min_views) & (hit & grid.inside).any(0)
+
+
+def _plane_basis(up: Tensor) -> Tensor:
+    """Two unit vectors (2, 3) spanning the plane orthogonal to ``up``."""
+    a = torch.tensor([1.0, 0.0, 0.0]) if abs(float(up[0])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
+    e1 = a - (a @ up) * up
+    e1 = e1 / e1.norm()
+    return torch.stack([e1, torch.linalg.cross(up, e1)])
+
+
+def _kmeans_2d(x: Tensor, k: int, iterations: int = 12) -> Tensor:
+    """k-means labels (P,) of 2D points, initialised at quantiles of the principal axis."""
+    if len(x) <= k:
+        return torch.arange(len(x)) % k
+    mean = x.mean(0)
+    _, _, vh = torch.linalg.svd(x - mean, full_matrices=False)
+    proj = (x - mean) @ vh[0]
+    q = torch.quantile(proj, (torch.arange(k, dtype=x.dtype) + 0.5) / k)
+    centres = mean + q[:, None] * vh[0]
+    for _ in range(iterations):
+        labels = torch.cdist(x, centres).argmin(1)
+        for j in range(k):
+            if (labels == j).any():
+                centres[j] = x[labels == j].mean(0)
+    return torch.cdist(x, centres).argmin(1)
+
+
+def cluster_individuals(
+    points: Tensor,
+    up: Tensor,
+    cell: float,
+    k: int,
+    min_column: int = 2,
+    split: bool = True,
+    ghost_ratio: float = 0.2,
+) -> Tensor:
+    """Individual labels (P,) in [0, k) or -1 (dropped) for occupied voxel centres (P, 3).
+
+    Columns of the horizontal plane (side ``cell``) holding at least ``min_column``
+    voxels are grouped into 4-connected components, ranked by the sum of their
+    squared column heights (tall bodies over low ghosts); the ``k`` first are kept.
+    With ``split`` (``k`` is the number of individuals), while fewer than ``k``
+    remain the largest is split in two by k-means. Without (``k`` is only an upper
+    bound), nothing is split and components scoring below ``ghost_ratio`` times
+    the heaviest are dropped as ghosts: the labels then say how many individuals
+    the hull holds, instead of cutting one individual into ``k`` parts.
+    """
+    from scipy import ndimage
+
+    xy = points @ _plane_basis(up).T  # (P, 2)
+    ij = torch.floor((xy - xy.min(0).values) / cell).long()
+    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    counts = np.zeros(shape)
+    np.add.at(counts, (ij[:, 0].numpy(), ij[:, 1].numpy()), 1)
+    # thin columns (one voxel) are hull noise and bridge neighbours: drop them
+    comp, n = ndimage.label(counts >= min_column)
+    point_comp = torch.as_tensor(comp[ij[:, 0].numpy(), ij[:, 1].numpy()]) - 1  # (P,)
+    groups = [torch.nonzero(point_comp == c).flatten() for c in range(n)]
+    # rank by sum of squared column heights: people are tall, ghosts are low and flat
+    score = [float((counts[comp == c + 1] ** 2).sum()) for c in range(n)]
+    ranked = sorted(zip(score, groups, strict=True), key=lambda p: -p[0])[:k]
+    if not split and ranked:
+        ranked = [(sc, g) for sc, g in ranked if sc >= ghost_ratio * ranked[0][0]]
+    groups = [g for _, g in ranked]
+    while split and 0 < len(groups) < k and len(groups[0]) >= 2:
+        big = groups.pop(0)
+        lab = _kmeans_2d(xy[big], 2)
+        groups += [big[lab == 0], big[lab == 1]]
+        groups.sort(key=len, reverse=True)
+    labels = torch.full((len(points),), -1, dtype=torch.long)
+    # a stable order: by position along the first plane axis
+    groups.sort(key=lambda g: float(xy[g, 0].mean()) if len(g) else 0.0)
+    for j, g in enumerate(groups):
+        labels[g] = j
+    return labels
+
+
+def owned_pixels(
+    fg: Tensor,
+    uv: Tensor,
+    depth: Tensor,
+    labels: Tensor,
+    k: int,
+    radius: float,
+    reach: float,
+) -> Tensor:
+    """Give each foreground pixel of one view to an individual.
+
+    A pixel goes to the nearest-in-depth individual among the voxels projecting
+    within ``radius`` pixels of it, else to the individual of the nearest voxel
+    within ``reach`` pixels (limbs the coarse hull lost), else to nobody.
+
+    Args:
+        fg: foreground (H, W) bool.
+        uv: projections of the individuals' voxels (P, 2); depth (P,); labels (P,).
+        k: number of individuals.
+        radius, reach: pixels.
+
+    Returns:
+        owner map (H, W) int64 in [-1, k).
+    """
+    H, W = fg.shape
+    owner = torch.full((H, W), -1, dtype=torch.long)
+    ys, xs = torch.nonzero(fg, as_tuple=True)
+    if len(ys) == 0 or len(uv) == 0:
+        return owner
+    pix = torch.stack([xs, ys], -1).to(uv.dtype)
+    d = torch.cdist(pix, uv)  # (F, P)
+    near = d <= radius
+    zbuf = torch.where(near, depth[None].expand_as(d), torch.full_like(d, float("inf")))
+    front = zbuf.argmin(1)
+    nearest = d.argmin(1)
+    has_near = near.any(1)
+    pick = torch.where(has_near, front, nearest)
+    ok = has_near | (d.gather(1, nearest[:, None])[:, 0] <= reach)
+    owner[ys[ok], xs[ok]] = labels[pick[ok]]
+    return owner
+
+
+def multiview_proposals(
+    evidence: Tensor,
+    grid: VoxelGrid,
+    k: int,
+    fill: float = 0.75,
+    min_voxels: int = 4,
+    min_scale: float = 0.2,
+    max_scale: float = 1.0,
+    min_views: int = 2,
+    split: bool = True,
+) -> MultiviewProposals:
+    """Proposals for all views of one frame from its occupancy.
+
+    Args:
+        evidence: (V, H, W) foreground evidence.
+        grid: precomputed voxel grid.
+        k: number of clusters (windows).
+        fill: fraction of the window half-size the subject fills (as nsd.cues.proposals).
+        min_voxels: smaller clusters are invalid.
+        min_scale, max_scale: bounds of proposal scales.
+        min_views: as in :func:`occupied_voxels`.
+        split: :func:`cluster_individuals`' ``split`` (False: ``k`` is an upper bound
+            and slots without an individual are invalid).
+
+    Returns:
+        :class:`MultiviewProposals`. Slot ``j`` is the same cluster (individual) in
+        every view. A window covers the foreground pixels its individual owns
+        (:func:`owned_pixels`).
+    """
+    V = evidence.shape[0]
+    H, W = grid.image_size
+    boxes = torch.zeros(V, k, 4)
+    boxes[..., :2] = min_scale
+    depths = torch.zeros(V, k)
+    valid = torch.zeros(V, k, dtype=torch.bool)
+    occ = occupied_voxels(evidence, grid, min_views)
+    idx = torch.nonzero(occ).flatten()
+    owners = torch.full((V, H, W), -1, dtype=torch.long)
+    if len(idx) < min_voxels:
+        return MultiviewProposals(boxes, depths, valid, owners)
+    labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split)
+    keep = labels >= 0
+    idx, labels = idx[keep], labels[keep]
+    f = grid.uv.new_tensor([W, H]) / 2  # pixels per normalised unit
+    for v in range(V):
+        vis = grid.inside[v, idx]
+        z = grid.depth[v, idx[vis]]
+        radius = float(1.5 * grid.size * grid.focal[v] / z.median()) if len(z) else 1.0
+        owners[v] = owned_pixels(
+            evidence[v] > 0.5, grid.uv[v, idx[vis]], z, labels[vis], k, radius, 3 * radius
+        )
+        for j in range(k):
+            sel = labels[vis] == j
+            ys, xs = torch.nonzero(owners[v] == j, as_tuple=True)
+            if sel.sum() < min_voxels or len(xs) < min_voxels:
+                continue
+            pts = torch.stack([xs, ys], -1).to(f.dtype)
+            lo = torch.quantile(pts, 0.01, dim=0) - 0.5
+            hi = torch.quantile(pts, 0.99, dim=0) + 0.5
+            centre = (lo + hi) / 2 / f - 1
+            half = (hi - lo) / 2 / f / fill
+            boxes[v, j] = torch.cat([half.clamp(min_scale, max_scale), centre])
+            depths[v, j] = z[sel].mean()
+            valid[v, j] = True
+    return MultiviewProposals(boxes, depths, valid, owners)

@@ -1,0 +1,170 @@
+r"""Label-free window proposals from the background residual, and the prior that uses them.
+
+The median background makes the foreground visible for free:
+:math:`e = \mathrm{evidence}(|I - B|)` (see :mod:`nsd.training.losses`). Clustering the
+foreground pixels of a frame into ``k`` groups (weighted k-means on pixel
+coordinates, the vertical axis shrunk by ``y_weight`` because bodies are
+taller than wide) gives one blob per subject when subjects stand apart, and a
+left/right split of a merged blob when they overlap. Each blob gives a
+proposal window centred on its weighted mean with half-size
+:math:`2\sigma / \mathrm{fill}` per axis (:math:`2\sigma` covers a uniform
+blob; ``fill`` = 0.75 keeps the subject inside the focal bump's bright core).
+
+The *proposal prior* pulls each detector window towards its Hungarian-matched
+proposal (squared error on centre and log scale). It seeds localisation,
+which Bi-NVS alone finds only after many GPU iterations (NSD: ~200k), and is
+annealed to zero over ``decay_steps`` so the decomposition is then shaped by
+re-synthesis alone. It uses no labels.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import torch
+from torch import Tensor
+
+__all__ = ["association_prior", "evidence_proposals", "match_proposals", "proposal_prior"]
+
+OFF_WINDOW_COST = 1e3  # added to a window that is off: above any cost between bounded boxes
+
+
+def evidence_proposals(
+    evidence: Tensor,
+    k: int,
+    iterations: int = 10,
+    y_weight: float = 0.35,
+    fill: float = 0.75,
+    min_mass: float = 8.0,
+    min_scale: float = 0.2,
+    max_scale: float = 1.0,
+) -> tuple[Tensor, Tensor]:
+    """Proposal windows from foreground evidence by weighted k-means.
+
+    Args:
+        evidence: (B, H, W) in [0, 1].
+        k: number of proposals (windows).
+        iterations: Lloyd iterations.
+        y_weight: scale of the vertical axis in the clustering distance.
+        fill: fraction of the window half-size the blob should fill.
+        min_mass: blobs with less evidence (pixels) are invalid.
+        min_scale, max_scale: bounds of the proposal scales (as the detector's).
+
+    Returns:
+        boxes (B, k, 4) = (sx, sy, tx, ty) normalised; valid (B, k) bool.
+    """
+    B, H, W = evidence.shape
+    ys = (2 * torch.arange(H, dtype=evidence.dtype) + 1) / H - 1
+    xs = (2 * torch.arange(W, dtype=evidence.dtype) + 1) / W - 1
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    pts = torch.stack([gx.flatten(), gy.flatten()], -1)  # (P, 2)
+    w = evidence.flatten(1)  # (B, P)
+    mass = w.sum(1).clamp_min(1e-6)
+    # initial centres at the k x-quantiles of the evidence, at its mean height
+    order = torch.argsort(pts[:, 0])
+    cdf = torch.cumsum(w[:, order], 1) / mass[:, None]
+    q = (torch.arange(k, dtype=evidence.dtype) + 0.5) / k
+    idx = torch.searchsorted(cdf.contiguous(), q.expand(B, k).contiguous()).clamp_max(
+        len(order) - 1
+    )
+    cx = pts[order[idx], 0]
+    cy = ((w * pts[:, 1]).sum(1) / mass)[:, None].expand(B, k)
+    centres = torch.stack([cx, cy], -1)  # (B, k, 2)
+    scale = torch.tensor([1.0, y_weight], dtype=evidence.dtype)
+    for _ in range(iterations):
+        d = ((pts[None, None] - centres[:, :, None]) * scale).pow(2).sum(-1)  # (B, k, P)
+        assign = torch.nn.functional.one_hot(d.argmin(1), k).permute(0, 2, 1).to(w.dtype)
+        cw = assign * w[:, None]  # (B, k, P)
+        m = cw.sum(-1, keepdim=True)
+        new = (cw @ pts) / m.clamp_min(1e-6)
+        centres = torch.where(m > 0, new, centres)
+    d = ((pts[None, None] - centres[:, :, None]) * scale).pow(2).sum(-1)
+    cw = torch.nn.functional.one_hot(d.argmin(1), k).permute(0, 2, 1).to(w.dtype) * w[:, None]
+    m = cw.sum(-1)
+    var = (cw[..., None] * (pts[None, None] - centres[:, :, None]).pow(2)).sum(2) / m[
+        ..., None
+    ].clamp_min(1e-6)
+    half = 2 * var.sqrt() / fill
+    boxes = torch.cat([half.clamp(min_scale, max_scale), centres], -1)
+    return boxes, m >= min_mass
+
+
+def _cost(a: Tensor, b: Tensor) -> Tensor:
+    """(B, N, M) squared distance of centres plus squared log-scale difference."""
+    dt = (a[:, :, None, 2:] - b[:, None, :, 2:]).pow(2).sum(-1)
+    ds = (a[:, :, None, :2].log() - b[:, None, :, :2].log()).pow(2).sum(-1)
+    return dt + ds
+
+
+@torch.no_grad()
+def match_proposals(
+    boxes: Tensor, proposals: Tensor, valid: Tensor, active: Tensor | None = None
+) -> Tensor:
+    """Exact min-cost matching of windows to proposals (permutations; N is small).
+
+    Args:
+        boxes: (B, N, 4); proposals: (B, N, 4); valid: (B, N) bool.
+        active: (B, N) bool, windows that are on (None: all). A valid proposal goes
+            to a window that is off only when no active window is left for it.
+
+    Returns:
+        (B, N) long: the proposal of each window.
+    """
+    N = boxes.shape[1]
+    c = _cost(boxes, proposals)
+    if active is not None:
+        c = c + OFF_WINDOW_COST * (~active)[:, :, None].to(c.dtype)
+    c = c * valid[:, None, :]
+    perms = torch.tensor(list(itertools.permutations(range(N))))  # (N!, N)
+    total = c[:, torch.arange(N)[None], perms].sum(-1)  # (B, N!)
+    return perms[total.argmin(1)]
+
+
+def proposal_prior(
+    boxes: Tensor, proposals: Tensor, valid: Tensor, matching: Tensor | None = None
+) -> Tensor:
+    """Squared error between windows and their matched valid proposals.
+
+    Args:
+        boxes: detector windows (B, N, 4).
+        proposals: (B, N, 4) (slot j of every view is the same individual for
+            multi-view proposals).
+        valid: (B, N) bool.
+        matching: (B, N) from :func:`match_proposals` (computed if None).
+
+    Returns:
+        Mean over matched pairs of |t - t*|^2 + |log s - log s*|^2 (0 if none is valid).
+    """
+    if matching is None:
+        matching = match_proposals(boxes, proposals, valid)
+    c = _cost(boxes, proposals) * valid[:, None, :]
+    matched = c.gather(2, matching[..., None])[..., 0]
+    return matched.sum() / valid.sum().clamp_min(1)
+
+
+def association_prior(
+    association: Tensor,
+    matching_target: Tensor,
+    valid_target: Tensor,
+    matching_source: Tensor,
+    valid_source: Tensor,
+) -> Tensor:
+    """Cross-entropy pulling the soft association towards multi-view proposal identities.
+
+    Target window j and source window i show the same individual when they are
+    matched to the same proposal slot (multi-view proposals share slots across
+    views).
+
+    Args:
+        association: soft association (B, N, M), rows target windows.
+        matching_target, matching_source: proposal slot of each window (B, N), (B, M).
+        valid_target, valid_source: validity of those proposals (B, N), (B, M).
+    """
+    vt = valid_target.gather(1, matching_target)
+    vs = valid_source.gather(1, matching_source)
+    same = (matching_target[:, :, None] == matching_source[:, None, :]) & vs[:, None, :]
+    has = same.any(-1) & vt
+    target = same.float().argmax(-1)
+    logp = association.clamp_min(1e-8).log()
+    nll = -logp.gather(2, target[..., None])[..., 0]
+    return (nll * has).sum() / has.sum().clamp_min(1)

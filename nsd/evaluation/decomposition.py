@@ -1,0 +1,383 @@
+"""Decomposition metrics against ground truth (used by ``nsd-eval`` and every later issue).
+
+Per camera-frame, predicted subjects (active windows) are matched one-to-one to
+the ground-truth individuals that are at least partly visible (Hungarian
+matching on visible-mask IoU). Then:
+
+* **detection rate**: fraction of GT individuals whose matched prediction's box
+  (the tight box of its visible mask; a focal window is larger than its
+  subject, so the window itself is not the detection) has IoU >= 0.5 with the
+  GT visible box;
+* **mask mIoU**: mean visible-mask IoU over GT individuals (0 when unmatched);
+* **foreground ARI**: adjusted Rand index (scikit-learn) between GT and
+  predicted instance labels over GT foreground pixels;
+* **depth-order accuracy**: over GT pairs whose amodal masks overlap (>= 4
+  pixels) and are both matched: the GT front individual is the one that owns
+  most of the overlap's visible pixels; correct when its window has the smaller
+  predicted depth;
+* **cross-view association accuracy**: for each frame, view pair (v, w) and GT
+  individual matched in both views, the hard association of its window in v
+  (the model's score: appearance, plus ray distance if configured) picks its
+  window in w;
+* **merge rate**: over camera-frames with >= 2 visible GT individuals, the
+  fraction where one window's mask covers at least half of the visible mask of
+  two or more of them (the auto-encoder's failure in the NSD paper);
+* **overlap ownership**: over visible pixels inside GT amodal overlaps, the
+  fraction whose strongest window is the one matched to the pixel's GT owner
+  (blended overlaps, NSD's failure without depth, lower it);
+* **novel-view PSNR / SSIM**: Bi-NVS re-synthesis of view w from view v;
+* **COCO AP** (bbox and segm, class-agnostic) through pycocotools COCOeval on
+  the scene's COCO ground truth.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.optimize import linear_sum_assignment
+from sklearn.metrics import adjusted_rand_score
+
+__all__ = [
+    "FrameScore",
+    "association_scores",
+    "box_iou",
+    "coco_ap",
+    "evaluate_model",
+    "fg_ari",
+    "mask_iou",
+    "match",
+    "score_frame",
+]
+
+MIN_OVERLAP = 4  # pixels of amodal overlap for a pair to count in depth-order accuracy
+
+
+def mask_iou(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """IoU matrix of boolean masks pred (P, H, W) and gt (G, H, W): (P, G)."""
+    p = pred.reshape(len(pred), -1).astype(np.float32)
+    g = gt.reshape(len(gt), -1).astype(np.float32)
+    inter = p @ g.T
+    union = p.sum(1)[:, None] + g.sum(1)[None] - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-9), 0.0)
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU matrix of COCO boxes [x, y, w, h]: a (P, 4), b (G, 4) -> (P, G)."""
+    a, b = np.asarray(a, float).reshape(-1, 4), np.asarray(b, float).reshape(-1, 4)
+    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
+    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
+    x1 = np.minimum(a[:, None, 0] + a[:, None, 2], b[None, :, 0] + b[None, :, 2])
+    y1 = np.minimum(a[:, None, 1] + a[:, None, 3], b[None, :, 1] + b[None, :, 3])
+    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
+    union = (a[:, 2] * a[:, 3])[:, None] + (b[:, 2] * b[:, 3])[None] - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-9), 0.0)
+
+
+def match(iou: np.ndarray) -> list[tuple[int, int]]:
+    """Hungarian matching maximising IoU; pairs with IoU 0 are dropped. Returns (pred, gt)."""
+    if iou.size == 0:
+        return []
+    rows, cols = linear_sum_assignment(-iou)
+    return [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if iou[r, c] > 0]
+
+
+def fg_ari(gt_labels: np.ndarray, pred_labels: np.ndarray) -> float:
+    """Adjusted Rand index over GT foreground pixels (gt label >= 0); nan without foreground."""
+    fg = gt_labels >= 0
+    if fg.sum() == 0 or len(np.unique(gt_labels[fg])) < 1:
+        return float("nan")
+    return float(adjusted_rand_score(gt_labels[fg], pred_labels[fg]))
+
+
+@dataclass
+class FrameScore:
+    """Counts from one camera-frame; summed over frames by :func:`evaluate_model`."""
+
+    n_gt: int = 0
+    detected: int = 0
+    iou_sum: float = 0.0
+    order_total: int = 0
+    order_correct: int = 0
+    ari: list[float] = field(default_factory=list)
+    multi: int = 0  # camera-frames with >= 2 visible GT individuals
+    merged: int = 0  # ... of which one window covers half of two of them
+    overlap_pixels: int = 0
+    overlap_owned: int = 0
+    matches: dict[int, int] = field(default_factory=dict)  # gt identity -> predicted window
+
+
+def score_frame(
+    pred_masks: np.ndarray,
+    pred_depths: np.ndarray,
+    active: np.ndarray,
+    gt_visible: np.ndarray,
+    gt_amodal: np.ndarray,
+    gt_boxes: np.ndarray,
+    gt_ids: Sequence[int],
+    threshold: float = 0.5,
+) -> FrameScore:
+    """Score one camera-frame.
+
+    Args:
+        pred_masks: soft visible masks of all windows (N, H, W).
+        pred_depths: (N,).
+        active: (N,) bool.
+        gt_visible, gt_amodal: (G, H, W) bool.
+        gt_boxes: (G, 4) visible boxes, COCO pixels.
+        gt_ids: (G,) identity ids.
+        threshold: binarisation of the predicted masks.
+    """
+    from nsd.inference.single import mask_boxes
+
+    s = FrameScore(n_gt=len(gt_ids))
+    win = np.flatnonzero(active)
+    pm = pred_masks[win] > threshold
+    iou = (
+        mask_iou(pm, gt_visible) if len(win) and len(gt_ids) else np.zeros((len(win), len(gt_ids)))
+    )
+    pairs = match(iou)
+    pboxes = mask_boxes(torch.as_tensor(pm)).numpy() if len(win) else np.zeros((0, 4))
+    matched_gt = {}
+    for p, g in pairs:
+        s.iou_sum += iou[p, g]
+        if box_iou(pboxes[p : p + 1], gt_boxes[g : g + 1])[0, 0] >= 0.5:
+            s.detected += 1
+        matched_gt[g] = int(win[p])
+        s.matches[int(gt_ids[g])] = int(win[p])
+    # depth order over overlapping GT pairs
+    G = len(gt_ids)
+    for a in range(G):
+        for b in range(a + 1, G):
+            overlap = gt_amodal[a] & gt_amodal[b]
+            if overlap.sum() < MIN_OVERLAP or a not in matched_gt or b not in matched_gt:
+                continue
+            va, vb = (gt_visible[a] & overlap).sum(), (gt_visible[b] & overlap).sum()
+            if va == vb:
+                continue
+            front, back = (a, b) if va > vb else (b, a)
+            s.order_total += 1
+            s.order_correct += int(pred_depths[matched_gt[front]] < pred_depths[matched_gt[back]])
+    # foreground ARI
+    H, W = gt_visible.shape[-2:]
+    gt_lab = np.full((H, W), -1, np.int64)
+    for g in range(G):
+        gt_lab[gt_visible[g]] = g
+    if len(win):
+        weights = pred_masks[win]
+        pred_lab = np.where(weights.max(0) > threshold, weights.argmax(0), -1)
+    else:
+        pred_lab = np.full((H, W), -1)
+    if G:
+        s.ari.append(fg_ari(gt_lab, pred_lab))
+    if G == 0:
+        return s
+    # merged subjects and ownership of overlaps
+    gt_area = gt_visible.reshape(G, -1).sum(1)
+    if (gt_area > 0).sum() >= 2:
+        s.multi += 1
+        if len(win):
+            inter = pm.reshape(len(win), -1).astype(np.int64) @ gt_visible.reshape(G, -1).T
+            covered = inter >= 0.5 * np.maximum(gt_area, 1)[None]
+            s.merged += int((covered.sum(1) >= 2).any())
+    in_overlap = (gt_amodal.sum(0) >= 2) & (gt_lab >= 0)
+    s.overlap_pixels += int(in_overlap.sum())
+    if len(win) and in_overlap.any():
+        owner = np.full(G, -2)  # row of pred_lab's window per GT individual (-2: unmatched)
+        for p, g in pairs:
+            owner[g] = p
+        s.overlap_owned += int((pred_lab[in_overlap] == owner[gt_lab[in_overlap]]).sum())
+    return s
+
+
+def coco_ap(gt_coco, results: list[dict], image_ids: Sequence[int]) -> dict[str, float]:
+    """Class-agnostic COCO AP / AP50 for bbox and segm results on ``image_ids``."""
+    import contextlib
+    import io
+
+    from pycocotools.cocoeval import COCOeval
+
+    out = {}
+    for iou_type in ("bbox", "segm"):
+        if not results:
+            out[f"coco_{iou_type}_ap"] = 0.0
+            out[f"coco_{iou_type}_ap50"] = 0.0
+            continue
+        with contextlib.redirect_stdout(io.StringIO()):
+            dt = gt_coco.loadRes(results)
+            ev = COCOeval(gt_coco, dt, iou_type)
+            ev.params.imgIds = list(image_ids)
+            ev.params.useCats = 0
+            ev.evaluate()
+            ev.accumulate()
+            ev.summarize()
+        out[f"coco_{iou_type}_ap"] = float(max(ev.stats[0], 0.0))
+        out[f"coco_{iou_type}_ap50"] = float(max(ev.stats[1], 0.0))
+    return out
+
+
+def association_scores(
+    model,
+    dec,
+    cameras: dict[str, torch.Tensor],
+    image_size: Sequence[int],
+    v: int,
+    w: int,
+    slot_bonus: float = 0.0,
+) -> torch.Tensor:
+    """The model's association score (N, N) between the windows of views v and w of a frame.
+
+    Args:
+        model: the trained BiNVS.
+        dec: the frame's :class:`nsd.inference.single.Decomposition` (one entry per view).
+        cameras: stacked per-view K (V, 3, 3), R, t, dist at ``image_size``
+            (:meth:`nsd.cameras.calibration.CameraRig.stacked`).
+        image_size: (H, W) of the decomposed frames.
+        v, w: the two views.
+        slot_bonus: added where both windows were fused with the same visual-hull
+            individual (``dec.slots``, multi-view inference, :mod:`nsd.inference.multiview`).
+    """
+    cost = model.geometry_cost(
+        dec.windows[v][None],
+        dec.windows[w][None],
+        {k: c[v][None] for k, c in cameras.items()},
+        {k: c[w][None] for k, c in cameras.items()},
+        tuple(image_size),
+    )
+    score = model.association_score(dec.app[v][None], dec.app[w][None], cost)[0]
+    slots = getattr(dec, "slots", None)
+    if slots is not None and slot_bonus > 0:
+        a, b = slots[v], slots[w]
+        same = (a[:, None] == b[None, :]) & (a[:, None] >= 0)
+        score = score + slot_bonus * same.to(score.dtype)
+    return score
+
+
+@torch.no_grad()
+def evaluate_model(
+    model,
+    data,
+    frames: Sequence[int],
+    gt=None,
+    threshold: float = 0.5,
+    refine: str = "residual",
+    inference=None,
+) -> dict[str, float]:
+    """All metrics on ``frames`` of ``data`` (an :class:`nsd.training.data.SceneData`).
+
+    Without ground truth only the self-supervised novel-view PSNR/SSIM is returned.
+    With it, ``mask_miou_raw`` also scores the compositor's raw masks (no refinement).
+    ``inference``: :class:`nsd.inference.multiview.InferenceSettings` (None: the defaults,
+    multi-view inference).
+    """
+    import kornia
+
+    from nsd.inference.multiview import InferenceSettings, decompose_views
+    from nsd.io.coco_results import decomposition_to_coco
+
+    settings = inference or InferenceSettings()
+    was = model.training
+    model.eval()
+    V = data.num_views
+    grid = (
+        settings.grid(data.rig, data.image_size) if settings.multiview and gt is not None else None
+    )
+    psnr, ssim = [], []
+    total = FrameScore()
+    raw_iou = 0.0
+    assoc_total = assoc_correct = 0
+    results: list[dict] = []
+    image_ids: list[int] = []
+    try:
+        for t in frames:
+            views, bgs = data.views(int(t))
+            # novel view: every ordered pair (v, v+1)
+            w_idx = (torch.arange(V) + 1) % V
+            rv, _, _, _ = model(
+                views, views[w_idx], bgs, bgs[w_idx], data.rotations[torch.arange(V), w_idx]
+            )
+            psnr.append(kornia.metrics.psnr(rv.image.clamp(0, 1), views, 1.0).item())
+            ssim.append(kornia.metrics.ssim(rv.image.clamp(0, 1), views, 7).mean().item())
+            if gt is None:
+                continue
+            dec = decompose_views(
+                model, views, bgs, V, settings, grid, mask_threshold=threshold, refine=refine
+            )
+            per_view = []
+            for v, cam in enumerate(data.rig.names):
+                fgt = gt.frame(cam, int(t), data.image_size)
+                s = score_frame(
+                    dec.masks[v].numpy(),
+                    dec.depths[v].numpy(),
+                    dec.active[v].numpy(),
+                    fgt.visible,
+                    fgt.amodal,
+                    fgt.boxes,
+                    fgt.identity,
+                    threshold,
+                )
+                raw = score_frame(
+                    dec.raw_masks[v].numpy(),
+                    dec.depths[v].numpy(),
+                    dec.active[v].numpy(),
+                    fgt.visible,
+                    fgt.amodal,
+                    fgt.boxes,
+                    fgt.identity,
+                    threshold,
+                )
+                raw_iou += raw.iou_sum
+                total.n_gt += s.n_gt
+                total.detected += s.detected
+                total.iou_sum += s.iou_sum
+                total.order_total += s.order_total
+                total.order_correct += s.order_correct
+                total.ari += s.ari
+                total.multi += s.multi
+                total.merged += s.merged
+                total.overlap_pixels += s.overlap_pixels
+                total.overlap_owned += s.overlap_owned
+                per_view.append(s.matches)
+                results += decomposition_to_coco(dec, v, fgt.image_id, fgt.native_size, threshold)
+                image_ids.append(fgt.image_id)
+            for v in range(V):
+                for w in range(V):
+                    if v == w:
+                        continue
+                    sim = association_scores(
+                        model, dec, data.cameras, data.image_size, v, w, settings.slot_bonus
+                    )
+                    for ident, iv in per_view[v].items():
+                        if ident in per_view[w]:
+                            assoc_total += 1
+                            assoc_correct += int(sim[iv].argmax().item() == per_view[w][ident])
+    finally:
+        model.train(was)
+    out = {"nvs_psnr": float(np.mean(psnr)), "nvs_ssim": float(np.mean(ssim))}
+    if gt is not None:
+        n = max(total.n_gt, 1)
+        out.update(
+            {
+                "detection_rate": total.detected / n,
+                "mask_miou": total.iou_sum / n,
+                "mask_miou_raw": raw_iou / n,
+                "fg_ari": float(np.nanmean(total.ari)) if total.ari else float("nan"),
+                "depth_order_accuracy": (
+                    total.order_correct / total.order_total if total.order_total else float("nan")
+                ),
+                "depth_order_pairs": float(total.order_total),
+                "merge_rate": total.merged / total.multi if total.multi else float("nan"),
+                "overlap_ownership": (
+                    total.overlap_owned / total.overlap_pixels
+                    if total.overlap_pixels
+                    else float("nan")
+                ),
+                "association_accuracy": (
+                    assoc_correct / assoc_total if assoc_total else float("nan")
+                ),
+            }
+        )
+        out.update(coco_ap(gt.coco, results, image_ids))
+    return {k: float(v) for k, v in out.items()}  # plain floats (numpy scalars break JSON)

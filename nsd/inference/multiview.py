@@ -1,0 +1,203 @@
+r"""Multi-view inference: each frame's detector windows fused with the visual hull of its cameras.
+
+NSD's detector sees one image at a time. When all calibrated views of an instant are
+decomposed together, the label-free visual hull of their background residuals
+(:mod:`nsd.cues.occupancy`, the proposals that already guide training) says where each
+individual stands, which window of every view shows it and how far it is from each
+camera. In each view (:func:`fuse_detections`):
+
+* every detector window is matched to a hull individual
+  (:func:`nsd.cues.proposals.match_proposals`);
+* a matched window moves towards the individual's projection by ``window_blend``
+  :math:`a`: centre :math:`t = (1 - a)\, t_{det} + a\, t_{hull}`, half-size
+  :math:`s = s_{det}^{1 - a} s_{hull}^{a}`;
+* with ``depth="hull"`` the windows take their individuals' camera-space depths, when every
+  window of the view has one (the two sources' depths have different units, so a view
+  never mixes them); otherwise the view keeps the detector's depths;
+* the individual of each window (its *slot*, shared by all views) joins the cross-view
+  association: windows of two views on the same individual get ``slot_bonus`` added to
+  their association score (:func:`nsd.evaluation.decomposition.association_scores`).
+
+NSD then crops, encodes, decodes, composites and refines with the fused windows
+(:func:`nsd.inference.single.decompose`): the masks, their ownership, the appearance and the
+latent stay the learned model's. ``views="single"`` is NSD's own single-image inference.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from omegaconf import DictConfig
+from torch import Tensor
+
+from nsd.cameras.calibration import CameraRig
+from nsd.core.errors import ConfigError
+from nsd.cues.occupancy import VoxelGrid, multiview_proposals, voxel_grid
+from nsd.cues.proposals import match_proposals
+from nsd.inference.single import Decomposition, decompose
+from nsd.model.bi_nvs import BiNVS
+from nsd.model.detector import Detections
+from nsd.training.losses import foreground_evidence
+
+__all__ = ["InferenceSettings", "decompose_views", "fuse_detections"]
+
+VIEWS = ("multiview", "single")
+DEPTHS = ("hull", "detector")
+
+
+@dataclass(frozen=True)
+class InferenceSettings:
+    """How frames are decomposed at inference (the ``inference`` block of eval and export).
+
+    Attributes:
+        views: ``multiview`` (fuse with the visual hull of all cameras) or ``single``
+            (each image alone, as NSD).
+        window_blend: how far a window moves towards its hull individual (0: the
+            detector's window, 1: the hull's).
+        depth: ``hull`` (the individuals' camera-space depths) or ``detector``.
+        slot_bonus: association score added for two windows on the same individual.
+        resolution: voxels per side of the hull's grid.
+        colour_sigma: colour agreement of the mask ownership
+            (:func:`nsd.inference.single.ownership`).
+    """
+
+    views: str = "multiview"
+    window_blend: float = 0.75
+    depth: str = "hull"
+    slot_bonus: float = 1.0
+    resolution: int = 48
+    colour_sigma: float = 0.2
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, key: str, what: str) -> None:
+            if not ok:
+                raise ConfigError(f"inference.{key} {what}, got {getattr(self, key)!r}")
+
+        need(self.views in VIEWS, "views", f"must be one of {VIEWS}")
+        need(0.0 <= float(self.window_blend) <= 1.0, "window_blend", "must be in [0, 1]")
+        need(self.depth in DEPTHS, "depth", f"must be one of {DEPTHS}")
+        need(float(self.slot_bonus) >= 0.0, "slot_bonus", "must be >= 0")
+        need(int(self.resolution) >= 8, "resolution", "must be >= 8 voxels")
+        need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
+
+    @classmethod
+    def from_config(cls, node: DictConfig | dict | None) -> InferenceSettings:
+        """Settings from a config block; unknown keys are an error naming them."""
+        if node is None:
+            return cls()
+        items = dict(node)
+        unknown = sorted(set(items) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ConfigError(f"inference has no setting {unknown[0]!r}")
+        return cls(**items)
+
+    @property
+    def multiview(self) -> bool:
+        return self.views == "multiview"
+
+    def for_views(self, num_views: int) -> InferenceSettings:
+        """These settings for footage of ``num_views`` cameras: single-image inference when
+        there is only one (nothing to fuse), else unchanged."""
+        return self if num_views >= 2 else dataclasses.replace(self, views="single")
+
+    def grid(self, rig: CameraRig, image_size: tuple[int, int]) -> VoxelGrid:
+        """The hull's voxel grid for cameras ``rig`` scaled to frames of ``image_size`` (H, W)."""
+        if len(rig) < 2:
+            raise ConfigError(
+                "inference.views=multiview needs at least 2 cameras; use inference.views=single"
+            )
+        return voxel_grid(rig, tuple(image_size), int(self.resolution))
+
+
+def fuse_detections(
+    det: Detections,
+    proposals: Tensor,
+    proposal_depths: Tensor,
+    valid: Tensor,
+    blend: float,
+    depth: str = "hull",
+) -> tuple[Detections, Tensor]:
+    """Move detector windows towards their matched hull individuals (module docstring).
+
+    Args:
+        det: the detector's windows of V views (boxes (V, N, 4), depths and presence (V, N)).
+        proposals: the hull individuals' windows (V, N, 4); slot j is one individual.
+        proposal_depths: their camera-space depths (V, N).
+        valid: (V, N) bool.
+        blend: ``window_blend`` in [0, 1].
+        depth: ``hull`` or ``detector``.
+
+    Returns:
+        the fused detections and the slot of each window (V, N), -1 where none is valid.
+    """
+    match = match_proposals(det.boxes, proposals, valid, det.presence >= 0.5)
+    target = proposals.gather(1, match[..., None].expand(-1, -1, 4))
+    ok = valid.gather(1, match)
+    scale = det.boxes[..., :2].log().lerp(target[..., :2].log(), blend).exp()
+    centre = det.boxes[..., 2:].lerp(target[..., 2:], blend)
+    boxes = torch.where(ok[..., None], torch.cat([scale, centre], -1), det.boxes)
+    depths = det.depths
+    if depth == "hull":
+        whole = ok.all(-1, keepdim=True)  # a view never mixes the two depth units
+        depths = torch.where(whole, proposal_depths.gather(1, match), det.depths)
+    slots = torch.where(ok, match, torch.full_like(match, -1))
+    return Detections(boxes, depths, det.presence), slots
+
+
+@torch.inference_mode()
+def decompose_views(
+    model: BiNVS,
+    images: Tensor,
+    backgrounds: Tensor,
+    num_views: int,
+    settings: InferenceSettings,
+    grid: VoxelGrid | None = None,
+    evidence_threshold: float = 0.04,
+    evidence_softness: float = 0.08,
+    **kwargs,
+) -> Decomposition:
+    """Decompose T instants of V calibrated views, (T * V, 3, H, W) instant-major.
+
+    With ``settings.views == "single"`` every image is decomposed alone; otherwise each
+    instant's windows are fused with the visual hull of its V views (``grid`` from
+    :meth:`InferenceSettings.grid`). ``kwargs`` go to :func:`nsd.inference.single.decompose`.
+    """
+    common = dict(
+        colour_sigma=settings.colour_sigma,
+        evidence_threshold=evidence_threshold,
+        evidence_softness=evidence_softness,
+        **kwargs,
+    )
+    if not settings.multiview:
+        return decompose(model, images, backgrounds, **common)
+    if grid is None:
+        raise ValueError("multi-view inference needs the hull's voxel grid (settings.grid)")
+    if images.shape[0] % num_views:
+        raise ValueError(f"{images.shape[0]} images are not whole instants of {num_views} views")
+    was = model.training
+    model.eval()
+    try:
+        det = model.detector(images, backgrounds)
+    finally:
+        model.train(was)
+    ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
+    k = model.cfg.num_windows
+    split = not model.detector.use_presence  # as training's prior_proposal.split=auto
+    fused, slots = [], []
+    for s in range(0, images.shape[0], num_views):
+        sl = slice(s, s + num_views)
+        hull = multiview_proposals(ev[sl], grid, k, split=split)
+        one = Detections(det.boxes[sl], det.depths[sl], det.presence[sl])
+        f, slot = fuse_detections(
+            one, hull.boxes, hull.depths, hull.valid, settings.window_blend, settings.depth
+        )
+        fused.append(f)
+        slots.append(slot)
+    cat = Detections(
+        *(torch.cat([getattr(f, a) for f in fused]) for a in ("boxes", "depths", "presence"))
+    )
+    dec = decompose(model, images, backgrounds, detections=cat, **common)
+    dec.slots = torch.cat(slots)
+    return dec

@@ -1,0 +1,123 @@
+"""Subject ids that stay the same over time: linking each frame's subjects to tracks.
+
+NSD's association (:func:`nsd.inference.single.associate_views`) gives the windows of
+one frame cross-view subject ids, but those ids are per frame: subject 0 of
+frame t need not be subject 0 of frame t+1. :class:`SubjectTracker` links the
+subjects of consecutive frames into tracks with a deliberately simple rule:
+
+* a subject of frame t is described by the mean of its views' unit appearance
+  vectors (the association dims, as in training) and its box in each camera;
+* the similarity of a track and a subject is
+  ``appearance_weight * cos(a_track, a_subject) + (1 - appearance_weight) * IoU``
+  where IoU is the mean box IoU over the cameras that see both (0 if none);
+* tracks and subjects are matched one-to-one by the Hungarian algorithm on this
+  similarity; pairs below ``min_similarity`` are not linked;
+* an unlinked subject starts a new track; a track unseen for more than
+  ``max_gap`` frames is closed (its id is never reused). A track's description
+  is its last observation (no motion model, no smoothing).
+
+Track ids start at 1 (MOTChallenge ids are positive).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from nsd.evaluation.decomposition import box_iou
+
+__all__ = ["SubjectObservation", "SubjectTracker", "track_similarity"]
+
+
+@dataclass
+class SubjectObservation:
+    """One subject of one frame, seen in one or more cameras.
+
+    Attributes:
+        appearance: unit appearance vector (D,) (mean of the views' unit vectors,
+            renormalised).
+        boxes: camera name -> COCO box [x, y, w, h] in that camera's pixels.
+    """
+
+    appearance: np.ndarray
+    boxes: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / max(float(np.linalg.norm(x)), 1e-8)
+
+
+def track_similarity(
+    a: SubjectObservation, b: SubjectObservation, appearance_weight: float
+) -> float:
+    """Similarity of two observations: weighted cosine of appearance and mean box IoU."""
+    cos = float(np.dot(_unit(a.appearance), _unit(b.appearance)))
+    common = [c for c in a.boxes if c in b.boxes]
+    iou = float(np.mean([box_iou(a.boxes[c], b.boxes[c])[0, 0] for c in common])) if common else 0.0
+    return appearance_weight * cos + (1.0 - appearance_weight) * iou
+
+
+@dataclass
+class _Track:
+    id: int
+    last: SubjectObservation
+    last_frame: int
+
+
+class SubjectTracker:
+    """Link per-frame subjects into tracks (see the module docstring).
+
+    Args:
+        appearance_weight: weight of the appearance cosine (the rest goes to box IoU).
+        min_similarity: smallest similarity that links a subject to a track.
+        max_gap: frames a track may go unseen before it is closed.
+
+    Example:
+        >>> trk = SubjectTracker()
+        >>> box = np.array([10.0, 10.0, 20.0, 40.0])
+        >>> o = SubjectObservation(np.array([1.0, 0.0]), {"cam0": box})
+        >>> trk.update(0, {0: o}), trk.update(1, {5: o})
+        ({0: 1}, {5: 1})
+    """
+
+    def __init__(
+        self, appearance_weight: float = 0.5, min_similarity: float = 0.3, max_gap: int = 10
+    ) -> None:
+        if not 0.0 <= appearance_weight <= 1.0:
+            raise ValueError(f"appearance_weight must be in [0, 1], got {appearance_weight}")
+        self.appearance_weight = appearance_weight
+        self.min_similarity = min_similarity
+        self.max_gap = max_gap
+        self.tracks: list[_Track] = []
+        self.next_id = 1
+
+    def update(self, frame: int, subjects: Mapping[int, SubjectObservation]) -> dict[int, int]:
+        """Link the subjects of ``frame`` (key: per-frame subject id) to tracks.
+
+        Frames must come in increasing order. Returns per-frame id -> track id.
+        """
+        self.tracks = [tr for tr in self.tracks if frame - tr.last_frame <= self.max_gap]
+        keys = list(subjects)
+        out: dict[int, int] = {}
+        if self.tracks and keys:
+            sim = np.array(
+                [
+                    [track_similarity(tr.last, subjects[k], self.appearance_weight) for k in keys]
+                    for tr in self.tracks
+                ]
+            )
+            rows, cols = linear_sum_assignment(-sim)
+            for r, c in zip(rows, cols, strict=True):
+                if sim[r, c] >= self.min_similarity:
+                    tr = self.tracks[r]
+                    tr.last, tr.last_frame = subjects[keys[c]], frame
+                    out[keys[c]] = tr.id
+        for k in keys:
+            if k not in out:
+                self.tracks.append(_Track(self.next_id, subjects[k], frame))
+                out[k] = self.next_id
+                self.next_id += 1
+        return out

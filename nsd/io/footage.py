@@ -1,0 +1,367 @@
+"""Synchronised multi-view footage from a scene folder.
+
+A scene folder holds one calibration file (see :mod:`nsd.cameras.calibration_io`) and,
+for every camera named in it, either one video file (any container OpenCV
+reads) or one folder of images (sorted by name, numbers in natural order)::
+
+    scene/
+      calibration.toml
+      cam0.mp4            # or videos/cam0.mp4
+      cam1/000000.png ... # or images/cam1/...
+
+Frame ``t`` of every camera is taken to show the same instant. Frames are
+returned as RGB ``uint8`` arrays, (H, W, 3) per view.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from nsd.cameras.calibration import CameraRig
+from nsd.cameras.calibration_io import read_calibration
+from nsd.core.atomic import atomic_write_bytes, atomic_write_text
+from nsd.core.errors import CalibrationError, FootageError
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "VIDEO_EXTENSIONS",
+    "FrameSource",
+    "ImageFolderSource",
+    "MultiViewFootage",
+    "VideoSource",
+    "find_source",
+]
+
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+BACKGROUND_SAMPLES = 50  # frames in the per-camera median background (NSD: 50)
+
+
+def _natural_key(p: Path) -> list:
+    return [int(s) if s.isdigit() else s for s in re.split(r"(\d+)", p.name)]
+
+
+class FrameSource(ABC):
+    """The frames of one camera."""
+
+    camera: str
+    path: Path
+
+    @property
+    @abstractmethod
+    def num_frames(self) -> int: ...
+
+    @property
+    @abstractmethod
+    def size(self) -> tuple[int, int]:
+        """Native frame size (width, height)."""
+
+    @abstractmethod
+    def read(self, t: int) -> np.ndarray:
+        """Frame ``t`` as RGB uint8 (H, W, 3)."""
+
+    @abstractmethod
+    def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
+        """Frames ``start .. stop-1`` in order (sequential decoding)."""
+
+    def signature(self) -> str:
+        """Changes when the footage changes (for cache keys)."""
+        st = self.path.stat()
+        return f"{self.path.resolve()}:{st.st_size}:{st.st_mtime_ns}:{self.num_frames}"
+
+    def _error(self, what: str, t: int | None = None) -> FootageError:
+        frame = "" if t is None else f", frame {t}"
+        return FootageError(f"camera '{self.camera}' ({self.path}{frame}): {what}")
+
+
+class VideoSource(FrameSource):
+    """A video file read with OpenCV."""
+
+    def __init__(self, camera: str, path: str | os.PathLike) -> None:
+        self.camera, self.path = camera, Path(path)
+        if not self.path.is_file():
+            raise self._error("video file does not exist")
+        cap = self._open()
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        ok, first = cap.read()
+        if n <= 0 and ok:  # containers without a frame count: count by decoding
+            n = 1
+            while cap.grab():
+                n += 1
+        cap.release()
+        if not ok or n <= 0:
+            raise self._error("video has zero readable frames")
+        self._n, self._size = n, (first.shape[1], first.shape[0])
+
+    def _open(self) -> cv2.VideoCapture:
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            raise self._error("OpenCV cannot open this video (corrupt file or unknown codec)")
+        return cap
+
+    @property
+    def num_frames(self) -> int:
+        return self._n
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self._size
+
+    def read(self, t: int) -> np.ndarray:
+        if not 0 <= t < self._n:
+            raise self._error(f"frame index out of range 0..{self._n - 1}", t)
+        cap = self._open()
+        try:
+            if t > 0:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, t)
+            ok, frame = cap.read()
+        finally:
+            cap.release()
+        if not ok:
+            raise self._error("frame cannot be decoded", t)
+        return cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+
+    def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
+        cap = self._open()
+        try:
+            if start > 0:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, start)
+            for t in range(start, stop):
+                ok, frame = cap.read()
+                if not ok:
+                    raise self._error("frame cannot be decoded (truncated or corrupt video)", t)
+                yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+        finally:
+            cap.release()
+
+
+class ImageFolderSource(FrameSource):
+    """A folder of images, one per frame, sorted in natural order."""
+
+    def __init__(self, camera: str, path: str | os.PathLike) -> None:
+        self.camera, self.path = camera, Path(path)
+        if not self.path.is_dir():
+            raise self._error("image folder does not exist")
+        self.files = sorted(
+            (p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS),
+            key=_natural_key,
+        )
+        if not self.files:
+            raise self._error(f"image folder holds no images ({', '.join(IMAGE_EXTENSIONS)})")
+        self._size: tuple[int, int] | None = None
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.files)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        if self._size is None:
+            first = self.read(0)
+            self._size = (first.shape[1], first.shape[0])
+        return self._size
+
+    def read(self, t: int) -> np.ndarray:
+        if not 0 <= t < len(self.files):
+            raise self._error(f"frame index out of range 0..{len(self.files) - 1}", t)
+        img = cv2.imread(str(self.files[t]), cv2.IMREAD_COLOR)
+        if img is None:
+            raise FootageError(
+                f"camera '{self.camera}' ({self.files[t]}, frame {t}): image cannot be read"
+            )
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
+        for t in range(start, stop):
+            yield self.read(t)
+
+    def signature(self) -> str:
+        last = self.files[-1].stat()
+        return f"{self.path.resolve()}:{len(self.files)}:{last.st_size}:{last.st_mtime_ns}"
+
+
+def find_source(scene: str | os.PathLike, camera: str) -> FrameSource:
+    """The video or image folder of ``camera`` in a scene folder."""
+    scene = Path(scene)
+    for folder in (scene, scene / "videos", scene / "images"):
+        d = folder / camera
+        if d.is_dir():
+            return ImageFolderSource(camera, d)
+        for ext in VIDEO_EXTENSIONS:
+            for cand in (folder / f"{camera}{ext}", folder / f"{camera}{ext.upper()}"):
+                if cand.is_file():
+                    return VideoSource(camera, cand)
+    raise FootageError(
+        f"camera '{camera}': no video ({scene}/{camera}.mp4 or another of "
+        f"{', '.join(VIDEO_EXTENSIONS)}) and no image folder ({scene}/{camera}/); "
+        "also looked in videos/ and images/"
+    )
+
+
+class MultiViewFootage:
+    """All cameras of a scene folder, frame-synchronised.
+
+    Args:
+        scene: the scene folder.
+        cameras: names of the cameras to use (default: all in the calibration).
+        image_size: (width, height) to resize every frame to; the rig's
+            intrinsics are rescaled to match. Default: native size.
+        cache_dir: where median backgrounds are cached (default ``<scene>/.cache``).
+
+    Raises:
+        FootageError: a camera's footage is missing, unreadable or empty, or the
+            cameras hold different numbers of frames.
+        CalibrationError: the calibration is invalid or its image size disagrees
+            with the footage.
+    """
+
+    def __init__(
+        self,
+        scene: str | os.PathLike,
+        cameras: Sequence[str] | None = None,
+        image_size: tuple[int, int] | None = None,
+        cache_dir: str | os.PathLike | None = None,
+    ) -> None:
+        self.scene = Path(scene)
+        if not self.scene.is_dir():
+            raise FootageError(f"scene folder {self.scene} does not exist")
+        rig = read_calibration(self.scene)
+        if cameras is not None:
+            missing = [c for c in cameras if c not in rig.names]
+            if missing:
+                raise FootageError(
+                    f"cameras {missing} are not in the calibration {rig.source} "
+                    f"(it has {rig.names})"
+                )
+            rig = rig.select(list(cameras))
+        self.sources = [find_source(self.scene, c.name) for c in rig]
+        counts = {s.camera: s.num_frames for s in self.sources}
+        if len(set(counts.values())) > 1:
+            detail = ", ".join(f"'{s.camera}' ({s.path}): {s.num_frames}" for s in self.sources)
+            raise FootageError(f"cameras hold different numbers of frames: {detail}")
+        fixed = []
+        for cam, src in zip(rig, self.sources, strict=True):
+            if cam.size is None:
+                cam = cam.with_size(src.size)
+            elif tuple(cam.size) != tuple(src.size):
+                raise CalibrationError(
+                    f"camera '{cam.name}': calibration {rig.source} says image size "
+                    f"{cam.size[0]}x{cam.size[1]} but {src.path} is {src.size[0]}x{src.size[1]}"
+                )
+            fixed.append(cam)
+        self.native_rig = CameraRig(fixed, rig.source)
+        self.image_size = tuple(image_size) if image_size is not None else None
+        self.rig = self.native_rig.scaled(image_size) if image_size else self.native_rig
+        self.cache_dir = Path(cache_dir) if cache_dir else self.scene / ".cache"
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def num_frames(self) -> int:
+        return self.sources[0].num_frames
+
+    @property
+    def num_views(self) -> int:
+        return len(self.sources)
+
+    @property
+    def camera_names(self) -> list[str]:
+        return self.rig.names
+
+    def _resize(self, img: np.ndarray, view: int) -> np.ndarray:
+        size = self.rig[view].size
+        if size is None or (img.shape[1], img.shape[0]) == tuple(size):
+            return img
+        return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+
+    def frame(self, t: int) -> np.ndarray:
+        """All views of frame ``t``: uint8 (V, H, W, 3)."""
+        self._check_t(t)
+        return np.stack([self._resize(s.read(t), v) for v, s in enumerate(self.sources)])
+
+    def _check_t(self, t: int) -> None:
+        if not 0 <= t < self.num_frames:
+            raise FootageError(f"{self.scene}: frame {t} out of range 0..{self.num_frames - 1}")
+
+    def iter_frames(
+        self, start: int = 0, stop: int | None = None
+    ) -> Iterator[tuple[int, np.ndarray]]:
+        """``(t, views)`` for frames ``start .. stop-1`` decoded sequentially.
+
+        Only one frame per camera is held in memory at a time, so this streams
+        footage of any length.
+        """
+        stop = self.num_frames if stop is None else min(stop, self.num_frames)
+        its = [s.iter_range(start, stop) for s in self.sources]
+        for t in range(start, stop):
+            views = [self._resize(next(it), v) for v, it in enumerate(its)]
+            yield t, np.stack(views)
+
+    def load(self, frames: Sequence[int] | None = None) -> np.ndarray:
+        """Decode frames into memory: uint8 (T, V, H, W, 3) (all frames by default)."""
+        if frames is None:
+            return np.stack([views for _, views in self.iter_frames()])
+        return np.stack([self.frame(int(t)) for t in frames])
+
+    def sample_view_pairs(
+        self, rng: np.random.Generator, n: int, frames: Sequence[int] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``n`` random training pairs: frame indices t, view v and a different view w.
+
+        Returns:
+            three int64 arrays of shape (n,). ``v != w`` always; the order of the
+            pair is random, so each camera serves as source and target.
+        """
+        if self.num_views < 2:
+            raise FootageError(f"{self.scene}: view pairs need at least 2 cameras")
+        pool = np.arange(self.num_frames) if frames is None else np.asarray(frames)
+        t = rng.choice(pool, size=n)
+        v = rng.integers(0, self.num_views, size=n)
+        w = (v + rng.integers(1, self.num_views, size=n)) % self.num_views
+        return t.astype(np.int64), v.astype(np.int64), w.astype(np.int64)
+
+    # ------------------------------------------------------------------ background
+    def background(self, num_samples: int = BACKGROUND_SAMPLES) -> np.ndarray:
+        """Per-camera median background: uint8 (V, H, W, 3), cached on disk.
+
+        The median of ``num_samples`` frames spread evenly over the sequence,
+        computed at the native resolution and then resized. The cache is keyed by
+        the footage's signature, so changed footage is recomputed.
+        """
+        return np.stack(
+            [
+                self._resize(self._native_background(v, num_samples), v)
+                for v in range(self.num_views)
+            ]
+        )
+
+    def _native_background(self, v: int, num_samples: int) -> np.ndarray:
+        src = self.sources[v]
+        key = hashlib.sha1(f"{src.signature()}:{num_samples}".encode()).hexdigest()[:16]
+        path = self.cache_dir / "background" / f"{src.camera}.{key}.png"
+        if path.is_file():
+            img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if img is not None:
+                return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        idx = np.unique(np.linspace(0, src.num_frames - 1, num_samples).round().astype(int))
+        stack = np.stack([src.read(int(t)) for t in idx])
+        med = np.median(stack, axis=0).round().astype(np.uint8)
+        try:
+            ok, buf = cv2.imencode(".png", cv2.cvtColor(med, cv2.COLOR_RGB2BGR))
+            if ok:
+                atomic_write_bytes(path, buf.tobytes())
+                atomic_write_text(
+                    path.with_suffix(".json"),
+                    json.dumps({"source": str(src.path), "frames": idx.tolist()}),
+                )
+        except OSError:
+            pass  # read-only scene folder: work without the cache
+        return med

@@ -1,0 +1,227 @@
+"""Training data for NSD: a scene's frames in memory at training resolution, view pairs.
+
+Frames are decoded once (sequentially) into a uint8 tensor (T, V, 3, H, W); a
+batch is a set of random view pairs (t, v, w) of the same instant with their
+median backgrounds and the relative rotation :math:`R_{v \\to w}`. Sampling
+draws only from the ``numpy.random.Generator`` it is given, so a training run
+resumes exactly.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from nsd.cameras.calibration import CameraRig
+from nsd.core.errors import ConfigError
+from nsd.io.footage import MultiViewFootage
+
+__all__ = ["PairBatch", "SceneData", "split_frames"]
+
+
+@dataclass
+class PairBatch:
+    """A batch of view pairs.
+
+    Attributes:
+        image_v, image_w: (B, 3, H, W) float in [0, 1].
+        background_v, background_w: (B, 3, H, W).
+        rotation_vw: :math:`R_{v \\to w}`, (B, 3, 3).
+        frame, view_v, view_w: (B,) int64 indices.
+        proposals_v, proposals_w: label-free window proposals (B, N, 4) (see
+            :mod:`nsd.cues.proposals`), with validity (B, N), when computed; multi-view
+            proposals (:mod:`nsd.cues.occupancy`) also carry camera-space depths (B, N)
+            and share slots across views.
+        count_v, count_w: (B,) the individuals in view per frame (the hull's count,
+            smoothed over time, :func:`nsd.priors.presence.smoothed_counts`), when computed.
+    """
+
+    image_v: Tensor
+    image_w: Tensor
+    background_v: Tensor
+    background_w: Tensor
+    rotation_vw: Tensor
+    frame: Tensor
+    view_v: Tensor
+    view_w: Tensor
+    proposals_v: Tensor | None = None
+    valid_v: Tensor | None = None
+    proposals_w: Tensor | None = None
+    valid_w: Tensor | None = None
+    proposal_depth_v: Tensor | None = None
+    proposal_depth_w: Tensor | None = None
+    count_v: Tensor | None = None
+    count_w: Tensor | None = None
+
+
+def split_frames(num_frames: int, val_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Training frames and held-out validation frames (the last ``val_fraction`` of the sequence).
+
+    A contiguous tail is held out (not interleaved frames) so that validation
+    poses are not near-duplicates of neighbouring training frames.
+    """
+    if not 0 <= val_fraction < 1:
+        raise ConfigError(f"data.val_fraction must be in [0, 1), got {val_fraction}")
+    n_val = round(num_frames * val_fraction)
+    if num_frames - n_val < 1:
+        raise ConfigError(f"data.val_fraction={val_fraction} leaves no training frames")
+    idx = np.arange(num_frames)
+    return idx[: num_frames - n_val], idx[num_frames - n_val :]
+
+
+def to_float(images: Tensor) -> Tensor:
+    """uint8 (..., 3, H, W) -> float32 in [0, 1]."""
+    return images.float().div_(255.0)
+
+
+class SceneData:
+    """A scene folder's frames, backgrounds and rotations for training.
+
+    Args:
+        scene: scene folder.
+        image_size: (width, height) of the training frames.
+        cameras: subset of camera names (default: all).
+        val_fraction: tail of the sequence held out for evaluation.
+        max_frames: use only the first ``max_frames`` frames (0: all).
+    """
+
+    def __init__(
+        self,
+        scene: str | os.PathLike,
+        image_size: Sequence[int] = (128, 128),
+        cameras: Sequence[str] | None = None,
+        val_fraction: float = 0.2,
+        max_frames: int = 0,
+    ) -> None:
+        self.footage = MultiViewFootage(scene, cameras=cameras, image_size=tuple(image_size))
+        stop = (
+            self.footage.num_frames if max_frames <= 0 else min(max_frames, self.footage.num_frames)
+        )
+        frames = np.stack([v for _, v in self.footage.iter_frames(0, stop)])  # T, V, H, W, 3
+        self.frames = torch.from_numpy(frames).permute(0, 1, 4, 2, 3).contiguous()
+        bg = self.footage.background()
+        self.backgrounds = to_float(torch.from_numpy(bg).permute(0, 3, 1, 2).contiguous())
+        rig: CameraRig = self.footage.rig
+        R = torch.as_tensor(np.stack([c.R for c in rig]), dtype=torch.float32)
+        self.rotations = R.unsqueeze(0) @ R.unsqueeze(1).transpose(-1, -2)  # [v, w] = R_w R_v^T
+        self.cameras = rig.stacked(torch.float32)  # K, R, t, dist per view (training size)
+        self.train_frames, self.val_frames = split_frames(len(self.frames), val_fraction)
+        self.proposals: Tensor | None = None
+        self.proposal_valid: Tensor | None = None
+        self.proposal_depths: Tensor | None = None
+        self.counts: Tensor | None = None  # (T, V) individuals in view, see smooth_counts
+
+    def compute_multiview_proposals(
+        self, k: int, threshold: float, softness: float, resolution: int = 48, split: bool = True
+    ) -> None:
+        """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
+        ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`."""
+        from nsd.cues.occupancy import multiview_proposals, voxel_grid
+        from nsd.training.losses import foreground_evidence
+
+        grid = voxel_grid(self.rig, self.image_size, resolution)
+        boxes, depths, valid = [], [], []
+        for t in range(len(self.frames)):
+            ev = foreground_evidence(
+                to_float(self.frames[t]), self.backgrounds, threshold, softness
+            )
+            b, d, ok, _ = multiview_proposals(ev, grid, k, split=split)
+            boxes.append(b)
+            depths.append(d)
+            valid.append(ok)
+        self.proposals, self.proposal_valid = torch.stack(boxes), torch.stack(valid)
+        self.proposal_depths = torch.stack(depths)
+
+    def smooth_counts(self, window: int, scene_population: bool = False) -> None:
+        """Individuals in view per frame: the multi-view proposals' count, median over
+        ``window`` frames (:func:`nsd.priors.presence.smoothed_counts`)."""
+        from nsd.priors.presence import smoothed_counts
+
+        if self.proposal_valid is None:
+            raise ConfigError("counts need the multi-view proposals (compute them first)")
+        self.counts = smoothed_counts(self.proposal_valid, window, scene_population)
+
+    def compute_proposals(self, k: int, threshold: float, softness: float) -> None:
+        """Single-view residual-evidence window proposals for every frame and view."""
+        from nsd.cues.proposals import evidence_proposals
+        from nsd.training.losses import foreground_evidence
+
+        T, V = self.frames.shape[:2]
+        boxes, valid = [], []
+        chunk = max(1, 256 // V)
+        for t0 in range(0, T, chunk):
+            f = to_float(self.frames[t0 : t0 + chunk])  # (c, V, 3, H, W)
+            ev = foreground_evidence(
+                f.flatten(0, 1), self.backgrounds.repeat(len(f), 1, 1, 1), threshold, softness
+            )
+            b, ok = evidence_proposals(ev, k)
+            boxes.append(b.view(len(f), V, k, 4))
+            valid.append(ok.view(len(f), V, k))
+        self.proposals, self.proposal_valid = torch.cat(boxes), torch.cat(valid)
+
+    @property
+    def rig(self) -> CameraRig:
+        return self.footage.rig
+
+    @property
+    def num_views(self) -> int:
+        return self.frames.shape[1]
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(H, W)."""
+        return tuple(self.frames.shape[-2:])
+
+    def pairs(self, t: np.ndarray, v: np.ndarray, w: np.ndarray) -> PairBatch:
+        """The batch for given frame and view indices."""
+        t_, v_, w_ = (torch.as_tensor(a, dtype=torch.long) for a in (t, v, w))
+        batch = PairBatch(
+            to_float(self.frames[t_, v_]),
+            to_float(self.frames[t_, w_]),
+            self.backgrounds[v_],
+            self.backgrounds[w_],
+            self.rotations[v_, w_],
+            t_,
+            v_,
+            w_,
+        )
+        if self.proposals is not None:
+            batch.proposals_v, batch.valid_v = self.proposals[t_, v_], self.proposal_valid[t_, v_]
+            batch.proposals_w, batch.valid_w = self.proposals[t_, w_], self.proposal_valid[t_, w_]
+        if self.proposal_depths is not None:
+            batch.proposal_depth_v = self.proposal_depths[t_, v_]
+            batch.proposal_depth_w = self.proposal_depths[t_, w_]
+        if self.counts is not None:
+            batch.count_v, batch.count_w = self.counts[t_, v_], self.counts[t_, w_]
+        return batch
+
+    def sample(
+        self,
+        rng: np.random.Generator,
+        batch_size: int,
+        frames: np.ndarray | None = None,
+        same_view: float = 0.0,
+    ) -> PairBatch:
+        """Random view pairs of random training frames (``v != w``); with ``same_view`` > 0
+        that share of the pairs, drawn at random, is a view with itself (``w = v``, a
+        re-synthesis from its own windows, as the auto-encoder ablation does for all)."""
+        if self.num_views < 2:
+            raise ConfigError("Bi-NVS needs at least 2 cameras")
+        if not 0 <= same_view <= 1:
+            raise ConfigError(f"data.same_view must be in [0, 1], got {same_view}")
+        pool = self.train_frames if frames is None else frames
+        t = rng.choice(pool, size=batch_size)
+        v = rng.integers(0, self.num_views, size=batch_size)
+        w = (v + rng.integers(1, self.num_views, size=batch_size)) % self.num_views
+        if same_view > 0:  # drawn only when asked, so the default draws are unchanged
+            w = np.where(rng.random(batch_size) < same_view, v, w)
+        return self.pairs(t, v, w)
+
+    def views(self, t: int) -> tuple[Tensor, Tensor]:
+        """All views of frame t and their backgrounds: (V, 3, H, W) each."""
+        return to_float(self.frames[t]), self.backgrounds
