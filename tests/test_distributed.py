@@ -42,9 +42,9 @@ def _worker(rank: int, world: int, port: int, scene: str, root: str) -> None:
         NSD_DIST_TIMEOUT_MINUTES="3",  # a hang fails the test instead of blocking CI
     )
     torch.set_num_threads(1)
-    from nsd.cli.train import NSDTask
     from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
     from nsd.training.data import SceneData
+    from nsd.training.task import NSDTask
     from tests.test_nsd_train import tiny_cfg
 
     assert distributed.init_from_env()

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.evaluation.decomposition import box_iou, coco_ap, fg_ari, mask_iou, match, score_frame
-from nsd.inference.single import associate_views, mask_boxes
+from nsd.evaluation.decomposition import coco_ap, fg_ari, score_frame
+from nsd.inference.single import associate_views
 from nsd.io.coco_results import encode_rle
+from nsd.ops.boxes import box_iou_xywh, mask_boxes_xywh, mask_iou, match
 
 
 def _rect(H, W, x0, y0, x1, y1):
@@ -21,10 +22,10 @@ def test_mask_and_box_iou_known_values():
     a = _rect(10, 10, 0, 0, 4, 4)
     b = _rect(10, 10, 2, 0, 6, 4)
     assert mask_iou(a[None], b[None])[0, 0] == pytest.approx(8 / 24)
-    assert box_iou(np.array([[0, 0, 4, 4]]), np.array([[2, 0, 4, 4]]))[0, 0] == pytest.approx(
+    assert box_iou_xywh(np.array([[0, 0, 4, 4]]), np.array([[2, 0, 4, 4]]))[0, 0] == pytest.approx(
         8 / 24
     )
-    assert box_iou(np.array([[0, 0, 1, 1]]), np.array([[5, 5, 1, 1]]))[0, 0] == 0.0
+    assert box_iou_xywh(np.array([[0, 0, 1, 1]]), np.array([[5, 5, 1, 1]]))[0, 0] == 0.0
 
 
 def test_match_is_hungarian():
@@ -35,7 +36,7 @@ def test_match_is_hungarian():
 def test_mask_boxes():
     m = torch.zeros(2, 8, 8, dtype=torch.bool)
     m[0, 2:5, 3:7] = True
-    assert mask_boxes(m).tolist() == [[3, 2, 4, 3], [0, 0, 0, 0]]
+    assert mask_boxes_xywh(m).tolist() == [[3, 2, 4, 3], [0, 0, 0, 0]]
 
 
 def test_fg_ari():
@@ -115,7 +116,7 @@ def test_coco_ap_of_ground_truth_is_one():
                 "category_id": k + 1,
                 "segmentation": encode_rle(m),
                 "area": float(m.sum()),
-                "bbox": [float(v) for v in mask_boxes(torch.as_tensor(m))],
+                "bbox": [float(v) for v in mask_boxes_xywh(torch.as_tensor(m))],
                 "iscrowd": 0,
             }
             for k, m in enumerate(masks)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from nsd.cli.train import build_model
 from nsd.inference.single import decompose
+from nsd.model.build import build_model
 from tests.test_nsd_train import tiny_cfg
 
 

@@ -8,11 +8,11 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from nsd.cli.train import build_model
 from nsd.core.errors import ConfigError
-from nsd.evaluation.decomposition import association_scores
+from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views, fuse_detections
 from nsd.inference.single import decompose, ownership
+from nsd.model.build import build_model
 from nsd.model.detector import Detections
 from nsd.training.data import SceneData
 from tests.test_nsd_train import tiny_cfg

@@ -7,9 +7,10 @@ import pytest
 import torch
 from hydra import compose, initialize_config_module
 
-from nsd.cli.train import NSDTask, build_model
 from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
+from nsd.model.build import build_model
 from nsd.training.data import SceneData
+from nsd.training.task import NSDTask
 
 TINY = [
     "model.num_windows=2",

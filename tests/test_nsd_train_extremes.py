@@ -18,9 +18,9 @@ import pytest
 import torch
 from torch import nn
 
-from nsd.cli.train import NSDTask
 from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
 from nsd.training.data import SceneData
+from nsd.training.task import NSDTask
 from tests.test_nsd_train import tiny_cfg
 
 PRIORS = (

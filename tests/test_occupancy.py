@@ -14,7 +14,7 @@ from nsd.cues.occupancy import (
     voxel_grid,
     working_volume,
 )
-from nsd.evaluation.decomposition import box_iou, match
+from nsd.ops.boxes import box_iou_xywh, match
 from nsd.synth import corner_rig, make_individual, render_views, sample_pose
 
 
@@ -66,7 +66,7 @@ def test_proposals_match_visible_boxes_with_shared_slots_and_depth_order(two_peo
         px = torch.stack([(tx - sx + 1) * W / 2, (ty - sy + 1) * H / 2, sx * W, sy * H], -1)
         gt = out["boxes"][v].numpy()  # xyxy pixel edges
         gt = np.concatenate([gt[:, :2], gt[:, 2:] - gt[:, :2]], 1)
-        iou = box_iou(px.numpy(), gt)
+        iou = box_iou_xywh(px.numpy(), gt)
         pairs = match(iou)
         assert all(iou[p, g] > 0.5 for p, g in pairs) and len(pairs) == 2
         slot_of.append({g: p for p, g in pairs})

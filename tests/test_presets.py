@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 from torch.utils.flop_counter import FlopCounterMode
 
-from nsd.cli.train import build_model
+from nsd.model.build import build_model
 
 PRESETS = ("fast", "balanced", "accurate")
 # the knobs a preset may set (docs/tradeoff.md "Presets")

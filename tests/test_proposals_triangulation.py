@@ -7,8 +7,10 @@ import pytest
 import torch
 
 from nsd.cameras.calibration import CameraRig
-from nsd.cues.proposals import evidence_proposals, proposal_prior
-from nsd.cues.triangulation import depth_prior, ray_distances, triangulate_midpoints, window_rays
+from nsd.cues.proposals import evidence_proposals
+from nsd.cues.triangulation import ray_distances, triangulate_midpoints, window_rays
+from nsd.priors.depth import depth_prior
+from nsd.priors.proposal import proposal_prior
 from tests.base import BaseTester
 from tests.conftest import look_at_camera
 

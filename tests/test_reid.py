@@ -181,7 +181,7 @@ def _fake_export(folder):
     from nsd.cameras.calibration_io import write_toml
     from nsd.io.crops import CropWriter
     from nsd.io.embeddings import EmbeddingWriter
-    from nsd.synth.render import mask_boxes
+    from nsd.ops.boxes import mask_boxes_xyxy
     from tests.test_netepu_texture import TINY_GEOMETRY_DATA, _tiny_data
 
     data = _tiny_data()
@@ -195,7 +195,7 @@ def _fake_export(folder):
     for n, r in enumerate(rows):
         v = int(h["psnr_view"][r])
         mask = h["mask"][r]
-        b = mask_boxes(torch.from_numpy(mask)).tolist()
+        b = mask_boxes_xyxy(torch.from_numpy(mask)).tolist()
         writer.add(
             n + 1,
             1,

@@ -392,8 +392,8 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
 
 def test_presence_is_one_until_its_start_step(tiny_scene):
     """prior_presence.from_step: the detector's presence is 1 before it, learned after it."""
-    from nsd.cli.train import NSDTask
     from nsd.training.data import SceneData
+    from nsd.training.task import NSDTask
     from tests.test_nsd_train import tiny_cfg
 
     cfg = tiny_cfg(

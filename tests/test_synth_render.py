@@ -8,12 +8,13 @@ import torch
 from pycocotools import mask as mask_utils
 
 from nsd.core.errors import ConfigError
+from nsd.ops.boxes import mask_boxes_xyxy
 from nsd.synth.body import Pose, make_individual
 from nsd.synth.coco import encode_masks
 from nsd.synth.motion import sample_pose
 from nsd.synth.nnopcs import nnopcs_bounds, nnopcs_of
 from nsd.synth.raycast import Ellipsoids, cast_rays
-from nsd.synth.render import mask_boxes, render_views
+from nsd.synth.render import render_views
 from nsd.synth.rigs import look_at, ring_rig
 from tests.base import assert_close
 
@@ -78,7 +79,7 @@ class TestMasksAndDepth:
     def test_empty_mask_box_is_zero(self):
         m = torch.zeros(2, 5, 7, dtype=torch.bool)
         m[1, 2:4, 3] = True
-        assert mask_boxes(m).tolist() == [[0, 0, 0, 0], [3, 2, 4, 4]]
+        assert mask_boxes_xyxy(m).tolist() == [[0, 0, 0, 0], [3, 2, 4, 4]]
 
     def test_supersampling_changes_rgb_only_and_mostly_at_edges(self, pair):
         inds, poses, rig, out = pair

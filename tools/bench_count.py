@@ -71,7 +71,8 @@ def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -
 
     import torch
 
-    from nsd.evaluation.decomposition import association_scores, evaluate_model
+    from nsd.evaluation.decomposition import evaluate_model
+    from nsd.inference.association_scores import association_scores
     from nsd.inference.single import associate_views, decompose
     from nsd.io.ground_truth import GroundTruth
     from nsd.model.checkpoint import load_decomposition

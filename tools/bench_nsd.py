@@ -334,8 +334,8 @@ def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> No
     import numpy as np
     import torch
 
-    from nsd.cli.train import resolve_scene
     from nsd.inference.multiview import InferenceSettings, decompose_views
+    from nsd.io.scenes import resolve_scene
     from nsd.model.checkpoint import load_decomposition
     from nsd.training.data import SceneData
     from tools.benchlib import median_time

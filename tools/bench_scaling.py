@@ -62,8 +62,9 @@ def gemm_peak(n: int = 4096) -> dict:
 
 
 def _task(overrides: list[str]):
-    from nsd.cli.train import NSDTask, resolve_scene
+    from nsd.io.scenes import resolve_scene
     from nsd.training.data import SceneData
+    from nsd.training.task import NSDTask
 
     cfg = _compose("train", [f"data.max_frames={SCALING_FRAMES}", *overrides])
     d = cfg.data
@@ -190,7 +191,7 @@ def _rate(name: str, fn, flops_fn=None) -> dict:
 
 
 def hot_loops(peak: float) -> list[dict]:
-    from nsd.cli.train import build_model
+    from nsd.model.build import build_model
 
     cfg = _compose("train", [])
     model = build_model(dict(_to_container(cfg.model)))

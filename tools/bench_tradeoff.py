@@ -242,9 +242,10 @@ def nsd_speed_child(name: str, steps: int) -> dict:
     import numpy as np
     import torch
 
-    from nsd.cli.train import NSDTask, resolve_scene
     from nsd.inference.single import decompose
+    from nsd.io.scenes import resolve_scene
     from nsd.training.data import SceneData
+    from nsd.training.task import NSDTask
     from tools.benchlib import median_time, peak_rss_mb
 
     torch.set_num_threads(2)

@@ -42,8 +42,8 @@ log = logging.getLogger(__name__)
 def load_pose_checkpoint(path: str | os.PathLike) -> tuple[Any, Any, dict[str, Any]]:
     """``(decomposition model, pose regressor, config)`` of an ``nsd-train stage=pose``
     checkpoint, both in eval mode."""
-    from nsd.cli.train import build_model
     from nsd.core.trainer import load_checkpoint
+    from nsd.model.build import build_model
     from nsd.model.pose_regressor import PoseRegressor
 
     state = load_checkpoint(path)

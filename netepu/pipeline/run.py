@@ -90,9 +90,9 @@ def _scene_stage(cfg: DictConfig) -> Stage:
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         from nsd.cameras.calibration_io import read_calibration
-        from nsd.cli.train import resolve_scene
         from nsd.io.footage import MultiViewFootage
         from nsd.io.ground_truth import GroundTruth
+        from nsd.io.scenes import resolve_scene
 
         path = resolve_scene(None if spec == DEFAULT_SCENE else spec)
         if not path.is_dir():

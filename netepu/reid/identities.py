@@ -235,8 +235,8 @@ def ground_truth_identities(
     from pycocotools import mask as mask_utils
     from scipy.optimize import linear_sum_assignment
 
-    from nsd.evaluation.decomposition import mask_iou
     from nsd.io.ground_truth import GroundTruth
+    from nsd.ops.boxes import mask_iou
 
     gt = GroundTruth.load(scene)
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())

@@ -80,7 +80,7 @@ from netepu.geometry.model import GeometryModel, build_geometry_model
 from netepu.geometry.renderer import NeuralRenderer2D, RenderContext, RenderHead, to_frame
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.io.crops import square_crop_box
-from nsd.synth.render import mask_boxes
+from nsd.ops.boxes import mask_boxes_xyxy
 
 __all__ = [
     "ColourRenderer",
@@ -177,7 +177,7 @@ def crop_windows(mask: Tensor, margin: float) -> Tensor:
             f"texture code: empty visible masks at batch items "
             f"{torch.nonzero(empty).flatten().tolist()}"
         )
-    boxes = mask_boxes(mask).double()
+    boxes = mask_boxes_xyxy(mask).double()
     return torch.tensor(
         [square_crop_box([b[0], b[1], b[2] - b[0], b[3] - b[1]], margin) for b in boxes.tolist()],
         dtype=torch.float64,

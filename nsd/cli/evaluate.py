@@ -55,7 +55,7 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
     trained = load_decomposition(checkpoint)
     scene = Path(scene) if scene else Path(trained.config.data.scene or "")
     if not scene or str(scene) in ("", "."):
-        from nsd.cli.train import resolve_scene
+        from nsd.io.scenes import resolve_scene
 
         scene = resolve_scene(None)
     if not GroundTruth.exists(scene):

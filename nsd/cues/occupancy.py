@@ -3,7 +3,7 @@ r"""Multi-view occupancy from background residuals: label-free 3D proposals for 
 Static calibrated cameras and median backgrounds give, without any label, a
 coarse *visual hull* of the individuals: a voxel of the working volume is
 occupied when its projection shows foreground evidence (see
-:func:`nsd.training.losses.foreground_evidence`, > 0.5) in every view that sees it, and
+:func:`nsd.cues.evidence.foreground_evidence`, > 0.5) in every view that sees it, and
 at least ``min_views`` views see it. The occupied voxels are counted per
 column on the horizontal plane; the ``k`` heaviest connected components of that
 map are the individuals (visual-hull *ghosts*, the regions every camera sees

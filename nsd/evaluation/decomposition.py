@@ -37,51 +37,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.optimize import linear_sum_assignment
 from sklearn.metrics import adjusted_rand_score
 
-__all__ = [
-    "FrameScore",
-    "association_scores",
-    "box_iou",
-    "coco_ap",
-    "evaluate_model",
-    "fg_ari",
-    "mask_iou",
-    "match",
-    "score_frame",
-]
+from nsd.inference.association_scores import association_scores
+from nsd.ops.boxes import box_iou_xywh, mask_iou, match
+
+__all__ = ["FrameScore", "coco_ap", "evaluate_model", "fg_ari", "score_frame"]
 
 MIN_OVERLAP = 4  # pixels of amodal overlap for a pair to count in depth-order accuracy
-
-
-def mask_iou(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """IoU matrix of boolean masks pred (P, H, W) and gt (G, H, W): (P, G)."""
-    p = pred.reshape(len(pred), -1).astype(np.float32)
-    g = gt.reshape(len(gt), -1).astype(np.float32)
-    inter = p @ g.T
-    union = p.sum(1)[:, None] + g.sum(1)[None] - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-9), 0.0)
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU matrix of COCO boxes [x, y, w, h]: a (P, 4), b (G, 4) -> (P, G)."""
-    a, b = np.asarray(a, float).reshape(-1, 4), np.asarray(b, float).reshape(-1, 4)
-    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
-    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
-    x1 = np.minimum(a[:, None, 0] + a[:, None, 2], b[None, :, 0] + b[None, :, 2])
-    y1 = np.minimum(a[:, None, 1] + a[:, None, 3], b[None, :, 1] + b[None, :, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    union = (a[:, 2] * a[:, 3])[:, None] + (b[:, 2] * b[:, 3])[None] - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-9), 0.0)
-
-
-def match(iou: np.ndarray) -> list[tuple[int, int]]:
-    """Hungarian matching maximising IoU; pairs with IoU 0 are dropped. Returns (pred, gt)."""
-    if iou.size == 0:
-        return []
-    rows, cols = linear_sum_assignment(-iou)
-    return [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if iou[r, c] > 0]
 
 
 def fg_ari(gt_labels: np.ndarray, pred_labels: np.ndarray) -> float:
@@ -130,7 +93,7 @@ def score_frame(
         gt_ids: (G,) identity ids.
         threshold: binarisation of the predicted masks.
     """
-    from nsd.inference.single import mask_boxes
+    from nsd.ops.boxes import mask_boxes_xywh
 
     s = FrameScore(n_gt=len(gt_ids))
     win = np.flatnonzero(active)
@@ -139,11 +102,11 @@ def score_frame(
         mask_iou(pm, gt_visible) if len(win) and len(gt_ids) else np.zeros((len(win), len(gt_ids)))
     )
     pairs = match(iou)
-    pboxes = mask_boxes(torch.as_tensor(pm)).numpy() if len(win) else np.zeros((0, 4))
+    pboxes = mask_boxes_xywh(torch.as_tensor(pm)).numpy() if len(win) else np.zeros((0, 4))
     matched_gt = {}
     for p, g in pairs:
         s.iou_sum += iou[p, g]
-        if box_iou(pboxes[p : p + 1], gt_boxes[g : g + 1])[0, 0] >= 0.5:
+        if box_iou_xywh(pboxes[p : p + 1], gt_boxes[g : g + 1])[0, 0] >= 0.5:
             s.detected += 1
         matched_gt[g] = int(win[p])
         s.matches[int(gt_ids[g])] = int(win[p])
@@ -216,43 +179,6 @@ def coco_ap(gt_coco, results: list[dict], image_ids: Sequence[int]) -> dict[str,
         out[f"coco_{iou_type}_ap"] = float(max(ev.stats[0], 0.0))
         out[f"coco_{iou_type}_ap50"] = float(max(ev.stats[1], 0.0))
     return out
-
-
-def association_scores(
-    model,
-    dec,
-    cameras: dict[str, torch.Tensor],
-    image_size: Sequence[int],
-    v: int,
-    w: int,
-    slot_bonus: float = 0.0,
-) -> torch.Tensor:
-    """The model's association score (N, N) between the windows of views v and w of a frame.
-
-    Args:
-        model: the trained BiNVS.
-        dec: the frame's :class:`nsd.inference.single.Decomposition` (one entry per view).
-        cameras: stacked per-view K (V, 3, 3), R, t, dist at ``image_size``
-            (:meth:`nsd.cameras.calibration.CameraRig.stacked`).
-        image_size: (H, W) of the decomposed frames.
-        v, w: the two views.
-        slot_bonus: added where both windows were fused with the same visual-hull
-            individual (``dec.slots``, multi-view inference, :mod:`nsd.inference.multiview`).
-    """
-    cost = model.geometry_cost(
-        dec.windows[v][None],
-        dec.windows[w][None],
-        {k: c[v][None] for k, c in cameras.items()},
-        {k: c[w][None] for k, c in cameras.items()},
-        tuple(image_size),
-    )
-    score = model.association_score(dec.app[v][None], dec.app[w][None], cost)[0]
-    slots = getattr(dec, "slots", None)
-    if slots is not None and slot_bonus > 0:
-        a, b = slots[v], slots[w]
-        same = (a[:, None] == b[None, :]) & (a[:, None] >= 0)
-        score = score + slot_bonus * same.to(score.dtype)
-    return score
 
 
 @torch.no_grad()

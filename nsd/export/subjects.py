@@ -65,7 +65,7 @@ from pycocotools import mask as mask_utils
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_directory, atomic_write_text
 from nsd.core.errors import ConfigError, FootageError, NSDError
-from nsd.evaluation.decomposition import association_scores
+from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.inference.single import associate_views
 from nsd.inference.tracking import SubjectObservation, SubjectTracker
@@ -221,7 +221,7 @@ def _prepare(cfg: DictConfig) -> _Inputs:
     trained = load_decomposition(cfg.checkpoint)
     scene = cfg.scene or trained.config.data.get("scene")
     if not scene:
-        from nsd.cli.train import resolve_scene
+        from nsd.io.scenes import resolve_scene
 
         scene = resolve_scene(None)
     scene = Path(scene).expanduser()

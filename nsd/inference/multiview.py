@@ -16,7 +16,7 @@ camera. In each view (:func:`fuse_detections`):
   never mixes them); otherwise the view keeps the detector's depths;
 * the individual of each window (its *slot*, shared by all views) joins the cross-view
   association: windows of two views on the same individual get ``slot_bonus`` added to
-  their association score (:func:`nsd.evaluation.decomposition.association_scores`).
+  their association score (:func:`nsd.inference.association_scores.association_scores`).
 
 NSD then crops, encodes, decodes, composites and refines with the fused windows
 (:func:`nsd.inference.single.decompose`): the masks, their ownership, the appearance and the
@@ -34,12 +34,12 @@ from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
 from nsd.core.errors import ConfigError
+from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals, voxel_grid
 from nsd.cues.proposals import match_proposals
 from nsd.inference.single import Decomposition, decompose
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
-from nsd.training.losses import foreground_evidence
 
 __all__ = ["InferenceSettings", "decompose_views", "fuse_detections"]
 

@@ -8,7 +8,7 @@ The composited weights are the *raw* visible instance masks.
 Mask refinement (``refine="residual"``, the default): the decoder renders
 small windows (32 px by default) and misses thin limbs, so the visible masks
 are re-drawn from the background residual: every foreground pixel (evidence
-above 0.5, see :func:`nsd.training.losses.foreground_evidence`) goes to the subject
+above 0.5, see :func:`nsd.cues.evidence.foreground_evidence`) goes to the subject
 with the largest ownership score there (if its composited weight exceeds
 ``min_weight``). The ownership score of subject :math:`i` at pixel :math:`p`
 (:func:`ownership`) is its composited weight times the agreement of its
@@ -41,12 +41,13 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 
+from nsd.cues.evidence import foreground_evidence
 from nsd.model.association import appearance_similarity
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
-from nsd.training.losses import foreground_evidence
+from nsd.ops.boxes import mask_boxes_xywh
 
-__all__ = ["Decomposition", "associate_views", "decompose", "mask_boxes", "ownership"]
+__all__ = ["Decomposition", "associate_views", "decompose", "ownership"]
 
 
 @dataclass
@@ -86,21 +87,6 @@ class Decomposition:
     reconstruction: Tensor
     occlusion_reasoning: bool = True
     slots: Tensor | None = None
-
-
-def mask_boxes(masks: Tensor) -> Tensor:
-    """Tight COCO boxes [x, y, w, h] (pixel edges) of boolean masks (..., H, W); zeros if empty."""
-    H, W = masks.shape[-2:]
-    rows, cols = masks.any(-1), masks.any(-2)
-    ar_h = torch.arange(H, device=masks.device)
-    ar_w = torch.arange(W, device=masks.device)
-    big = torch.tensor(10**9, device=masks.device)
-    y0 = torch.where(rows, ar_h, big).amin(-1)
-    y1 = torch.where(rows, ar_h, -big).amax(-1) + 1
-    x0 = torch.where(cols, ar_w, big).amin(-1)
-    x1 = torch.where(cols, ar_w, -big).amax(-1) + 1
-    box = torch.stack([x0, y0, x1 - x0, y1 - y0], -1).float()
-    return torch.where(rows.any(-1, keepdim=True), box, torch.zeros_like(box))
 
 
 def ownership(weights: Tensor, layers: Tensor, images: Tensor, colour_sigma: float) -> Tensor:
@@ -178,7 +164,7 @@ def decompose(
     conf = (raw * binary).flatten(-2).sum(-1) / area.clamp_min(1)
     return Decomposition(
         windows=win.det.boxes,
-        boxes=mask_boxes(binary),
+        boxes=mask_boxes_xywh(binary),
         masks=masks,
         raw_masks=raw,
         depths=win.det.depths,
@@ -207,7 +193,7 @@ def associate_views(
         dims: association dims (as in training).
         score: ``score(v, r)`` -> (N, N) association score between the windows of view
             ``v`` and the reference view ``r`` (e.g.
-            :func:`nsd.evaluation.decomposition.association_scores`, which adds the geometric term); default: cosine similarity of ``app``.
+            :func:`nsd.inference.association_scores.association_scores`, which adds the geometric term); default: cosine similarity of ``app``.
 
     Returns:
         int array (V, N): the subject id of each window, -1 for inactive windows.

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from nsd.evaluation.decomposition import box_iou
+from nsd.ops.boxes import box_iou_xywh
 
 __all__ = ["SubjectObservation", "SubjectTracker", "track_similarity"]
 
@@ -56,7 +56,7 @@ def track_similarity(
     """Similarity of two observations: weighted cosine of appearance and mean box IoU."""
     cos = float(np.dot(_unit(a.appearance), _unit(b.appearance)))
     common = [c for c in a.boxes if c in b.boxes]
-    iou = float(np.mean([box_iou(a.boxes[c], b.boxes[c])[0, 0] for c in common])) if common else 0.0
+    iou = float(np.mean([box_iou_xywh(a.boxes[c], b.boxes[c])[0, 0] for c in common])) if common else 0.0
     return appearance_weight * cos + (1.0 - appearance_weight) * iou
 
 

@@ -54,7 +54,7 @@ class TrainedDecomposition:
 
 def load_decomposition(path: str | os.PathLike) -> TrainedDecomposition:
     """Rebuild the trained BiNVS of an ``nsd-train`` checkpoint (a file or its run folder)."""
-    from nsd.cli.train import build_model
+    from nsd.model.build import build_model
 
     path = Path(path)
     if path.is_dir():

@@ -15,7 +15,7 @@ windows that are off keep being evaluated (their ungated masks), so they turn
 on again where foreground is left unexplained.
 
 With the soft foreground evidence :math:`e(x) \in [0, 1]` (background residual,
-:func:`nsd.training.losses.foreground_evidence`), the ungated pasted masks
+:func:`nsd.cues.evidence.foreground_evidence`), the ungated pasted masks
 :math:`m_i(x) \in [0, 1]` and the window areas :math:`A_i` (``normalise=mask``:
 the mask's own area :math:`\max(\sum_x m_i, a_{min})`, so that :math:`g_i` below is
 the fraction of the mask that lands on unexplained foreground; ``box``:

@@ -43,6 +43,7 @@ from torch import Tensor
 from nsd.cameras.calibration import Camera, CameraRig
 from nsd.cameras.projection import project_points
 from nsd.core.errors import ConfigError
+from nsd.ops.boxes import mask_boxes_xyxy
 from nsd.synth.backdrop import Backdrop
 from nsd.synth.body import Individual, Pose
 from nsd.synth.nnopcs import nnopcs_of
@@ -53,35 +54,11 @@ __all__ = [
     "DEFAULT_BACKDROP",
     "DEFAULT_LIGHT",
     "keypoint_visibility",
-    "mask_boxes",
     "render_views",
 ]
 
 DEFAULT_BACKDROP = Backdrop()
 DEFAULT_LIGHT = Light()
-
-
-def mask_boxes(masks: Tensor) -> Tensor:
-    """Tight boxes of boolean masks.
-
-    Args:
-        masks: (..., H, W) bool.
-
-    Returns:
-        ``[x0, y0, x1, y1]`` in pixel-edge coordinates (see the module
-        docstring), float32 (..., 4); zeros for empty masks.
-    """
-    H, W = masks.shape[-2:]
-    cols, rows = masks.any(-2), masks.any(-1)
-    any_ = rows.any(-1)
-    ar_w, ar_h = torch.arange(W), torch.arange(H)
-    big = max(H, W) + 1
-    x0 = torch.where(cols, ar_w, big).amin(-1)
-    x1 = torch.where(cols, ar_w, -1).amax(-1) + 1
-    y0 = torch.where(rows, ar_h, big).amin(-1)
-    y1 = torch.where(rows, ar_h, -1).amax(-1) + 1
-    box = torch.stack([x0, y0, x1, y1], dim=-1).to(torch.float32)
-    return torch.where(any_[..., None], box, torch.zeros_like(box))
 
 
 def keypoint_visibility(
@@ -250,8 +227,8 @@ def render_views(
         "visible": visible,
         "amodal": amodal,
         "amodal_depth": amodal_depth,
-        "boxes": mask_boxes(visible),
-        "amodal_boxes": mask_boxes(amodal),
+        "boxes": mask_boxes_xyxy(visible),
+        "amodal_boxes": mask_boxes_xyxy(amodal),
         "keypoints3d": keypoints,
         "keypoints2d": uv,
         "keypoint_visibility": vis,

@@ -121,8 +121,8 @@ class SceneData:
     ) -> None:
         """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
         ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`."""
+        from nsd.cues.evidence import foreground_evidence
         from nsd.cues.occupancy import multiview_proposals, voxel_grid
-        from nsd.training.losses import foreground_evidence
 
         grid = voxel_grid(self.rig, self.image_size, resolution)
         boxes, depths, valid = [], [], []
@@ -148,8 +148,8 @@ class SceneData:
 
     def compute_proposals(self, k: int, threshold: float, softness: float) -> None:
         """Single-view residual-evidence window proposals for every frame and view."""
+        from nsd.cues.evidence import foreground_evidence
         from nsd.cues.proposals import evidence_proposals
-        from nsd.training.losses import foreground_evidence
 
         T, V = self.frames.shape[:2]
         boxes, valid = [], []

@@ -20,9 +20,9 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from torch import Tensor, nn
 
-from nsd.cli.train import build_model
 from nsd.core.errors import ConfigError
 from nsd.inference.multiview import InferenceSettings, decompose_views
+from nsd.model.build import build_model
 from nsd.model.pose_regressor import PoseRegressor
 
 __all__ = ["PoseTask", "label_frames", "mpjpe"]

@@ -1,0 +1,46 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+__all__ = ["association_scores"]
+
+
+def association_scores(
+    model,
+    dec,
+    cameras: dict[str, torch.Tensor],
+    image_size: Sequence[int],
+    v: int,
+    w: int,
+    slot_bonus: float = 0.0,
+) -> torch.Tensor:
+    """The model's association score (N, N) between the windows of views v and w of a frame.
+
+    Args:
+        model: the trained BiNVS.
+        dec: the frame's :class:`nsd.inference.single.Decomposition` (one entry per view).
+        cameras: stacked per-view K (V, 3, 3), R, t, dist at ``image_size``
+            (:meth:`nsd.cameras.calibration.CameraRig.stacked`).
+        image_size: (H, W) of the decomposed frames.
+        v, w: the two views.
+        slot_bonus: added where both windows were fused with the same visual-hull
+            individual (``dec.slots``, multi-view inference, :mod:`nsd.inference.multiview`).
+    """
+    cost = model.geometry_cost(
+        dec.windows[v][None],
+        dec.windows[w][None],
+        {k: c[v][None] for k, c in cameras.items()},
+        {k: c[w][None] for k, c in cameras.items()},
+        tuple(image_size),
+    )
+    score = model.association_score(dec.app[v][None], dec.app[w][None], cost)[0]
+    slots = getattr(dec, "slots", None)
+    if slots is not None and slot_bonus > 0:
+        a, b = slots[v], slots[w]
+        same = (a[:, None] == b[None, :]) & (a[:, None] >= 0)
+        score = score + slot_bonus * same.to(score.dtype)
+    return score

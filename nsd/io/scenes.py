@@ -1,0 +1,16 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = ["resolve_scene"]
+
+
+def resolve_scene(scene: str | None) -> Path:
+    """The scene folder to use: the given one, or the built-in default synthetic scene."""
+    if scene:
+        return Path(scene).expanduser()
+    from nsd.synth import default_scene
+
+    return default_scene()

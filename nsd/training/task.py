@@ -1,0 +1,391 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+
+from nsd.core import distributed
+from nsd.core.errors import ConfigError
+from nsd.cues.evidence import foreground_evidence
+from nsd.cues.proposals import match_proposals
+from nsd.cues.triangulation import triangulate_midpoints, window_rays
+from nsd.evaluation.decomposition import evaluate_model
+from nsd.evaluation.visualise import training_grid
+from nsd.inference.multiview import InferenceSettings
+from nsd.model.association import appearance_similarity, association_softmax, exclude_absent
+from nsd.model.build import build_model
+from nsd.priors.depth import depth_prior
+from nsd.priors.presence import (
+    marginal_presence_target,
+    presence_target_loss,
+    ranked_presence_target,
+    window_area,
+)
+from nsd.priors.proposal import association_prior, proposal_prior
+from nsd.priors.window import aspect_prior, position_prior, presence_prior, scale_prior
+from nsd.training.data import SceneData
+from nsd.training.losses import total_image_loss
+
+__all__ = ["NSDTask"]
+
+log = logging.getLogger(__name__)
+
+
+def _reset(module: nn.Module) -> None:
+    for m in module.modules():
+        if hasattr(m, "reset_parameters") and m is not module:
+            m.reset_parameters()
+
+
+class NSDTask:
+    """Bi-NVS training on a scene (implements nsd.core.trainer.TrainTask)."""
+
+    def __init__(self, cfg: DictConfig, data: SceneData, gt: Any = None) -> None:
+        self.cfg, self.data, self.gt = cfg, data, gt
+        self.model = build_model(OmegaConf.to_container(cfg.model, resolve=True))
+        self.depth_from = int(cfg.model.get("depth_from_step", 0))
+        self.reinit = bool(cfg.model.get("reinit_at_depth", True))
+        self.use_depth = bool(cfg.model.depth)
+        self._make_optimizer()
+        self.stage2_started = self.depth_from <= 0
+        self.step = 0
+        self.presence_target = str(cfg.prior_presence.get("target", "none"))
+        self.presence_normalise = str(cfg.prior_presence.get("normalise", "mask"))
+        if self.presence_normalise not in ("mask", "box"):
+            raise ConfigError(
+                f"prior_presence.normalise must be 'mask' or 'box', got {self.presence_normalise!r}"
+            )
+        self.presence_cap = str(cfg.prior_presence.get("cap", "none"))
+        if self.presence_cap not in ("none", "proposals"):
+            raise ConfigError(
+                f"prior_presence.cap must be 'none' or 'proposals', got {self.presence_cap!r}"
+            )
+        if self.presence_cap == "proposals" and cfg.prior_proposal.source != "multiview":
+            raise ConfigError(
+                "prior_presence.cap=proposals needs prior_proposal.source=multiview (the "
+                "visual hull's individuals are the cap)"
+            )
+        if self.presence_target not in ("none", "marginal", "hull"):
+            raise ConfigError(
+                "prior_presence.target must be 'none', 'marginal' or 'hull', got "
+                f"{self.presence_target!r}"
+            )
+        if self.presence_target == "hull" and cfg.prior_proposal.source != "multiview":
+            raise ConfigError(
+                "prior_presence.target=hull needs prior_proposal.source=multiview (the visual "
+                "hull's individuals say how many windows are on)"
+            )
+        self.association_prior_score = str(cfg.prior_association.get("score", "full"))
+        if self.association_prior_score not in ("appearance", "full"):
+            raise ConfigError(
+                "prior_association.score must be 'appearance' or 'full', got "
+                f"{self.association_prior_score!r}"
+            )
+        pp = cfg.prior_proposal
+        if (
+            pp.weight > 0
+            or cfg.prior_association.weight > 0
+            or cfg.prior_depth.source == "proposals"
+            or self.presence_target == "hull"  # the hull's count is the presence target
+        ):
+            args = (cfg.model.num_windows, cfg.loss.evidence_threshold, cfg.loss.evidence_softness)
+            if pp.source == "multiview":
+                split = pp.get("split", "auto")
+                if split not in ("auto", True, False):
+                    raise ConfigError(
+                        f"prior_proposal.split must be auto, true or false, got {split!r}"
+                    )
+                if split == "auto":  # num_windows is an upper bound when presence is learned
+                    split = not cfg.model.detector.presence
+                data.compute_multiview_proposals(*args, resolution=pp.resolution, split=split)
+                if self.presence_target == "hull":
+                    self._hull_counts(cfg.prior_presence, data)
+            elif pp.source == "single_view":
+                data.compute_proposals(*args)
+            else:
+                raise ConfigError(
+                    f"prior_proposal.source must be 'multiview' or 'single_view' when proposal, "
+                    f"association or proposal-depth priors are on, got {pp.source!r}"
+                )
+
+    @staticmethod
+    def _hull_counts(pp: DictConfig, data: SceneData) -> None:
+        """The presence target's count per frame and view (``prior_presence.count_*``)."""
+        window = pp.get("count_window", 1)
+        population = pp.get("count_population", "frame")
+        if population not in ("frame", "scene"):
+            raise ConfigError(
+                f"prior_presence.count_population must be 'frame' or 'scene', got {population!r}"
+            )
+        try:
+            if not isinstance(window, int):
+                raise ValueError(f"got {window!r}")
+            data.smooth_counts(window, population == "scene")
+        except ValueError as e:
+            raise ConfigError(f"prior_presence.count_window: {e}") from None
+
+    def _make_optimizer(self) -> None:
+        o = self.cfg.optim
+        m = self.model
+        self.opt = torch.optim.Adam(
+            [
+                {"params": m.detector.parameters(), "lr": o.lr_detector},
+                {"params": m.encoder.parameters(), "lr": o.lr_encoder},
+                {"params": m.decoder.parameters(), "lr": o.lr_decoder},
+            ],
+            weight_decay=o.weight_decay,
+        )
+
+    # ------------------------------------------------------------ TrainTask
+    def modules(self) -> dict[str, nn.Module]:
+        return {"model": self.model}
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"adam": self.opt}
+
+    def extra_state(self) -> dict[str, Any]:
+        return {
+            "stage2_started": self.stage2_started,
+            "cameras": list(self.data.rig.names),
+            "image_size": list(self.data.image_size),
+            "scene": str(self.data.footage.scene),
+        }
+
+    def load_extra_state(self, state: Mapping[str, Any]) -> None:
+        self.stage2_started = bool(state.get("stage2_started", self.stage2_started))
+        self.model.cfg.depth = self.use_depth and self.stage2_started
+
+    def _update_presence(self, step: int) -> None:
+        """Presence is 1 (not learned, its prior constant) before ``prior_presence.from_step``.
+
+        Learned from the first step, presence collapsed to ~0 in every window (the
+        early, blurry renderings reconstruct worse than the median background, and a
+        low presence also scales down the gradients that would improve them;
+        docs/benchmarks/count.md), so the decomposition forms first.
+        """
+        want = bool(self.cfg.model.detector.get("presence", False))
+        start = int(self.cfg.prior_presence.get("from_step", 0))
+        self.model.detector.use_presence = want and step >= start
+
+    def _update_stage(self, step: int) -> None:
+        if not self.stage2_started and step >= self.depth_from:
+            self.stage2_started = True
+            if self.reinit:
+                _reset(self.model.encoder)
+                _reset(self.model.decoder)
+                # the ranks' random streams differ: every replica takes rank 0's new weights
+                distributed.broadcast_parameters([self.model.encoder, self.model.decoder])
+                self._make_optimizer()
+            log.info("step %d: stage 2 (depth compositor on)", step)
+        self.model.cfg.depth = self.use_depth and self.stage2_started
+
+    def losses(self, batch) -> dict[str, torch.Tensor]:
+        """All loss terms for a batch of view pairs; ``loss`` is their weighted sum."""
+        c = self.cfg
+        cams = self.data.cameras
+        rv, rw, wv, ww = self.model(
+            batch.image_v,
+            batch.image_w,
+            batch.background_v,
+            batch.background_w,
+            batch.rotation_vw,
+            {k: v[batch.view_v] for k, v in cams.items()},
+            {k: v[batch.view_w] for k, v in cams.items()},
+        )
+        out: dict[str, torch.Tensor] = {}
+        total = torch.zeros(())
+        pairs = ((batch.image_v, batch.background_v), (batch.image_w, batch.background_w))
+        evidence = [
+            foreground_evidence(img, bg, c.loss.evidence_threshold, c.loss.evidence_softness)
+            for img, bg in pairs
+        ]
+        for r, img, ev in ((rv, batch.image_v, evidence[0]), (rw, batch.image_w, evidence[1])):
+            weight = 1 + c.loss.residual_weight * ev if c.loss.residual_weight > 0 else None
+            terms = total_image_loss(
+                r.image, img, weight, c.loss.ssim_weight, c.loss.ssim_window, c.loss.renormalise
+            )
+            for k, v in terms.items():
+                out[k] = out.get(k, 0) + v / 2
+            if c.loss.foreground_weight > 0:
+                cover = 1 - r.composite.background_weight
+                out["foreground"] = out.get("foreground", 0) + (cover - ev).pow(2).mean() / 2
+        boxes = torch.cat([wv.det.boxes, ww.det.boxes])
+        H, W = batch.image_v.shape[-2:]
+        out["prior_position"] = position_prior(boxes)
+        out["prior_scale"] = scale_prior(boxes, c.prior_scale.target)
+        out["prior_aspect"] = aspect_prior(boxes, c.prior_aspect.ratio, (H, W))
+        out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
+        matching, active = None, None
+        learn_presence = self.model.detector.use_presence
+        valid = None if batch.valid_v is None else torch.cat([batch.valid_v, batch.valid_w])
+        if self.presence_target == "hull" and learn_presence:
+            presence = torch.cat([wv.det.presence, ww.det.presence])
+            count = torch.cat([batch.count_v, batch.count_w])  # NSDTask._hull_counts
+            hull_target = ranked_presence_target(presence, count)
+            out["presence_target"] = presence_target_loss(presence, hull_target)
+            out["presence_target_on"] = hull_target.sum(-1).mean()
+            active = hull_target > 0.5
+        if batch.proposals_v is not None:
+            props = torch.cat([batch.proposals_v, batch.proposals_w])
+            matching = match_proposals(boxes, props, valid, active)
+            out["prior_proposal"] = proposal_prior(boxes, props, valid, matching)
+        if self.presence_target == "marginal" and learn_presence:
+            caps = (None, None)
+            if self.presence_cap == "proposals":
+                caps = (batch.valid_v.sum(-1), batch.valid_w.sum(-1))
+            out.update(self._presence_target(evidence, rv, rw, wv, ww, (H, W), caps))
+        if c.prior_depth.weight > 0:
+            if c.prior_depth.source == "proposals" and batch.proposal_depth_v is not None:
+                target = torch.cat([batch.proposal_depth_v, batch.proposal_depth_w])
+                depths = torch.cat([wv.det.depths, ww.det.depths])
+                out["prior_depth"] = depth_prior(
+                    depths,
+                    target.gather(1, matching),
+                    valid.gather(1, matching),
+                    c.prior_depth.unit,
+                )
+            elif c.prior_depth.source == "triangulation":
+                out["prior_depth"] = self._depth_prior(batch, rv, rw, wv, ww)
+            else:
+                raise ConfigError(
+                    f"prior_depth.source {c.prior_depth.source!r} needs multi-view proposals"
+                    if c.prior_depth.source == "proposals"
+                    else f"prior_depth.source must be 'proposals' or 'triangulation', got "
+                    f"{c.prior_depth.source!r}"
+                )
+        if c.prior_association.weight > 0 and batch.proposal_depth_v is not None:
+            B = batch.image_v.shape[0]
+            mv, mw = matching[:B], matching[B:]
+            av, aw = self._prior_associations(rv, rw, wv, ww)
+            out["prior_association"] = (
+                association_prior(av, mv, batch.valid_v, mw, batch.valid_w)
+                + association_prior(aw, mw, batch.valid_w, mv, batch.valid_v)
+            ) / 2
+        weights = {
+            "pixel": 1.0,
+            "ssim": c.loss.ssim_weight,
+            "foreground": c.loss.foreground_weight,
+            "prior_position": c.prior_position.weight,
+            "prior_scale": c.prior_scale.weight,
+            "prior_aspect": c.prior_aspect.weight,
+            "prior_presence": c.prior_presence.weight,
+            "presence_target": c.prior_presence.get("target_weight", 0.0),
+            "presence_target_on": 0.0,  # logged only: windows on per view in the target
+            "prior_proposal": self.proposal_weight(),
+            "prior_depth": c.prior_depth.weight,
+            "prior_association": c.prior_association.weight,
+        }
+        for k, v in out.items():
+            total = total + weights[k] * v
+        out["loss"] = total
+        return out
+
+    def _prior_associations(self, rv, rw, wv, ww) -> tuple[torch.Tensor, torch.Tensor]:
+        """The soft associations (B, N, N) the association prior pulls on, for v and w.
+
+        ``prior_association.score=appearance``: the appearance-only softmax (eq. 4-5), the
+        part of the score the networks can change. ``full``: the association used for
+        re-synthesis, whose detached ray-distance term can contradict the proposals by far
+        more than the appearances can make up: its cross-entropy then stays large (up to
+        ~14 measured) and only pushes the encoder around (docs/nsd.md).
+        """
+        m = self.model.cfg
+        if self.association_prior_score == "full" or not (m.association and m.mode == "bi_nvs"):
+            return rv.association, rw.association
+        sim = appearance_similarity(wv.app, ww.app, m.association_dims)
+        present = self.model.present
+        return (
+            association_softmax(exclude_absent(sim, present(ww)), m.association_beta),
+            association_softmax(exclude_absent(sim.mT, present(wv)), m.association_beta),
+        )
+
+    def _presence_target(self, evidence, rv, rw, wv, ww, size, caps) -> dict[str, torch.Tensor]:
+        """BCE of both views' presences against their marginal-gain targets (nsd.priors.presence);
+        ``evidence``: the two views' foreground evidence (B, H, W), ``size``: (H, W),
+        ``caps``: per view (B,) the most windows that may be on, or None."""
+        pp = self.cfg.prior_presence
+        loss, on = torch.zeros(()), torch.zeros(())
+        for r, win, ev, cap in ((rv, wv, evidence[0], caps[0]), (rw, ww, evidence[1], caps[1])):
+            if self.presence_normalise == "box":
+                area = window_area(win.det.boxes, size)
+            else:  # the window's own (ungated) mask area, at least min_area pixels
+                area = r.ungated_masks.flatten(2).sum(-1).clamp_min(pp.min_area)
+            target, _ = marginal_presence_target(
+                r.ungated_masks, ev, area, pp.margin, win.det.presence, cap
+            )
+            loss = loss + presence_target_loss(win.det.presence, target) / 2
+            on = on + target.sum(-1).mean() / 2
+        return {"presence_target": loss, "presence_target_on": on}
+
+    def _depth_prior(self, batch, rv, rw, wv, ww) -> torch.Tensor:
+        """Triangulated relative-depth consistency for both directions (nsd.cues.triangulation)."""
+        cams = self.data.cameras
+        H, W = batch.image_v.shape[-2:]
+        total = torch.zeros(())
+        for r, tgt, src, vt, vs in (
+            (rv, wv, ww, batch.view_v, batch.view_w),
+            (rw, ww, wv, batch.view_w, batch.view_v),
+        ):
+            o_t, d_t = window_rays(
+                tgt.det.boxes, cams["K"][vt], cams["R"][vt], cams["t"][vt], cams["dist"][vt], (H, W)
+            )
+            o_s, d_s = window_rays(
+                src.det.boxes, cams["K"][vs], cams["R"][vs], cams["t"][vs], cams["dist"][vs], (H, W)
+            )
+            partner = r.association.argmax(-1)  # target slot j <- source window
+            d_s = d_s.gather(1, partner[..., None].expand(-1, -1, 3))
+            points, ok = triangulate_midpoints(o_t, d_t.detach(), o_s, d_s.detach())
+            depth = (points @ cams["R"][vt].transpose(-1, -2) + cams["t"][vt][:, None])[..., 2]
+            ok = ok & (tgt.det.presence > 0.5)
+            total = total + depth_prior(tgt.det.depths, depth, ok, self.cfg.prior_depth.unit) / 2
+        return total
+
+    def proposal_weight(self) -> float:
+        """The proposal prior's weight, annealed linearly to 0 over ``decay_steps``."""
+        p = self.cfg.prior_proposal
+        if p.decay_steps <= 0:
+            return float(p.weight)
+        return float(p.weight) * max(0.0, 1.0 - self.step / p.decay_steps)
+
+    def training_step(self, step: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
+        self.step = step
+        self._update_stage(step)
+        self._update_presence(step)
+        same = float(self.cfg.data.get("same_view", 0.0))
+        return self.losses(self.data.sample(rng, self.cfg.batch_size, same_view=same))
+
+    def evaluate(self, step: int) -> dict[str, float]:
+        """Metrics with the configured inference; with ground truth and multi-view
+        inference, also NSD's single-image inference (prefixed ``single_``)."""
+        settings = InferenceSettings.from_config(self.cfg.get("inference"))
+        runs = [("", settings)]
+        if settings.multiview and self.gt is not None:
+            runs.append(("single_", dataclasses.replace(settings, views="single")))
+        sets = [("", _spread(self.data.val_frames, self.cfg.eval_frames))]
+        if self.cfg.get("eval_train_frames", 0) > 0:
+            sets.append(("train_", _spread(self.data.train_frames, self.cfg.eval_train_frames)))
+        metrics = {}
+        for where, frames in sets:
+            for how, s in runs:
+                m = evaluate_model(self.model, self.data, frames, self.gt, inference=s)
+                metrics.update({f"{where}{how}{k}": v for k, v in m.items()})
+        return metrics
+
+    def image_grids(self, step: int) -> dict[str, np.ndarray]:
+        frames = _spread(self.data.val_frames, 3)
+        return {"nsd": training_grid(self.model, self.data, frames)}
+
+
+def _spread(frames: np.ndarray, n: int) -> np.ndarray:
+    """n frames spread evenly over ``frames``."""
+    if len(frames) <= n:
+        return np.asarray(frames)
+    return np.asarray(frames)[np.linspace(0, len(frames) - 1, n).round().astype(int)]
