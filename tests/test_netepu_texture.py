@@ -11,21 +11,11 @@ import pytest
 import torch
 
 from netepu.geometry.model import build_geometry_model
-from netepu.texture.model import (
-    TextureConfig,
-    build_texture_model,
-    code_contrast_loss,
-    crop_grid,
-    crop_windows,
-    encode_texture,
-    kld,
-    query_masked,
-    reparameterise,
-    sample_masked,
-    surface_normals,
-    texture_codes,
-    texture_loss,
-)
+from netepu.texture.config import TextureConfig
+from netepu.texture.crops import crop_grid, crop_windows, query_masked, sample_masked
+from netepu.texture.encoding import encode_texture, surface_normals, texture_codes
+from netepu.texture.losses import code_contrast_loss, kld, reparameterise, texture_loss
+from netepu.texture.model import build_texture_model
 from tests.netepu_world import TINY_MODEL
 
 K_BIPED, R_BIPED = 17, 0.9
@@ -371,7 +361,7 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
     )
     assert sorted((tmp_path / "run" / "grids").glob("texture_heldout_cameras_*.png"))
     # the final checkpoint holds the re-id whitening, fitted on the trained model's codes
-    from netepu.reid.metrics import within_class_whitening
+    from netepu.texture.embedding import within_class_whitening
     from netepu.texture.stage import build_texture_stage
 
     tex2 = load_texture_model(tmp_path / "run" / "checkpoint.pt")[0]

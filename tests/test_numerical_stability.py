@@ -493,7 +493,7 @@ class TestTextureVAEExtremes:
     )
     @settings(max_examples=60, deadline=None)
     def test_kld_finite_and_equal_to_its_float64_closed_form(self, mu, logvar):
-        from netepu.texture.model import kld
+        from netepu.texture.losses import kld
 
         m = torch.tensor([[mu, -mu]], dtype=torch.float32, requires_grad=True)
         lv = torch.tensor([[logvar, -logvar]], dtype=torch.float32, requires_grad=True)
@@ -511,7 +511,7 @@ class TestTextureVAEExtremes:
         assert math.isclose(m.grad[0, 0].item(), mu, rel_tol=1e-5, abs_tol=1e-6)
 
     def test_kld_limits(self):
-        from netepu.texture.model import kld
+        from netepu.texture.losses import kld
 
         # zero exactly at the prior; grows like exp(logvar) / 2 and like -logvar / 2 at the extremes
         assert kld(torch.zeros(1, 4), torch.zeros(1, 4)).item() == 0.0
@@ -526,7 +526,7 @@ class TestTextureVAEExtremes:
 
     @pytest.mark.parametrize("logvar", [-50.0, 50.0])
     def test_reparameterise_finite_with_gradients(self, logvar):
-        from netepu.texture.model import reparameterise
+        from netepu.texture.losses import reparameterise
 
         mu = torch.zeros(3, 8, requires_grad=True)
         lv = torch.full((3, 8), logvar, requires_grad=True)

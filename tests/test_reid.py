@@ -6,16 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from netepu.reid.metrics import (
-    ReidCNN,
-    batch_hard_triplet_loss,
-    nearest_candidates,
-    pairwise_distances,
-    reid_metrics,
-    separation_figure,
-    tsne_kde_figure,
-    within_class_whitening,
-)
+from netepu.reid.baseline import ReidCNN, batch_hard_triplet_loss
+from netepu.reid.figures import separation_figure, tsne_kde_figure
+from netepu.texture.embedding import within_class_whitening
+from nsd.evaluation.reid import nearest_candidates, pairwise_distances, reid_metrics
 
 
 def _reference(emb, ids, cams):
@@ -94,7 +88,7 @@ def test_batch_hard_triplet_loss_matches_loops():
 
 
 def test_baseline_cnn_shapes_and_training_lowers_loss():
-    from netepu.reid.metrics import train_reid_baseline
+    from netepu.reid.baseline import train_reid_baseline
 
     torch.manual_seed(0)
     model = ReidCNN(3, [8, 16], 1, dims=16)
@@ -220,7 +214,7 @@ def _fake_export(folder):
 @pytest.mark.parametrize(("use_nnopcs", "reid_colour"), [(True, True), (False, False)])
 def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs, reid_colour):
     from netepu.pipeline.embed import embed_export
-    from netepu.texture.model import texture_codes
+    from netepu.texture.encoding import texture_codes
     from nsd.core.errors import ConfigError
     from nsd.io.crops import read_crop_index, read_crops
     from nsd.io.embeddings import read_embeddings
@@ -359,7 +353,7 @@ def test_reid_embedding_is_the_code_until_a_whitening_is_set_and_old_checkpoints
 
 
 def test_colour_statistics_known_values_and_the_mask():
-    from netepu.reid.metrics import colour_statistics
+    from netepu.texture.embedding import colour_statistics
 
     rgb = torch.rand(3, 8, 8, 3, dtype=torch.float64)  # noise outside the masks
     inside = torch.zeros(3, 8, 8, dtype=torch.bool)
@@ -381,7 +375,7 @@ def test_colour_statistics_known_values_and_the_mask():
 
 
 def test_select_shrinkage_finds_the_weak_identity_direction_and_breaks_ties_upwards():
-    from netepu.reid.metrics import select_shrinkage
+    from netepu.texture.embedding import select_shrinkage
 
     rng = np.random.default_rng(0)
     n = 400
@@ -404,7 +398,7 @@ def test_select_shrinkage_finds_the_weak_identity_direction_and_breaks_ties_upwa
 
 
 def test_reid_colour_reads_the_crop_and_keeps_old_checkpoints():
-    from netepu.reid.metrics import colour_statistics
+    from netepu.texture.embedding import colour_statistics
     from tests.test_netepu_texture import _models
 
     tex, _ = _models(reid_colour=True)

@@ -127,7 +127,7 @@ def _task_for(run: str):
 
 
 def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[str, float]:
-    from netepu.reid.metrics import nearest_candidates, reid_metrics
+    from nsd.evaluation.reid import nearest_candidates, reid_metrics
 
     E, T = codes.shape[:2]
     ids = np.tile(np.arange(T), E)
@@ -160,14 +160,10 @@ def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[
 
 
 def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = False) -> None:
-    from netepu.reid.metrics import (
-        ReidCNN,
-        reid_metrics,
-        separation_figure,
-        train_reid_baseline,
-        tsne_kde_figure,
-    )
+    from netepu.reid.baseline import ReidCNN, train_reid_baseline
+    from netepu.reid.figures import separation_figure, tsne_kde_figure
     from netepu.texture.evaluation import evaluate_colour, heldout_codes, synthesis_grid
+    from nsd.evaluation.reid import reid_metrics
 
     torch.set_num_threads(1)
     WORK.mkdir(parents=True, exist_ok=True)
@@ -270,7 +266,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
     print("baseline", json.dumps(results["baseline"]), flush=True)
     # the same post-hoc whitening as the texture model's, fitted on the baseline's training
     # embeddings, so that the comparison does not credit the whitening to the texture code
-    from netepu.reid.metrics import within_class_whitening
+    from netepu.texture.embedding import within_class_whitening
 
     idx = task.spaced_training_samples(4096)
     with torch.no_grad():
@@ -283,7 +279,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
     print("baseline whitened", json.dumps(results["baseline_whitened"]), flush=True)
     # and the default's re-id input: [embedding, the crop's colour statistics], the shrinkage
     # chosen on two folds of training views, as TextureTask.fit_reid_whitening does
-    from netepu.reid.metrics import colour_statistics, select_shrinkage
+    from netepu.texture.embedding import colour_statistics, select_shrinkage
 
     def stats(rgb: np.ndarray, inside: np.ndarray) -> np.ndarray:
         return colour_statistics(torch.from_numpy(rgb).float() / 255, torch.from_numpy(inside))
@@ -338,7 +334,7 @@ def evaluate(baseline_minutes: float, speed_threads: int = 0, add_only: bool = F
 def _speed_fns(texture, geometry, image, mask, kps, cam, size: int) -> dict:
     """The two ways of encoding a batch of frames, as callables (see the module docstring)."""
     from netepu.geometry.maps import MapSettings, render_maps
-    from netepu.texture.model import encode_texture, surface_normals, texture_codes
+    from netepu.texture.encoding import encode_texture, surface_normals, texture_codes
 
     def visible_mode():  # the code and its re-id embedding, as netepu-embed writes them
         mu, rgb, inside, _ = texture_codes(

@@ -75,7 +75,7 @@ def rank1(codes: np.ndarray, ident: np.ndarray, candidates: np.ndarray) -> float
     Args:
         codes: (R, D); ident: (R,); candidates: (R, R) bool, row i may retrieve row j.
     """
-    from netepu.reid.metrics import nearest_candidates
+    from nsd.evaluation.reid import nearest_candidates
 
     best = nearest_candidates(codes, candidates)
     has = best >= 0

@@ -334,12 +334,13 @@ def netepu_speed_child(name: str, steps: int) -> dict:
 
 def texture_speed_child(name: str, steps: int) -> dict:
     """Fresh process, 2 threads: texture codes per second from frames, visible masks and
-    NNOPCS maps (:func:`netepu.texture.model.encode_texture`: crop, resample, encode)."""
+    NNOPCS maps (:func:`netepu.texture.encoding.encode_texture`: crop, resample, encode)."""
     import torch
     from omegaconf import OmegaConf
 
     from netepu.geometry.model import build_geometry_model
-    from netepu.texture.model import build_texture_model, encode_texture
+    from netepu.texture.encoding import encode_texture
+    from netepu.texture.model import build_texture_model
     from tools.benchlib import median_time, peak_rss_mb
 
     torch.set_num_threads(2)
@@ -662,7 +663,7 @@ def report() -> None:
             "## NeTePu texture-code size (speed, and accuracy after 4 minutes)\n\n"
             + (markdown_table(tex_rows) if tex_rows else "(not measured)")
             + "\n\nTexture codes per second from 32 frames (256x192) with their visible masks "
-            "and NNOPCS maps (`netepu.texture.model.encode_texture`: square crop around the mask, "
+            "and NNOPCS maps (`netepu.texture.encoding.encode_texture`: square crop around the mask, "
             "masked resampling, CNN encoder, mu); untrained weights. Accuracy columns "
             "(where present): the texture stage (default recipe) trained with that code "
             "size on the frozen 18-minute biped geometry for the stated minutes on one "

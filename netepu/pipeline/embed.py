@@ -2,7 +2,7 @@
 
 Reads an ``nsd-export`` folder (``crops/`` and ``embeddings.parquet``/``.npz``,
 datasets/export.md), computes the texture code (:math:`\\mu`) of every crop
-from its visible pixels only (:func:`netepu.texture.model.texture_codes`) and
+from its visible pixels only (:func:`netepu.texture.encoding.texture_codes`) and
 appends it as a vector column (default ``texture``) to the embedding table,
 row by row in the table's own order (rows are matched by annotation ``id``),
 with :func:`nsd.io.embeddings.add_columns` (atomic).
@@ -83,7 +83,8 @@ def embed_export(
     Returns:
         ``rows``, ``encoded`` (rows with a code), ``path`` of the table.
     """
-    from netepu.texture.model import load_texture_model, texture_codes
+    from netepu.texture.encoding import texture_codes
+    from netepu.texture.model import load_texture_model
     from nsd.io.crops import read_crop_index, read_crops
     from nsd.io.embeddings import add_columns, embeddings_path, read_embeddings
 

@@ -13,7 +13,7 @@ for an individual wearing that texture (tested).
 
 Per training view (``V = train_poses x cameras``)
     world keypoints, camera index, the encoder's crop window and in-mask crop
-    pixels (:func:`netepu.texture.model.encoder_crops`), the ground-truth NNOPCS crop
+    pixels (:func:`netepu.texture.encoding.encoder_crops`), the ground-truth NNOPCS crop
     and a pool of ``pool`` in-mask pixels; per (view, texture) *sample* the RGB
     crop (uint8) and the colours of the pool pixels.
 
@@ -44,7 +44,7 @@ from torch import Tensor
 
 from netepu.geometry.data import DataConfig
 from netepu.geometry.sampling import sample_foreground_points
-from netepu.texture.model import crop_grid, crop_windows, sample_masked
+from netepu.texture.crops import crop_grid, crop_windows, sample_masked
 from nsd.core.errors import ConfigError
 
 __all__ = [
@@ -362,7 +362,7 @@ def build_texture_data(
     Args:
         cfg: the texture data config.
         geometry: the geometry checkpoint's data config (species, rigs, poses).
-        crop_size, margin: the encoder's crop (:class:`netepu.texture.model.TextureConfig`).
+        crop_size, margin: the encoder's crop (:class:`netepu.texture.config.TextureConfig`).
         progress: called with a message now and then.
     """
     from nsd.core.atomic import atomic_save_npz
@@ -413,7 +413,7 @@ def predicted_nnopcs_crops(
     """NNOPCS crops rendered by the frozen geometry model at the in-mask crop pixels.
 
     What the encoder sees in training and at inference
-    (:func:`netepu.texture.model.texture_codes` renders the same pixels).
+    (:func:`netepu.texture.encoding.texture_codes` renders the same pixels).
 
     Args:
         geometry: the :class:`netepu.geometry.model.GeometryModel`.
@@ -421,12 +421,12 @@ def predicted_nnopcs_crops(
         camera: per-view camera tensors (batch n).
         window: (n, 3) crop windows; inside: (n, S, S) bool in-mask crop pixels.
         normals: append the world normals of the rendered depth
-            (:func:`netepu.texture.model.predicted_surface`).
+            (:func:`netepu.texture.encoding.predicted_surface`).
 
     Returns:
         (n, S, S, 3) or (n, S, S, 6) float16, zeros outside.
     """
-    from netepu.texture.model import predicted_surface
+    from netepu.texture.encoding import predicted_surface
 
     geometry.eval()
     n, S = inside.shape[:2]

@@ -22,8 +22,9 @@ import torch
 from torch import Tensor
 
 from netepu.geometry.model import GeometryModel
+from netepu.texture.crops import query_masked
 from netepu.texture.data import TextureData
-from netepu.texture.model import TextureModel, query_masked
+from netepu.texture.model import TextureModel
 
 __all__ = [
     "colour_psnr",

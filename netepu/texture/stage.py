@@ -9,7 +9,7 @@ data config come from the checkpoint (``init_from``), the texture model from
 Per step: ``batch_size`` random (view, texture) samples; the encoder reads
 the masked RGB crop, the mask and the NNOPCS crop *predicted* by the frozen
 geometry model (computed once for every view at build time, exactly the
-pixels :func:`netepu.texture.model.texture_codes` renders at inference), with
+pixels :func:`netepu.texture.encoding.texture_codes` renders at inference), with
 probability ``occlusion`` a random rectangle of the crop is cut from the mask
 (the pipeline encodes occluded subjects from their visible pixels); the code
 is sampled with the reparameterisation trick, decoded to keypoint features
@@ -25,23 +25,23 @@ of the view it was read from, which is what re-identification needs.
 
 Contrastive codes (``contrast_weight`` > 0, ours): every sample also gets a
 partner, another view (pose, camera) of its texture, encoded the same way, and
-:func:`netepu.texture.model.code_contrast_loss` of the two batches' codes is added
+:func:`netepu.texture.losses.code_contrast_loss` of the two batches' codes is added
 with that weight (the synthetic world's texture ids say which rows match).
 ``batch_sampling=textures`` fills each batch with as many different textures as
 it can, so that look-alike textures meet in the contrastive loss.
 
 Re-identification whitening (ours; ``reid_whitening_samples`` > 0): when
 training ends, the codes of that many training samples (evenly spaced, no
-occlusion) and their texture ids fit :func:`netepu.reid.metrics.within_class_whitening`
+occlusion) and their texture ids fit :func:`netepu.texture.embedding.within_class_whitening`
 (shrinkage ``reid_shrinkage``; ``auto`` picks it by
-:func:`netepu.reid.metrics.select_shrinkage` on two folds of training views; with the
+:func:`netepu.texture.embedding.select_shrinkage` on two folds of training views; with the
 model's ``reid_colour`` the codes carry the crops' colour statistics), stored in the
 model before the final checkpoint
 (:meth:`TextureTask.finish`); :func:`add_reid_whitening` adds it to a finished
 checkpoint.
 
 Evaluation: colour PSNR of the held-out sets and re-identification rank-1 /
-mAP of the held-out codes' re-identification embeddings (:mod:`netepu.reid.metrics`;
+mAP of the held-out codes' re-identification embeddings (:mod:`nsd.evaluation.reid`;
 before the whitening is fitted, the codes themselves).
 """
 
@@ -67,13 +67,8 @@ from netepu.texture.evaluation import (
     heldout_reid_inputs,
     synthesis_grid,
 )
-from netepu.texture.model import (
-    TextureModel,
-    build_texture_model,
-    code_contrast_loss,
-    reparameterise,
-    texture_loss,
-)
+from netepu.texture.losses import code_contrast_loss, reparameterise, texture_loss
+from netepu.texture.model import TextureModel, build_texture_model
 from nsd.core.errors import ConfigError
 
 FALLBACK_SHRINKAGE = 0.01  # reid_shrinkage=auto when the training codes cannot choose
@@ -344,7 +339,7 @@ class TextureTask:
     def fit_reid_whitening(self) -> dict[str, Any]:
         """Fit the re-identification whitening on training codes and store it in the model;
         returns the shrinkage used and, with ``auto``, the validation scores."""
-        from netepu.reid.metrics import select_shrinkage, within_class_whitening
+        from netepu.texture.embedding import select_shrinkage, within_class_whitening
 
         codes, ids, cams, views = self.training_reid_inputs(self.cfg.reid_whitening_samples)
         shrinkage, scores = self.cfg.reid_shrinkage, {}
@@ -372,7 +367,7 @@ class TextureTask:
             self.fit_reid_whitening()
 
     def evaluate(self, step: int) -> dict[str, float]:
-        from netepu.reid.metrics import reid_metrics
+        from nsd.evaluation.reid import reid_metrics
 
         codes = self.codes()
         out = evaluate_colour(
