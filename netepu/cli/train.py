@@ -25,6 +25,12 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from netepu.geometry.data import build_geometry_data
+from netepu.geometry.losses import GeometryLossWeights
+from netepu.geometry.maps import MapSettings
+from netepu.geometry.model import build_geometry_model
+from netepu.geometry.stage import GeometryStageConfig, GeometryTask
+from netepu.texture.stage import build_texture_stage as build
 from nsd.core.errors import ConfigError
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 
@@ -35,11 +41,6 @@ log = logging.getLogger(__name__)
 
 def build_geometry_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
     """The geometry task of ``cfg``; returns it and config values found at build time."""
-    from netepu.geometry.data import build_geometry_data
-    from netepu.geometry.losses import GeometryLossWeights
-    from netepu.geometry.maps import MapSettings
-    from netepu.geometry.model import build_geometry_model
-    from netepu.geometry.stage import GeometryStageConfig, GeometryTask
 
     net = OmegaConf.to_container(cfg.netepu, resolve=True)
     data = build_geometry_data(net["data"], progress=log.info)
@@ -57,7 +58,6 @@ def build_geometry_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
 
 def build_texture_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
     """The texture task (:mod:`netepu.texture.stage`; geometry from ``init_from``)."""
-    from netepu.texture.stage import build_texture_stage as build
 
     return build(cfg)
 

@@ -41,7 +41,11 @@ from netepu.geometry.maps import candidate_region
 from netepu.geometry.renderer import view_frame
 from netepu.geometry.sampling import sample_foreground_points, sample_silhouette_points
 from nsd.cameras.calibration import CameraRig
+from nsd.core.atomic import atomic_save_npz
 from nsd.core.errors import ConfigError
+from nsd.synth import make_individual, make_rig, render_views, sample_pose
+from nsd.synth.raycast import camera_rays
+from nsd.synth.scene import default_cache_root
 
 __all__ = [
     "DataConfig",
@@ -283,8 +287,6 @@ def sample_batch(
 # ------------------------------------------------------------------ synthetic world
 def _render(individual, poses, rig, size) -> dict[str, np.ndarray]:
     """Render poses from every camera of ``rig``: arrays (n_poses, C, ...)."""
-    from nsd.synth import render_views
-    from nsd.synth.raycast import camera_rays
 
     rays = camera_rays(rig, size)
     out = {"mask": [], "depth": [], "nnopcs": [], "keypoints": []}
@@ -299,7 +301,6 @@ def _render(individual, poses, rig, size) -> dict[str, np.ndarray]:
 
 
 def _sample_poses(individual, n: int, cfg: DataConfig, rng: np.random.Generator) -> list:
-    from nsd.synth import sample_pose
 
     poses = []
     for _ in range(n):
@@ -309,7 +310,6 @@ def _sample_poses(individual, n: int, cfg: DataConfig, rng: np.random.Generator)
 
 
 def _make_rig(spec: Mapping[str, Any], size: tuple[int, int]) -> CameraRig:
-    from nsd.synth import make_rig
 
     spec = dict(spec)
     kind = spec.pop("kind", "nepumoo")
@@ -336,7 +336,6 @@ def _store(arrays: dict[str, Any], name: str, vs: ViewSet) -> None:
 
 
 def _build(cfg: DataConfig, progress: Callable[[str], None]) -> dict[str, Any]:
-    from nsd.synth import make_individual
 
     rng = np.random.default_rng(cfg.seed)
     ind = make_individual(cfg.species, identity=cfg.identity, seed=cfg.seed,
@@ -402,7 +401,6 @@ def render_new_poses(
         ``(maps, rig)``: ``keypoints`` (P, K, 3), ``mask`` (P, C, H, W), ``depth``,
         ``nnopcs``; and the rig.
     """
-    from nsd.synth import make_individual
 
     if not isinstance(cfg, DataConfig):
         cfg = DataConfig.from_mapping(cfg)
@@ -416,7 +414,6 @@ def render_new_poses(
 def _cache_root(cfg: DataConfig) -> Path:
     if cfg.cache_dir:
         return Path(cfg.cache_dir)
-    from nsd.synth.scene import default_cache_root
 
     return default_cache_root() / "netepu"
 
@@ -430,7 +427,6 @@ def build_geometry_data(
         cfg: a :class:`DataConfig` or the ``netepu.data`` mapping.
         progress: called with a message after each rendered chunk.
     """
-    from nsd.core.atomic import atomic_save_npz
 
     if not isinstance(cfg, DataConfig):
         cfg = DataConfig.from_mapping(cfg)

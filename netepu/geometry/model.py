@@ -24,6 +24,7 @@ from netepu.geometry.networks import (
 )
 from netepu.geometry.renderer import NeuralRenderer2D, RenderContext
 from nsd.core.errors import CheckpointError, ConfigError
+from nsd.core.trainer import load_checkpoint
 
 __all__ = ["GeometryModel", "build_geometry_model", "load_geometry_model"]
 
@@ -131,7 +132,6 @@ def load_geometry_model(path: str | os.PathLike) -> tuple[GeometryModel, dict[st
     Returns:
         ``(model, config)``: the model in eval mode and the run's config.
     """
-    from nsd.core.trainer import load_checkpoint
 
     state = load_checkpoint(path)
     config = state.get("config") or {}

@@ -39,7 +39,13 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from netepu.texture.encoding import texture_codes
+from netepu.texture.model import load_texture_model
+from nsd.cameras.calibration_io import read_calibration
+from nsd.core.atomic import atomic_save_npz, atomic_write_bytes
 from nsd.core.errors import ConfigError, NSDError
+from nsd.io.crops import read_crop_index, read_crops
+from nsd.io.embeddings import add_columns, embeddings_path, read_embeddings
 
 __all__ = ["embed_export", "embed_into_copy", "main", "write_surface_maps"]
 
@@ -83,10 +89,6 @@ def embed_export(
     Returns:
         ``rows``, ``encoded`` (rows with a code), ``path`` of the table.
     """
-    from netepu.texture.encoding import texture_codes
-    from netepu.texture.model import load_texture_model
-    from nsd.io.crops import read_crop_index, read_crops
-    from nsd.io.embeddings import add_columns, embeddings_path, read_embeddings
 
     export = Path(export)
     table = embeddings_path(export)
@@ -104,7 +106,6 @@ def embed_export(
                 "this texture model reads NNOPCS maps: give keypoints=<npz with id, "
                 "keypoints> and calibration=<scene calibration file or folder>"
             )
-        from nsd.cameras.calibration_io import read_calibration
 
         kps = _keypoints(keypoints)
         rig = read_calibration(calibration)
@@ -188,8 +189,6 @@ def write_surface_maps(path: Path, read: dict[str, list], size: int, grid_rows: 
     """
     import cv2
 
-    from nsd.core.atomic import atomic_save_npz, atomic_write_bytes
-
     n = len(read["id"])
     empty = np.zeros((0, size, size, 3), np.float32)
     rgb = np.concatenate(read["rgb"]) if n else empty
@@ -228,8 +227,6 @@ def embed_into_copy(
     ``crops/`` are linked there while the codes are computed.
     """
     import shutil
-
-    from nsd.io.embeddings import embeddings_path
 
     export, out = Path(export), Path(out)
     out.mkdir(parents=True, exist_ok=True)

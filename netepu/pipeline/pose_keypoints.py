@@ -30,9 +30,16 @@ from typing import Any
 import numpy as np
 import torch
 
+from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import CheckpointError, ConfigError
+from nsd.core.trainer import load_checkpoint
 from nsd.cues.triangulation import nearest_point_to_rays
+from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
+from nsd.model.build import build_model
+from nsd.model.pose_regressor import PoseRegressor
+from nsd.training.data import SceneData
+from nsd.training.pose_task import ROOT
 
 __all__ = ["load_pose_checkpoint", "regress_export", "world_keypoints"]
 
@@ -42,9 +49,6 @@ log = logging.getLogger(__name__)
 def load_pose_checkpoint(path: str | os.PathLike) -> tuple[Any, Any, dict[str, Any]]:
     """``(decomposition model, pose regressor, config)`` of an ``nsd-train stage=pose``
     checkpoint, both in eval mode."""
-    from nsd.core.trainer import load_checkpoint
-    from nsd.model.build import build_model
-    from nsd.model.pose_regressor import PoseRegressor
 
     state = load_checkpoint(path)
     cfg = state.get("config") or {}
@@ -106,10 +110,6 @@ def regress_export(
     Returns:
         counts and the mean disagreement between views.
     """
-    from nsd.cameras.calibration_io import read_calibration
-    from nsd.inference.multiview import InferenceSettings, decompose_views
-    from nsd.training.data import SceneData
-    from nsd.training.pose_task import ROOT
 
     if frame_step < 1 or min_views < 2:
         raise ConfigError(f"frame_step >= 1 and min_views >= 2, got {frame_step}, {min_views}")

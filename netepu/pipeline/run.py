@@ -45,9 +45,24 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from netepu.pipeline.embed import embed_into_copy
+from netepu.pipeline.pose_keypoints import regress_export
+from netepu.pipeline.subject_keypoints import invert_export, keypoint_error
+from netepu.reid.identities import IDENTITY_METHODS, assign_identities, identity_accuracy
+from nsd.cameras.calibration_io import read_calibration
+from nsd.cli.evaluate import evaluate_checkpoint, markdown_table
+from nsd.cli.train import run as train
 from nsd.core.atomic import atomic_write_text
-from nsd.core.errors import ConfigError, NSDError
+from nsd.core.errors import CheckpointError, ConfigError, NSDError
 from nsd.core.stages import Stage, StageResult, StageRunner, config_hash
+from nsd.core.trainer import load_checkpoint
+from nsd.evaluation.visualise import decomposition_panels, grid
+from nsd.export.subjects import export_subjects, load_export_config
+from nsd.inference.multiview import InferenceSettings
+from nsd.io.embeddings import read_embeddings
+from nsd.io.footage import MultiViewFootage
+from nsd.io.ground_truth import GroundTruth
+from nsd.io.scenes import resolve_scene
 
 __all__ = ["build_stages", "load_run_config", "main", "run_pipeline"]
 
@@ -89,10 +104,6 @@ def _scene_stage(cfg: DictConfig) -> Stage:
     spec = str(Path(cfg.scene).expanduser().resolve()) if cfg.scene else DEFAULT_SCENE
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from nsd.cameras.calibration_io import read_calibration
-        from nsd.io.footage import MultiViewFootage
-        from nsd.io.ground_truth import GroundTruth
-        from nsd.io.scenes import resolve_scene
 
         path = resolve_scene(None if spec == DEFAULT_SCENE else spec)
         if not path.is_dir():
@@ -120,8 +131,6 @@ def _train_config(cfg: DictConfig) -> DictConfig:
 def _load_stage(path: Path) -> Stage:
     """The ``train`` stage when ``checkpoint=`` names a trained decomposition: copied, not
     trained (the stage re-runs when the file changes)."""
-    from nsd.core.errors import CheckpointError
-    from nsd.core.trainer import load_checkpoint
 
     if not path.is_file():
         raise ConfigError(f"checkpoint: {path} does not exist (an nsd-train checkpoint.pt)")
@@ -150,7 +159,6 @@ def _train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     tcfg = _train_config(cfg)
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from nsd.cli.train import run as train
 
         c = tcfg.copy()
         c.data.scene = up["scene"].summary["path"]
@@ -160,7 +168,6 @@ def _train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
         for item in work.iterdir():
             shutil.move(str(item), out / item.name)
         work.rmdir()
-        from nsd.core.trainer import load_checkpoint
 
         return {
             "checkpoint": "checkpoint.pt",
@@ -186,8 +193,6 @@ def _evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     inference = _inference(cfg)
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from nsd.cli.evaluate import evaluate_checkpoint, markdown_table
-        from nsd.inference.multiview import InferenceSettings
 
         frames = e.frames if isinstance(e.frames, str) else list(e.frames)
         metrics = evaluate_checkpoint(
@@ -222,7 +227,6 @@ def _export_stage(cfg: DictConfig) -> Stage:
     overrides = _container(OmegaConf.merge({"inference": _inference(cfg)}, cfg.export))
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from nsd.export.subjects import export_subjects, load_export_config
 
         ecfg = OmegaConf.merge(load_export_config(), overrides)
         ecfg.checkpoint = str(_checkpoint(up))
@@ -271,7 +275,6 @@ def _keypoints_stage(cfg: DictConfig) -> Stage:
         settings["geometry"] = n.geometry
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from netepu.pipeline.subject_keypoints import invert_export, keypoint_error
 
         scene = up["scene"].summary["path"]
         export = up["export"].folder
@@ -300,9 +303,6 @@ def _regress_keypoints(
 ) -> dict[str, Any]:
     """Train NSD's pose regressor (stage 3) on the frozen decomposition with
     ``label_fraction`` of the training frames labelled, then regress the exported subjects."""
-    from netepu.pipeline.pose_keypoints import regress_export
-    from nsd.cli.train import run as train
-    from nsd.core.trainer import load_checkpoint
 
     k = cfg.netepu.keypoints
     c = OmegaConf.create(load_checkpoint(checkpoint)["config"])  # as trained (or loaded)
@@ -327,7 +327,6 @@ def _texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
     n = cfg.netepu
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from netepu.pipeline.embed import embed_into_copy
 
         kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
         res = embed_into_copy(
@@ -356,8 +355,6 @@ def _identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) -
     column = str(i.column) if have_texture else "app"
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        from netepu.reid.identities import assign_identities, identity_accuracy
-        from nsd.io.embeddings import read_embeddings
 
         if not have_texture:
             log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
@@ -425,9 +422,6 @@ def write_grids(
         size: each panel's longer side in pixels.
     """
     from pycocotools import mask as mask_utils
-
-    from nsd.evaluation.visualise import decomposition_panels, grid
-    from nsd.io.footage import MultiViewFootage
 
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())
     by_image: dict[int, list[dict]] = {}
@@ -512,7 +506,6 @@ def run_pipeline(cfg: DictConfig) -> dict[str, StageResult]:
     Raises:
         ConfigError: an unknown ``netepu.identities.method`` (checked before any stage runs).
     """
-    from netepu.reid.identities import IDENTITY_METHODS
 
     if cfg.netepu.identities.method not in IDENTITY_METHODS:
         raise ConfigError(

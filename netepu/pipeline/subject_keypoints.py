@@ -28,8 +28,16 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
+from netepu.geometry.data import DataConfig
+from netepu.geometry.inverse import InverseSettings, invert_silhouettes
+from netepu.geometry.model import load_geometry_model
+from netepu.reid.identities import ground_truth_identities
+from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
+from nsd.io.ground_truth import GroundTruth
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
+from nsd.synth import make_individual
+from nsd.synth.motion import sample_pose
 
 __all__ = ["invert_export", "keypoint_error", "template_poses"]
 
@@ -38,9 +46,6 @@ log = logging.getLogger(__name__)
 
 def template_poses(data_cfg: dict[str, Any], n: int = 2, seed: int = 0) -> torch.Tensor:
     """``n`` random poses (n, K, 3) of the synthetic individual a geometry model was trained on."""
-    from netepu.geometry.data import DataConfig
-    from nsd.synth import make_individual
-    from nsd.synth.motion import sample_pose
 
     cfg = DataConfig.from_mapping(data_cfg)
     ind = make_individual(
@@ -84,9 +89,6 @@ def invert_export(
     Returns:
         counts and the mean final silhouette loss.
     """
-    from netepu.geometry.inverse import InverseSettings, invert_silhouettes
-    from netepu.geometry.model import load_geometry_model
-    from nsd.cameras.calibration_io import read_calibration
 
     if frame_step < 1 or min_views < 1:
         raise ConfigError(f"frame_step and min_views must be >= 1, got {frame_step}, {min_views}")
@@ -159,9 +161,6 @@ def keypoint_error(
     counted but not scored.
     """
     from collections import Counter
-
-    from netepu.reid.identities import ground_truth_identities
-    from nsd.io.ground_truth import GroundTruth
 
     truth = GroundTruth.load(scene).scene.keypoints3d
     matched = ground_truth_identities(export, scene)

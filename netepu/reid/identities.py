@@ -48,6 +48,9 @@ from typing import Any
 
 import numpy as np
 
+from nsd.io.ground_truth import GroundTruth
+from nsd.ops.boxes import mask_iou
+
 __all__ = [
     "IDENTITY_METHODS",
     "assign_identities",
@@ -234,9 +237,6 @@ def ground_truth_identities(
 
     from pycocotools import mask as mask_utils
     from scipy.optimize import linear_sum_assignment
-
-    from nsd.io.ground_truth import GroundTruth
-    from nsd.ops.boxes import mask_iou
 
     gt = GroundTruth.load(scene)
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())

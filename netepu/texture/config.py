@@ -6,6 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from netepu.texture.embedding import COLOUR_STATISTICS
 from nsd.core.errors import ConfigError
 
 __all__ = ["TextureConfig"]
@@ -54,7 +55,6 @@ class TextureConfig:
     @property
     def reid_dims(self) -> int:
         """Length of the re-identification input: d_z [+ the colour statistics]."""
-        from netepu.texture.embedding import COLOUR_STATISTICS
 
         return self.latent + (COLOUR_STATISTICS if self.reid_colour else 0)
 

@@ -45,7 +45,14 @@ from torch import Tensor
 from netepu.geometry.data import DataConfig
 from netepu.geometry.sampling import sample_foreground_points
 from netepu.texture.crops import crop_grid, crop_windows, sample_masked
+from netepu.texture.encoding import predicted_surface
+from nsd.core.atomic import atomic_save_npz
 from nsd.core.errors import ConfigError
+from nsd.synth import get_texture, make_individual, make_rig, render_views, sample_pose
+from nsd.synth.raycast import camera_rays
+from nsd.synth.render import DEFAULT_LIGHT
+from nsd.synth.scene import default_cache_root
+from nsd.synth.shading import lambert
 
 __all__ = [
     "TextureData",
@@ -126,9 +133,6 @@ def shade_texture(texture_id: int, nnopcs: Tensor, normal: Tensor) -> Tensor:
     Returns:
         (N, 3) colour in [0, 1] as :func:`nsd.synth.render_views` shades it.
     """
-    from nsd.synth import get_texture
-    from nsd.synth.render import DEFAULT_LIGHT
-    from nsd.synth.shading import lambert
 
     return lambert(get_texture(texture_id)(nnopcs), normal, DEFAULT_LIGHT)
 
@@ -156,7 +160,6 @@ def _key(cfg: TextureDataConfig, geo: DataConfig, crop_size: int, margin: float)
 
 
 def _poses(ind, n: int, geo: DataConfig, rng: np.random.Generator) -> list:
-    from nsd.synth import sample_pose
 
     out = []
     for _ in range(n):
@@ -166,7 +169,6 @@ def _poses(ind, n: int, geo: DataConfig, rng: np.random.Generator) -> list:
 
 
 def _rig(spec: Mapping[str, Any], size: tuple[int, int]):
-    from nsd.synth import make_rig
 
     spec = dict(spec)
     return make_rig(spec.pop("kind", "nepumoo"), size, **spec)
@@ -181,7 +183,6 @@ def _crops(colour: Tensor, mask: Tensor, crop_size: int, margin: float):
 
 
 def _render_pose(ind, pose, rays) -> dict[str, Tensor]:
-    from nsd.synth import render_views
 
     r = render_views([ind], [pose], rays, background=False)
     return {
@@ -213,8 +214,6 @@ def _build(
     margin: float,
     progress: Callable[[str], None],
 ) -> dict[str, np.ndarray]:
-    from nsd.synth import make_individual
-    from nsd.synth.raycast import camera_rays
 
     rng = np.random.default_rng(cfg.seed)
     ind = make_individual(
@@ -345,7 +344,6 @@ def _build(
 def _cache_root(cfg: TextureDataConfig) -> Path:
     if cfg.cache_dir:
         return Path(cfg.cache_dir)
-    from nsd.synth.scene import default_cache_root
 
     return default_cache_root() / "netepu"
 
@@ -365,7 +363,6 @@ def build_texture_data(
         crop_size, margin: the encoder's crop (:class:`netepu.texture.config.TextureConfig`).
         progress: called with a message now and then.
     """
-    from nsd.core.atomic import atomic_save_npz
 
     if not isinstance(cfg, TextureDataConfig):
         cfg = TextureDataConfig.from_mapping(cfg)
@@ -426,7 +423,6 @@ def predicted_nnopcs_crops(
     Returns:
         (n, S, S, 3) or (n, S, S, 6) float16, zeros outside.
     """
-    from netepu.texture.encoding import predicted_surface
 
     geometry.eval()
     n, S = inside.shape[:2]

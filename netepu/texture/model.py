@@ -77,8 +77,10 @@ from torch import Tensor, nn
 from netepu.geometry.model import GeometryModel, build_geometry_model
 from netepu.geometry.renderer import RenderContext
 from netepu.texture.config import TextureConfig
+from netepu.texture.embedding import colour_statistics
 from netepu.texture.networks import ColourRenderer, TextureDecoder, TextureEncoder
 from nsd.core.errors import CheckpointError, ConfigError
+from nsd.core.trainer import load_checkpoint
 
 __all__ = ["TextureModel", "build_texture_model", "load_texture_model"]
 
@@ -147,7 +149,6 @@ class TextureModel(nn.Module):
             raise ValueError(
                 "this texture model re-identifies with colour statistics: pass the crop"
             )
-        from netepu.texture.embedding import colour_statistics
 
         return torch.cat([mu, colour_statistics(rgb, inside).to(mu.dtype)], -1)
 
@@ -247,7 +248,6 @@ def load_texture_model(
 
     Both models are returned in eval mode.
     """
-    from nsd.core.trainer import load_checkpoint
 
     state = load_checkpoint(path)
     config = state.get("config") or {}

@@ -59,8 +59,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
-from netepu.geometry.model import GeometryModel
-from netepu.texture.data import TextureData, build_texture_data, predicted_nnopcs_crops
+from netepu.geometry.model import GeometryModel, load_geometry_model
+from netepu.texture.data import TextureData, _cache_root, build_texture_data, predicted_nnopcs_crops
+from netepu.texture.embedding import select_shrinkage, within_class_whitening
 from netepu.texture.evaluation import (
     evaluate_colour,
     heldout_codes,
@@ -69,7 +70,10 @@ from netepu.texture.evaluation import (
 )
 from netepu.texture.losses import code_contrast_loss, reparameterise, texture_loss
 from netepu.texture.model import TextureModel, build_texture_model
+from nsd.core.atomic import atomic_save_npz, atomic_save_torch
 from nsd.core.errors import ConfigError
+from nsd.core.trainer import load_checkpoint
+from nsd.evaluation.reid import reid_metrics
 
 FALLBACK_SHRINKAGE = 0.01  # reid_shrinkage=auto when the training codes cannot choose
 
@@ -339,7 +343,6 @@ class TextureTask:
     def fit_reid_whitening(self) -> dict[str, Any]:
         """Fit the re-identification whitening on training codes and store it in the model;
         returns the shrinkage used and, with ``auto``, the validation scores."""
-        from netepu.texture.embedding import select_shrinkage, within_class_whitening
 
         codes, ids, cams, views = self.training_reid_inputs(self.cfg.reid_whitening_samples)
         shrinkage, scores = self.cfg.reid_shrinkage, {}
@@ -367,7 +370,6 @@ class TextureTask:
             self.fit_reid_whitening()
 
     def evaluate(self, step: int) -> dict[str, float]:
-        from nsd.evaluation.reid import reid_metrics
 
         codes = self.codes()
         out = evaluate_colour(
@@ -404,8 +406,6 @@ def _weights_key(path: str | Path) -> str:
 
 def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
     """The texture task of ``cfg`` (``init_from`` must name the geometry checkpoint)."""
-    from netepu.geometry.model import load_geometry_model
-    from nsd.core.atomic import atomic_save_npz
 
     if not cfg.get("init_from"):
         raise ConfigError(
@@ -427,7 +427,6 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
         data_cfg, geo_data, texture.cfg.crop_size, texture.cfg.crop_margin, progress=log.info
     )
     cache = Path(data.config.cache_dir or "") if data.config.cache_dir else None
-    from netepu.texture.data import _cache_root
 
     root = cache or _cache_root(data.config)
     key = hashlib.sha1(  # the crops' size is part of the key: windows alone do not fix it
@@ -476,8 +475,6 @@ def add_reid_whitening(
     """Fit the re-identification whitening into a finished texture checkpoint (in place,
     atomically); everything else in the checkpoint is kept. ``colour``: switch the
     model's ``reid_colour`` (None: keep it). Returns the fit's summary."""
-    from nsd.core.atomic import atomic_save_torch
-    from nsd.core.trainer import load_checkpoint
 
     if samples < 1:
         raise ConfigError(f"add_reid_whitening: samples must be >= 1, got {samples}")

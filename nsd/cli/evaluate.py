@@ -16,6 +16,7 @@ from nsd.core.errors import ConfigError, FootageError
 from nsd.evaluation.decomposition import evaluate_model
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.ground_truth import GroundTruth
+from nsd.io.scenes import resolve_scene
 from nsd.model.checkpoint import load_decomposition
 from nsd.training.data import SceneData
 
@@ -55,7 +56,6 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
     trained = load_decomposition(checkpoint)
     scene = Path(scene) if scene else Path(trained.config.data.scene or "")
     if not scene or str(scene) in ("", "."):
-        from nsd.io.scenes import resolve_scene
 
         scene = resolve_scene(None)
     if not GroundTruth.exists(scene):

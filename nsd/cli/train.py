@@ -34,8 +34,10 @@ from omegaconf import DictConfig, OmegaConf
 from nsd.core import distributed
 from nsd.core.errors import ConfigError
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
+from nsd.io.ground_truth import GroundTruth
 from nsd.io.scenes import resolve_scene
 from nsd.training.data import SceneData
+from nsd.training.pose_task import PoseTask
 from nsd.training.task import NSDTask
 
 __all__ = ["main"]
@@ -50,13 +52,11 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     data = SceneData(
         scene, cfg.data.image_size, cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames
     )
-    from nsd.io.ground_truth import GroundTruth
 
     gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
     tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
     seed_everything(tcfg.seed)  # model initialisation is part of the seeded run
     if cfg.stage == "pose":
-        from nsd.training.pose_task import PoseTask
 
         task = PoseTask(cfg, data, gt)
     elif cfg.stage == "decomposition":

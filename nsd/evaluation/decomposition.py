@@ -40,7 +40,9 @@ import torch
 from sklearn.metrics import adjusted_rand_score
 
 from nsd.inference.association_scores import association_scores
-from nsd.ops.boxes import box_iou_xywh, mask_iou, match
+from nsd.inference.multiview import InferenceSettings, decompose_views
+from nsd.io.coco_results import decomposition_to_coco
+from nsd.ops.boxes import box_iou_xywh, mask_boxes_xywh, mask_iou, match
 
 __all__ = ["FrameScore", "coco_ap", "evaluate_model", "fg_ari", "score_frame"]
 
@@ -93,7 +95,6 @@ def score_frame(
         gt_ids: (G,) identity ids.
         threshold: binarisation of the predicted masks.
     """
-    from nsd.ops.boxes import mask_boxes_xywh
 
     s = FrameScore(n_gt=len(gt_ids))
     win = np.flatnonzero(active)
@@ -199,9 +200,6 @@ def evaluate_model(
     multi-view inference).
     """
     import kornia
-
-    from nsd.inference.multiview import InferenceSettings, decompose_views
-    from nsd.io.coco_results import decomposition_to_coco
 
     settings = inference or InferenceSettings()
     was = model.training

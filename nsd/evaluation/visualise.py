@@ -9,6 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nsd.inference.single import decompose
+
 __all__ = [
     "PALETTE",
     "decomposition_panels",
@@ -123,7 +125,6 @@ def decomposition_panels(
 def training_grid(model, data, frames: Sequence[int]) -> np.ndarray:
     """Per frame and per view pair (0, 1): input v, re-synthesis of v from w, boxes,
     instance masks, depth order, and the own-view reconstruction."""
-    from nsd.inference.single import decompose
 
     was = model.training
     model.eval()

@@ -62,6 +62,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from pycocotools import mask as mask_utils
 
+import nsd
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_directory, atomic_write_text
 from nsd.core.errors import ConfigError, FootageError, NSDError
@@ -77,6 +78,7 @@ from nsd.io.embeddings import EmbeddingWriter
 from nsd.io.footage import ImageFolderSource, MultiViewFootage
 from nsd.io.frame_selection import iter_selected, select_frames
 from nsd.io.mot import MotWriter
+from nsd.io.scenes import resolve_scene
 from nsd.model.checkpoint import TrainedDecomposition, load_decomposition
 
 log = logging.getLogger(__name__)
@@ -221,7 +223,6 @@ def _prepare(cfg: DictConfig) -> _Inputs:
     trained = load_decomposition(cfg.checkpoint)
     scene = cfg.scene or trained.config.data.get("scene")
     if not scene:
-        from nsd.io.scenes import resolve_scene
 
         scene = resolve_scene(None)
     scene = Path(scene).expanduser()
@@ -473,7 +474,6 @@ def _toolkit_version() -> str:
 
         return version("nsd-netepu")
     except Exception:
-        import nsd
 
         return nsd.__version__
 

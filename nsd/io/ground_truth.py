@@ -16,6 +16,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from nsd.core.errors import ConfigError
+from nsd.synth.groundtruth import SyntheticScene
+
 __all__ = ["FrameGT", "GroundTruth"]
 
 
@@ -63,7 +66,6 @@ class GroundTruth:
     """Evaluation view of a synthetic scene's ``gt/`` folder."""
 
     def __init__(self, scene: str | os.PathLike) -> None:
-        from nsd.synth.groundtruth import SyntheticScene
 
         self.scene = SyntheticScene(scene)
         self.root = Path(scene)
@@ -109,7 +111,6 @@ class GroundTruth:
     def num_keypoints(self) -> int:
         counts = {v.shape[1] for v in self.scene.keypoints3d.values()}
         if len(counts) != 1:
-            from nsd.core.errors import ConfigError
 
             raise ConfigError("the pose stage needs individuals of one species (one K)")
         return counts.pop()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nsd.synth import default_scene
+
 __all__ = ["resolve_scene"]
 
 
@@ -11,6 +13,5 @@ def resolve_scene(scene: str | None) -> Path:
     """The scene folder to use: the given one, or the built-in default synthetic scene."""
     if scene:
         return Path(scene).expanduser()
-    from nsd.synth import default_scene
 
     return default_scene()

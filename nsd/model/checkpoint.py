@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from nsd.core.errors import CheckpointError
 from nsd.core.trainer import load_checkpoint
 from nsd.model.bi_nvs import BiNVS
+from nsd.model.build import build_model
 
 __all__ = ["TrainedDecomposition", "load_decomposition"]
 
@@ -54,7 +55,6 @@ class TrainedDecomposition:
 
 def load_decomposition(path: str | os.PathLike) -> TrainedDecomposition:
     """Rebuild the trained BiNVS of an ``nsd-train`` checkpoint (a file or its run folder)."""
-    from nsd.model.build import build_model
 
     path = Path(path)
     if path.is_dir():

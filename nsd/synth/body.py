@@ -34,6 +34,7 @@ from torch import Tensor
 from nsd.core.errors import ConfigError
 from nsd.synth.nnopcs import ellipsoid_half_extents, species_primitives
 from nsd.synth.skeleton import Species, forward_kinematics, get_species
+from nsd.synth.texture import get_texture
 
 __all__ = [
     "GROUND_CLEARANCE",
@@ -205,7 +206,6 @@ class Individual:
     @cached_property
     def texture(self):
         """Its :class:`~nsd.synth.texture.Texture`."""
-        from nsd.synth.texture import get_texture
 
         return get_texture(self.texture_id)
 

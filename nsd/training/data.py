@@ -19,7 +19,11 @@ from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
 from nsd.core.errors import ConfigError
+from nsd.cues.evidence import foreground_evidence
+from nsd.cues.occupancy import multiview_proposals, voxel_grid
+from nsd.cues.proposals import evidence_proposals
 from nsd.io.footage import MultiViewFootage
+from nsd.priors.presence import smoothed_counts
 
 __all__ = ["PairBatch", "SceneData", "split_frames"]
 
@@ -121,8 +125,6 @@ class SceneData:
     ) -> None:
         """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
         ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`."""
-        from nsd.cues.evidence import foreground_evidence
-        from nsd.cues.occupancy import multiview_proposals, voxel_grid
 
         grid = voxel_grid(self.rig, self.image_size, resolution)
         boxes, depths, valid = [], [], []
@@ -140,7 +142,6 @@ class SceneData:
     def smooth_counts(self, window: int, scene_population: bool = False) -> None:
         """Individuals in view per frame: the multi-view proposals' count, median over
         ``window`` frames (:func:`nsd.priors.presence.smoothed_counts`)."""
-        from nsd.priors.presence import smoothed_counts
 
         if self.proposal_valid is None:
             raise ConfigError("counts need the multi-view proposals (compute them first)")
@@ -148,8 +149,6 @@ class SceneData:
 
     def compute_proposals(self, k: int, threshold: float, softness: float) -> None:
         """Single-view residual-evidence window proposals for every frame and view."""
-        from nsd.cues.evidence import foreground_evidence
-        from nsd.cues.proposals import evidence_proposals
 
         T, V = self.frames.shape[:2]
         boxes, valid = [], []
