@@ -23,6 +23,7 @@ from typing import Any
 
 import hydra
 import torch
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from netepu.geometry.data import build_geometry_data
@@ -95,7 +96,6 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
 @hydra.main(config_path="pkg://nsd.conf", config_name="netepu_train", version_base="1.3")
 def main(cfg: DictConfig) -> float:
     """Train; returns the validation objective (``cfg.objective``) for sweepers."""
-    from hydra.core.hydra_config import HydraConfig
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     metrics = run(cfg, out_dir)

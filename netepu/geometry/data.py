@@ -301,7 +301,6 @@ def _render(individual, poses, rig, size) -> dict[str, np.ndarray]:
 
 
 def _sample_poses(individual, n: int, cfg: DataConfig, rng: np.random.Generator) -> list:
-
     poses = []
     for _ in range(n):
         pos = rng.uniform(-cfg.position_jitter, cfg.position_jitter, 2)
@@ -310,7 +309,6 @@ def _sample_poses(individual, n: int, cfg: DataConfig, rng: np.random.Generator)
 
 
 def _make_rig(spec: Mapping[str, Any], size: tuple[int, int]) -> CameraRig:
-
     spec = dict(spec)
     kind = spec.pop("kind", "nepumoo")
     return make_rig(kind, size, **spec)
@@ -336,7 +334,6 @@ def _store(arrays: dict[str, Any], name: str, vs: ViewSet) -> None:
 
 
 def _build(cfg: DataConfig, progress: Callable[[str], None]) -> dict[str, Any]:
-
     rng = np.random.default_rng(cfg.seed)
     ind = make_individual(cfg.species, identity=cfg.identity, seed=cfg.seed,
                           proportion_variation=cfg.proportion_variation)

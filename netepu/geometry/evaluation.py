@@ -9,6 +9,7 @@ margin is too small), and network evaluations per pixel.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 
@@ -65,8 +66,6 @@ def evaluate_views(
 
 
 def _colour_depth(depth: np.ndarray, mask: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    import cv2
-
     d = np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1)
     img = cv2.applyColorMap((255 * (1 - d)).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1]
     return np.where(mask[..., None], img, 0).astype(np.uint8)

@@ -30,10 +30,12 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
 
+import cv2
 import hydra
 import numpy as np
 import torch
@@ -187,7 +189,6 @@ def write_surface_maps(path: Path, read: dict[str, list], size: int, grid_rows: 
     world normals. ``<path>.png``: up to ``grid_rows`` rows, each a crop, its NNOPCS map
     as colour and (with normals) its normals as colour.
     """
-    import cv2
 
     n = len(read["id"])
     empty = np.zeros((0, size, size, 3), np.float32)
@@ -226,7 +227,6 @@ def embed_into_copy(
     The export itself is left untouched: its table is copied to ``out`` and its
     ``crops/`` are linked there while the codes are computed.
     """
-    import shutil
 
     export, out = Path(export), Path(out)
     out.mkdir(parents=True, exist_ok=True)

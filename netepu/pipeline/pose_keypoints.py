@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import CheckpointError, ConfigError
@@ -54,7 +55,6 @@ def load_pose_checkpoint(path: str | os.PathLike) -> tuple[Any, Any, dict[str, A
     cfg = state.get("config") or {}
     if cfg.get("stage") != "pose" or "pose" not in state.get("modules", {}):
         raise CheckpointError(f"{path} is not a pose-regressor checkpoint (nsd-train stage=pose)")
-    from omegaconf import OmegaConf
 
     c = OmegaConf.create(cfg)
     model = build_model(c.model)

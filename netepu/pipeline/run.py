@@ -43,7 +43,10 @@ import cv2
 import hydra
 import numpy as np
 import torch
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
+from pycocotools import mask as mask_utils
 
 from netepu.pipeline.embed import embed_into_copy
 from netepu.pipeline.pose_keypoints import regress_export
@@ -79,8 +82,6 @@ def load_run_config(*overrides: str) -> DictConfig:
         >>> cfg.grids.frames, cfg.train.trainer.max_steps
         (2, 0)
     """
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
 
     if GlobalHydra.instance().is_initialized():
         return compose("run", overrides=list(overrides))
@@ -104,7 +105,6 @@ def _scene_stage(cfg: DictConfig) -> Stage:
     spec = str(Path(cfg.scene).expanduser().resolve()) if cfg.scene else DEFAULT_SCENE
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-
         path = resolve_scene(None if spec == DEFAULT_SCENE else spec)
         if not path.is_dir():
             raise ConfigError(f"scene: {path} is not a folder (give scene=<scene folder>)")
@@ -159,7 +159,6 @@ def _train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     tcfg = _train_config(cfg)
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-
         c = tcfg.copy()
         c.data.scene = up["scene"].summary["path"]
         # trained in a work folder that survives an interruption (exact resume), moved at the end
@@ -193,7 +192,6 @@ def _evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     inference = _inference(cfg)
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-
         frames = e.frames if isinstance(e.frames, str) else list(e.frames)
         metrics = evaluate_checkpoint(
             _checkpoint(up),
@@ -227,7 +225,6 @@ def _export_stage(cfg: DictConfig) -> Stage:
     overrides = _container(OmegaConf.merge({"inference": _inference(cfg)}, cfg.export))
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-
         ecfg = OmegaConf.merge(load_export_config(), overrides)
         ecfg.checkpoint = str(_checkpoint(up))
         ecfg.scene = up["scene"].summary["path"]
@@ -275,7 +272,6 @@ def _keypoints_stage(cfg: DictConfig) -> Stage:
         settings["geometry"] = n.geometry
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-
         scene = up["scene"].summary["path"]
         export = up["export"].folder
         if regress:
@@ -327,7 +323,6 @@ def _texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
     n = cfg.netepu
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-
         kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
         res = embed_into_copy(
             up["export"].folder, out, n.texture, kp, up["scene"].summary["path"],
@@ -355,7 +350,6 @@ def _identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) -
     column = str(i.column) if have_texture else "app"
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-
         if not have_texture:
             log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
         source = up["texture"].folder if have_texture else up["export"].folder
@@ -421,7 +415,6 @@ def write_grids(
         frames: how many frames.
         size: each panel's longer side in pixels.
     """
-    from pycocotools import mask as mask_utils
 
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())
     by_image: dict[int, list[dict]] = {}

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -160,7 +160,6 @@ def keypoint_error(
     rows match (:func:`netepu.reid.identities.ground_truth_identities`); unmatched ones are
     counted but not scored.
     """
-    from collections import Counter
 
     truth = GroundTruth.load(scene).scene.keypoints3d
     matched = ground_truth_identities(export, scene)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -72,7 +73,6 @@ def train_reid_baseline(
     Returns:
         ``steps``, ``minutes``, last ``loss``.
     """
-    import time
 
     if steps is None and minutes is None:
         raise ValueError("train_reid_baseline: give steps or minutes")

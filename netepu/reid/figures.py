@@ -5,6 +5,7 @@ from __future__ import annotations
 import textwrap
 
 import numpy as np
+from scipy.stats import gaussian_kde
 
 from nsd.evaluation.reid import pairwise_distances
 
@@ -27,11 +28,13 @@ def tsne_kde_figure(
     Args:
         embeddings: (n, d); ids: (n,); dots: (n,) bool, entries drawn as dots.
     """
+    # lazy: matplotlib (0.3 s to import) only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from scipy.stats import gaussian_kde
+
+    # lazy: scikit-learn (0.7 s to import) only for the t-SNE figure
     from sklearn.manifold import TSNE
 
     x = embeddings.astype(np.float64)
@@ -103,6 +106,7 @@ def separation_figure(
         ``overlap`` is the share of different-identity cross-camera pairs closer
         than the median same-identity cross-camera pair.
     """
+    # lazy: matplotlib (0.3 s to import) only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")

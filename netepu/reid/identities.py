@@ -42,11 +42,14 @@ exported row is matched to a ground-truth visible mask of its camera-frame
 
 from __future__ import annotations
 
+import json
 from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pycocotools import mask as mask_utils
+from scipy.optimize import linear_sum_assignment
 
 from nsd.io.ground_truth import GroundTruth
 from nsd.ops.boxes import mask_iou
@@ -115,7 +118,6 @@ def constrained_kmeans(
         ``(labels (R,) in [0, k), cost)``: the total cosine distance of the rows to
         their prototypes.
     """
-    from scipy.optimize import linear_sum_assignment
 
     u = _unit(np.asarray(codes, np.float64))
     proto = _unit(np.asarray(prototypes, np.float64))
@@ -233,10 +235,6 @@ def ground_truth_identities(
 ) -> dict[int, tuple[str, int, int, int]]:
     """Annotation id -> (camera, frame, subject_id, ground-truth identity) of the exported rows
     that match a visible ground-truth mask of their camera-frame (Hungarian on mask IoU)."""
-    import json
-
-    from pycocotools import mask as mask_utils
-    from scipy.optimize import linear_sum_assignment
 
     gt = GroundTruth.load(scene)
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())
@@ -279,7 +277,6 @@ def identity_accuracy(
         row_ids: (R,) annotation ``id`` of the rows to score (others are not scored).
         identity: (R,) their identities.
     """
-    from scipy.optimize import linear_sum_assignment
 
     matched = ground_truth_identities(export, scene, min_iou)
     given = dict(zip(np.asarray(row_ids).tolist(), np.asarray(identity).tolist(), strict=True))

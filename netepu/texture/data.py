@@ -160,7 +160,6 @@ def _key(cfg: TextureDataConfig, geo: DataConfig, crop_size: int, margin: float)
 
 
 def _poses(ind, n: int, geo: DataConfig, rng: np.random.Generator) -> list:
-
     out = []
     for _ in range(n):
         pos = rng.uniform(-geo.position_jitter, geo.position_jitter, 2)
@@ -169,7 +168,6 @@ def _poses(ind, n: int, geo: DataConfig, rng: np.random.Generator) -> list:
 
 
 def _rig(spec: Mapping[str, Any], size: tuple[int, int]):
-
     spec = dict(spec)
     return make_rig(spec.pop("kind", "nepumoo"), size, **spec)
 
@@ -183,7 +181,6 @@ def _crops(colour: Tensor, mask: Tensor, crop_size: int, margin: float):
 
 
 def _render_pose(ind, pose, rays) -> dict[str, Tensor]:
-
     r = render_views([ind], [pose], rays, background=False)
     return {
         "mask": r["visible"][:, 0],
@@ -214,7 +211,6 @@ def _build(
     margin: float,
     progress: Callable[[str], None],
 ) -> dict[str, np.ndarray]:
-
     rng = np.random.default_rng(cfg.seed)
     ind = make_individual(
         geo.species,

@@ -17,6 +17,7 @@ r"""Evaluate a texture model: colour PSNR of held-out poses and cameras, codes, 
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -198,7 +199,6 @@ def synthesis_grid(
     Returns:
         uint8 (rows * S, (1 + 2 n_targets) * S, 3) RGB with S the crop size.
     """
-    import cv2
 
     h = data.heldout
     S = h["rgb"].shape[2]

@@ -370,7 +370,6 @@ class TextureTask:
             self.fit_reid_whitening()
 
     def evaluate(self, step: int) -> dict[str, float]:
-
         codes = self.codes()
         out = evaluate_colour(
             self.texture, self.geometry, self.data, codes, max_views=self.cfg.eval_views

@@ -56,7 +56,6 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
     trained = load_decomposition(checkpoint)
     scene = Path(scene) if scene else Path(trained.config.data.scene or "")
     if not scene or str(scene) in ("", "."):
-
         scene = resolve_scene(None)
     if not GroundTruth.exists(scene):
         raise FootageError(f"{scene} has no gt/ folder: nsd-eval needs a synthetic scene")

@@ -57,7 +57,6 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
     seed_everything(tcfg.seed)  # model initialisation is part of the seeded run
     if cfg.stage == "pose":
-
         task = PoseTask(cfg, data, gt)
     elif cfg.stage == "decomposition":
         task = NSDTask(cfg, data, gt)

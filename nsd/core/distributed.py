@@ -42,6 +42,7 @@ from typing import Any
 
 import torch
 import torch.distributed as dist
+from hydra.core.hydra_config import HydraConfig
 from torch import Tensor, nn
 
 __all__ = [
@@ -246,7 +247,6 @@ def hydra_run_dir() -> Path:
     Ranks > 0 also stop writing the job's log file and drop to WARNING, so that
     the run's log is rank 0's alone.
     """
-    from hydra.core.hydra_config import HydraConfig
 
     if rank() > 0:
         root = logging.getLogger()

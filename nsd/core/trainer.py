@@ -35,9 +35,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+import cv2
 import numpy as np
 import torch
 from torch import nn
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
 
 from nsd.core import distributed
 from nsd.core.atomic import atomic_save_torch
@@ -288,7 +291,6 @@ class Trainer:
         if not self.main:
             return
         if self._tb is None:
-            from torch.utils.tensorboard import SummaryWriter
 
             self._tb = SummaryWriter(str(self.out_dir / "tb"))
             self._csv = CsvLog(self.out_dir / "metrics.csv")
@@ -305,7 +307,6 @@ class Trainer:
     def _grids(self) -> None:
         if not self.main:
             return
-        import cv2
 
         with torch.random.fork_rng(devices=[]):
             grids = self.task.image_grids(self.step)
@@ -392,8 +393,6 @@ class Trainer:
             m.train()
         bar = None
         if self.cfg.progress and self.main:
-            from tqdm import tqdm
-
             total = self.cfg.max_steps if self.cfg.max_steps > 0 else None
             bar = tqdm(total=total, initial=self.step, desc="train", dynamic_ncols=True, unit="it")
         minute_marks = sorted(m for m in self.cfg.eval_at_minutes if m not in self._evals_done)

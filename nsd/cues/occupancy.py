@@ -38,6 +38,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy import ndimage
 from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
@@ -212,7 +213,6 @@ def cluster_individuals(
     the heaviest are dropped as ghosts: the labels then say how many individuals
     the hull holds, instead of cutting one individual into ``k`` parts.
     """
-    from scipy import ndimage
 
     xy = points @ _plane_basis(up).T  # (P, 2)
     ij = torch.floor((xy - xy.min(0).values) / cell).long()

@@ -32,11 +32,15 @@ matching on visible-mask IoU). Then:
 
 from __future__ import annotations
 
+import contextlib
+import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import kornia
 import numpy as np
 import torch
+from pycocotools.cocoeval import COCOeval
 from sklearn.metrics import adjusted_rand_score
 
 from nsd.inference.association_scores import association_scores
@@ -158,10 +162,6 @@ def score_frame(
 
 def coco_ap(gt_coco, results: list[dict], image_ids: Sequence[int]) -> dict[str, float]:
     """Class-agnostic COCO AP / AP50 for bbox and segm results on ``image_ids``."""
-    import contextlib
-    import io
-
-    from pycocotools.cocoeval import COCOeval
 
     out = {}
     for iou_type in ("bbox", "segm"):
@@ -199,7 +199,6 @@ def evaluate_model(
     ``inference``: :class:`nsd.inference.multiview.InferenceSettings` (None: the defaults,
     multi-view inference).
     """
-    import kornia
 
     settings = inference or InferenceSettings()
     was = model.training

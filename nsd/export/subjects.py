@@ -50,6 +50,7 @@ import sys
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
+from importlib.metadata import version
 from importlib.resources import files
 from pathlib import Path
 from types import SimpleNamespace
@@ -61,6 +62,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from pycocotools import mask as mask_utils
+from tqdm import tqdm
 
 import nsd
 from nsd.cameras.calibration_io import read_calibration
@@ -223,7 +225,6 @@ def _prepare(cfg: DictConfig) -> _Inputs:
     trained = load_decomposition(cfg.checkpoint)
     scene = cfg.scene or trained.config.data.get("scene")
     if not scene:
-
         scene = resolve_scene(None)
     scene = Path(scene).expanduser()
     H, W = trained.image_size
@@ -470,11 +471,8 @@ def _share(root: Path) -> None:
 
 def _toolkit_version() -> str:
     try:
-        from importlib.metadata import version
-
         return version("nsd-netepu")
     except Exception:
-
         return nsd.__version__
 
 
@@ -507,7 +505,6 @@ def export_subjects(cfg: DictConfig) -> ExportSummary:
         OmegaConf.update(cfg, "inference.views", used.views, force_add=True)  # for the manifest
     with atomic_directory(out, overwrite=bool(cfg.overwrite)) as tmp:
         ex = _Exporter(inp, cfg, tmp)
-        from tqdm import tqdm
 
         bar = tqdm(
             total=len(inp.frames),

@@ -15,6 +15,8 @@ import os
 from pathlib import Path
 
 import numpy as np
+import torch
+from torch.utils.tensorboard import SummaryWriter
 
 __all__ = ["Reservoir", "plot_tsne", "write_projector"]
 
@@ -58,8 +60,6 @@ class Reservoir:
 
 def write_projector(sample: Reservoir, log_dir: str | os.PathLike, tag: str = "subjects") -> None:
     """TensorBoard projector files of the sample under ``log_dir``."""
-    import torch
-    from torch.utils.tensorboard import SummaryWriter
 
     if len(sample) == 0:
         return
@@ -87,10 +87,13 @@ def plot_tsne(
     n = len(sample)
     if n < 5:
         return False
+    # lazy: matplotlib (0.3 s to import) only when a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    # lazy: scikit-learn (0.7 s to import) only for the t-SNE figure
     from sklearn.manifold import TSNE
 
     x = np.stack(sample.vectors).astype(np.float32)

@@ -27,21 +27,21 @@ import numpy as np
 
 from nsd.core.atomic import atomic_save_npz
 
+try:  # optional at run time: without pyarrow the table falls back to .npz (module docstring)
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+except ImportError:  # pragma: no cover - pyarrow is a core dependency
+    pa = pq = None
+
 __all__ = ["EmbeddingWriter", "add_columns", "embeddings_path", "read_embeddings"]
 
 
 def _have_pyarrow() -> bool:
-    try:
-        import pyarrow.parquet  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return pq is not None
 
 
 def _arrow_column(values: np.ndarray):
     """numpy (rows,) or (rows, D) -> pyarrow array (fixed-size list for 2-D)."""
-    import pyarrow as pa
-
     values = np.asarray(values)
     if values.ndim == 1:
         if values.dtype.kind in "US":
@@ -55,8 +55,6 @@ def _arrow_column(values: np.ndarray):
 
 def _numpy_column(col) -> np.ndarray:
     """pyarrow (chunked) array -> numpy, fixed-size lists as (rows, D)."""
-    import pyarrow as pa
-
     if hasattr(col, "combine_chunks"):
         col = col.combine_chunks()
     if pa.types.is_fixed_size_list(col.type):
@@ -116,8 +114,6 @@ class EmbeddingWriter:
 
     def _flush(self, final: bool = False) -> None:
         """Write whole row groups (and, if ``final``, the remainder) of the buffer."""
-        import pyarrow as pa
-        import pyarrow.parquet as pq
 
         if not self._buffer:
             return
@@ -140,8 +136,6 @@ class EmbeddingWriter:
         if self.rows == 0 and empty_columns is not None:
             self._buffer = [{k: np.asarray(v) for k, v in empty_columns.items()}]
             if self.format == "parquet":
-                import pyarrow as pa
-                import pyarrow.parquet as pq
 
                 table = pa.table({k: _arrow_column(v) for k, v in self._buffer[0].items()})
                 pq.write_table(table, self.path)
@@ -176,8 +170,6 @@ def read_embeddings(
     if path.suffix == ".npz":
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in (columns or z.files)}
-    import pyarrow.parquet as pq
-
     table = pq.read_table(path, columns=columns)
     return {name: _numpy_column(table.column(name)) for name in table.column_names}
 
@@ -198,8 +190,6 @@ def add_columns(path: str | os.PathLike, columns: Mapping[str, np.ndarray]) -> P
         _check_new(path, table, len(next(iter(table.values()))) if table else 0, new)
         atomic_save_npz(path, **table, **new)
         return path
-    import pyarrow.parquet as pq
-
     src = pq.ParquetFile(path)
     _check_new(path, dict.fromkeys(src.schema_arrow.names), src.metadata.num_rows, new)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")

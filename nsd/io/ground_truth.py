@@ -66,7 +66,6 @@ class GroundTruth:
     """Evaluation view of a synthetic scene's ``gt/`` folder."""
 
     def __init__(self, scene: str | os.PathLike) -> None:
-
         self.scene = SyntheticScene(scene)
         self.root = Path(scene)
 
@@ -111,7 +110,6 @@ class GroundTruth:
     def num_keypoints(self) -> int:
         counts = {v.shape[1] for v in self.scene.keypoints3d.values()}
         if len(counts) != 1:
-
             raise ConfigError("the pose stage needs individuals of one species (one K)")
         return counts.pop()
 

@@ -50,6 +50,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.ndimage import median_filter
 from torch import Tensor
 
 __all__ = [
@@ -191,7 +192,6 @@ def smoothed_counts(valid: Tensor, window: int, scene_population: bool = False) 
     """
     if window < 1 or window % 2 == 0:
         raise ValueError(f"the count window must be an odd number of frames >= 1, got {window}")
-    from scipy.ndimage import median_filter
 
     per_view = valid.sum(-1).cpu().numpy()
     frame = valid.any(1).sum(-1).cpu().numpy()

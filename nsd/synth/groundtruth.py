@@ -27,6 +27,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from pycocotools.coco import COCO
 
 from nsd.core.errors import FootageError
 
@@ -140,7 +141,6 @@ class SyntheticScene:
 
     def coco(self):
         """The COCO ground truth as a :class:`pycocotools.coco.COCO`."""
-        from pycocotools.coco import COCO
 
         coco = COCO()
         coco.dataset = json.loads((self.root / "gt" / "coco.json").read_text())

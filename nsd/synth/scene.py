@@ -41,6 +41,7 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_io import write_toml
@@ -471,7 +472,6 @@ def load_config(name: str = "synth", overrides: dict[str, Any] | None = None) ->
         name: config name.
         overrides: top-level values to change.
     """
-    from omegaconf import OmegaConf
 
     with (files("nsd.conf") / f"{name}.yaml").open() as f:
         values = OmegaConf.to_container(OmegaConf.load(f), resolve=True)
