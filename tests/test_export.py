@@ -19,7 +19,8 @@ import torch
 from pycocotools.coco import COCO
 
 from nsd.core.errors import CheckpointError, ConfigError, FootageError
-from nsd.export.subjects import export_subjects, load_export_config
+from nsd.export.config import load_export_config
+from nsd.export.subjects import export_subjects
 from nsd.io.crops import read_crop_index, read_crops
 from nsd.io.embeddings import read_embeddings
 from nsd.io.mot import read_mot
@@ -266,12 +267,14 @@ def test_killed_export_leaves_no_export_folder(trained, tmp_path):
     code = (
         "import time, sys\n"
         "import nsd.export.subjects as e\n"
-        "orig = e._Exporter.batch\n"
+        "from nsd.export.config import load_export_config\n"
+        "from nsd.export.writer import SubjectWriter\n"
+        "orig = SubjectWriter.batch\n"
         "def batch(self, items):\n"
         "    orig(self, items); print('written', flush=True); time.sleep(120)\n"
-        "e._Exporter.batch = batch\n"
-        "cfg = e.load_export_config(checkpoint=sys.argv[1], scene=sys.argv[2], out=sys.argv[3],\n"
-        "                           batch_size=1, progress=False)\n"
+        "SubjectWriter.batch = batch\n"
+        "cfg = load_export_config(checkpoint=sys.argv[1], scene=sys.argv[2], out=sys.argv[3],\n"
+        "                         batch_size=1, progress=False)\n"
         "e.export_subjects(cfg)\n"
     )
     proc = subprocess.Popen(
@@ -297,7 +300,7 @@ def test_cli_runs_and_reports_bad_input(trained, tmp_path):
     cmd = [
         sys.executable,
         "-m",
-        "nsd.export.subjects",
+        "nsd.cli.export",
         f"checkpoint={ckpt}",
         f"scene={scene}",
         f"out={tmp_path / 'out'}",

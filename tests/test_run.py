@@ -135,7 +135,8 @@ def test_switched_off_windows_get_no_export_rows(tmp_path):
     zeroed, bias -20: presence ~2e-9 for every input), as a trained model does for windows
     it does not need (docs/benchmarks/count.md measures whether training gets there).
     """
-    from nsd.export.subjects import export_subjects, load_export_config
+    from nsd.export.config import load_export_config
+    from nsd.export.subjects import export_subjects
     from nsd.inference.single import decompose
     from nsd.io.embeddings import read_embeddings
     from nsd.model.checkpoint import load_decomposition

@@ -212,7 +212,8 @@ def identities(checkpoint: Path, scene: Path, out: Path, overwrite: bool = False
     """Export every frame, group the tracks into identities by NSD's appearance vectors
     (``netepu.identities``, label-free k) and score them against the ground truth."""
     from netepu.reid.identities import assign_identities, identity_accuracy
-    from nsd.export.subjects import export_subjects, load_export_config
+    from nsd.export.config import load_export_config
+    from nsd.export.subjects import export_subjects
     from nsd.io.embeddings import read_embeddings
 
     cfg = load_export_config(

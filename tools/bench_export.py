@@ -74,7 +74,8 @@ def child(checkpoint: str, scene: str, out: str) -> None:
     import torch
 
     import nsd.export.subjects
-    from nsd.export.subjects import export_subjects, load_export_config
+    from nsd.export.config import load_export_config
+    from nsd.export.subjects import export_subjects
 
     torch.set_num_threads(2)
     streaming_peak = {}

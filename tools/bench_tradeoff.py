@@ -663,7 +663,8 @@ def report() -> None:
             "## NeTePu texture-code size (speed, and accuracy after 4 minutes)\n\n"
             + (markdown_table(tex_rows) if tex_rows else "(not measured)")
             + "\n\nTexture codes per second from 32 frames (256x192) with their visible masks "
-            "and NNOPCS maps (`netepu.texture.encoding.encode_texture`: square crop around the mask, "
+            "and NNOPCS maps (`netepu.texture.encoding.encode_texture`: square crop around the "
+            "mask, "
             "masked resampling, CNN encoder, mu); untrained weights. Accuracy columns "
             "(where present): the texture stage (default recipe) trained with that code "
             "size on the frozen 18-minute biped geometry for the stated minutes on one "

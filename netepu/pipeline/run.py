@@ -60,7 +60,8 @@ from nsd.core.errors import CheckpointError, ConfigError, NSDError
 from nsd.core.stages import Stage, StageResult, StageRunner, config_hash
 from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.visualise import decomposition_panels, grid
-from nsd.export.subjects import export_subjects, load_export_config
+from nsd.export.config import load_export_config
+from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embeddings import read_embeddings
 from nsd.io.footage import MultiViewFootage

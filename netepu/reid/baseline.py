@@ -1,4 +1,12 @@
-"""TODO docstring."""
+r"""The CNN re-identification baseline that texture codes are compared with.
+
+Baseline (:class:`ReidCNN`, :func:`train_reid_baseline`)
+    The texture encoder's CNN on the masked RGB crops (no NNOPCS), a BN-neck
+    and an identity classifier, trained with identity cross-entropy +
+    batch-hard triplet loss (margin 0.3) on P identities x K crops per batch
+    (the recipe TransReID and its CNN predecessors use); its embedding is the
+    BN-neck's input.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,13 @@
-"""TODO docstring."""
+r"""Re-identification figures: t-SNE with density contours, distance histograms.
+
+Figures
+    :func:`tsne_kde_figure`: t-SNE of embeddings with kernel-density contours
+    per identity for one subset (e.g. training cameras) and dots for another
+    (held-out cameras), as NeTePu fig. 5. :func:`separation_figure`:
+    histograms of same- and different-identity cross-camera distances and
+    each identity's margin (nearest other identity's centroid distance over
+    its own spread).
+"""
 
 from __future__ import annotations
 

@@ -53,6 +53,7 @@ from scipy.optimize import linear_sum_assignment
 
 from nsd.io.ground_truth import GroundTruth
 from nsd.ops.boxes import mask_iou
+from nsd.ops.vectors import unit_vectors
 
 __all__ = [
     "IDENTITY_METHODS",
@@ -64,10 +65,6 @@ __all__ = [
 ]
 
 IDENTITY_METHODS = ("rows", "tracks")
-
-
-def _unit(x: np.ndarray) -> np.ndarray:
-    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
 
 
 def constrained_average_linkage(dist: np.ndarray, apart: np.ndarray, k: int) -> np.ndarray:
@@ -119,8 +116,8 @@ def constrained_kmeans(
         their prototypes.
     """
 
-    u = _unit(np.asarray(codes, np.float64))
-    proto = _unit(np.asarray(prototypes, np.float64))
+    u = unit_vectors(np.asarray(codes, np.float64), eps=1e-12)
+    proto = unit_vectors(np.asarray(prototypes, np.float64), eps=1e-12)
     members = [np.flatnonzero(groups == g) for g in np.unique(groups)]
     labels = np.full(len(u), -1, np.int64)
     for _ in range(max_iter):
@@ -135,7 +132,7 @@ def constrained_kmeans(
         labels = new
         proto = np.stack(
             [
-                _unit(u[labels == j].mean(0)) if (labels == j).any() else proto[j]
+                unit_vectors(u[labels == j].mean(0), eps=1e-12) if (labels == j).any() else proto[j]
                 for j in range(len(proto))
             ]
         )
@@ -189,8 +186,8 @@ def assign_identities(
     if k == 1 or len(tracks) == 1:
         identity[coded] = 0
         return identity, summary | {"identities": 1, "association": "skipped: one subject"}
-    unit = _unit(codes[valid])
-    desc = np.stack([_unit(unit[sid[valid] == s].mean(0)) for s in tracks])
+    unit = unit_vectors(codes[valid], eps=1e-12)
+    desc = np.stack([unit_vectors(unit[sid[valid] == s].mean(0), eps=1e-12) for s in tracks])
     dist = np.clip(1 - desc @ desc.T, 0, 2)
     index = {s: i for i, s in enumerate(tracks)}
     apart = np.zeros(dist.shape, bool)
@@ -210,7 +207,7 @@ def assign_identities(
     row_track = np.array([of_track[int(s)] for s in sid[valid]])
     sizes = np.bincount(row_track)
     start = np.argsort(-sizes, kind="stable")[:k]
-    proto = np.stack([_unit(unit[row_track == j].mean(0)) for j in start])
+    proto = np.stack([unit_vectors(unit[row_track == j].mean(0), eps=1e-12) for j in start])
     cams = np.unique(np.asarray(table["camera"])[valid], return_inverse=True)[1]
     groups = frame[valid] * (cams.max() + 1) + cams
     rng = np.random.default_rng(0)

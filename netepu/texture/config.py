@@ -1,4 +1,5 @@
-"""TODO docstring."""
+r"""The texture model's settings (:class:`TextureConfig`), read from ``conf/netepu/texture``.
+"""
 
 from __future__ import annotations
 

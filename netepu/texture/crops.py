@@ -1,4 +1,8 @@
-"""TODO docstring."""
+r"""Square crop windows around masks, and masked resampling onto the crop grid.
+
+The encoder's input is cut with these (:func:`netepu.texture.encoding.encoder_crops`): only
+pixels inside the mask reach the encoder.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,35 @@
-"""TODO docstring."""
+r"""Encoding a subject's texture from an image: the texture model's public API.
+
+Public API (what the end-to-end pipeline calls)::
+
+    texture_codes(texture, geometry, image, mask, keypoints, camera, window=None) -> Tensor
+        # image (B, H, W, 3) float in [0, 1] or uint8: full frames or square crops
+        # mask (B, H, W) bool: the subject's VISIBLE pixels (only they are read)
+        # keypoints (B, K, 3) world; camera: K, R, t[, dist] with batch B
+        # window (B, 3): (x0, y0, side) of a square crop in the camera's native
+        #   pixels (pixel edges, as nsd.io.crops); None: image is the full frame
+        # -> mu, (B, d_z): the texture code (the embedding) of each subject
+    encode_texture(texture, image, mask, nnopcs) -> Tensor
+        # the same from a precomputed (predicted) NNOPCS map (B, H, W, 3)
+
+Both are ``torch.no_grad`` and put nothing but the code together; the model is
+loaded with :func:`load_texture_model` from a ``netepu-train stage=texture``
+checkpoint, which holds the frozen geometry model too.
+
+Encoder input (:func:`encoder_crops`)
+    The subject's visible pixels are cut out of the image with the square
+    window around the mask's box (side ``max(w, h) (1 + 2 margin)``, as
+    :func:`nsd.io.crops.square_crop_box`) and resampled to ``S x S``
+    (``crop_size``): the masked image :math:`I \cdot M` and the mask are
+    sampled bilinearly and divided, :math:`\tilde I = \mathrm{bilin}(I M) /
+    \mathrm{bilin}(M)` where :math:`\mathrm{bilin}(M) > 1/2` and 0 elsewhere,
+    so no pixel outside the mask reaches the encoder. The NNOPCS map is
+    rendered by the frozen geometry model directly at the in-mask crop pixels
+    (the renderer answers any query pixel), i.e. the encoder always sees
+    *predicted* NNOPCS, in training and at inference (the reference trains on
+    ground truth and tests on predictions). Channels: masked RGB, mask,
+    NNOPCS (7; the RGB-only variant: 4).
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,10 @@
-"""TODO docstring."""
+r"""The texture stage's loss terms: colour, KLD and the optional code contrast.
+
+Loss (:func:`texture_loss`): :math:`\lambda_{col}` MSE of colour on in-mask
+points + :math:`\lambda_{KLD}` KLD (eq. 8; defaults 5 and 1e-8), with
+:math:`\mathrm{KLD} = -\tfrac12 \sum_d (1 + \log\sigma_d^2 - \mu_d^2 - \sigma_d^2)`
+averaged over the batch.
+"""
 
 from __future__ import annotations
 

@@ -2,53 +2,11 @@ r"""NeTePu's texture pipeline: a texture VAE whose decoder is a keypoint-driven 
 
 NeTePu sec. 3.2 (fig. 1 bottom), with the geometry pipeline frozen.
 
-Public API (what the end-to-end pipeline calls)::
-
-    texture_codes(texture, geometry, image, mask, keypoints, camera, window=None) -> Tensor
-        # image (B, H, W, 3) float in [0, 1] or uint8: full frames or square crops
-        # mask (B, H, W) bool: the subject's VISIBLE pixels (only they are read)
-        # keypoints (B, K, 3) world; camera: K, R, t[, dist] with batch B
-        # window (B, 3): (x0, y0, side) of a square crop in the camera's native
-        #   pixels (pixel edges, as nsd.io.crops); None: image is the full frame
-        # -> mu, (B, d_z): the texture code (the embedding) of each subject
-    encode_texture(texture, image, mask, nnopcs) -> Tensor
-        # the same from a precomputed (predicted) NNOPCS map (B, H, W, 3)
-
-Both are ``torch.no_grad`` and put nothing but the code together; the model is
-loaded with :func:`load_texture_model` from a ``netepu-train stage=texture``
-checkpoint, which holds the frozen geometry model too.
-
-Encoder input (:func:`encoder_crops`)
-    The subject's visible pixels are cut out of the image with the square
-    window around the mask's box (side ``max(w, h) (1 + 2 margin)``, as
-    :func:`nsd.io.crops.square_crop_box`) and resampled to ``S x S``
-    (``crop_size``): the masked image :math:`I \cdot M` and the mask are
-    sampled bilinearly and divided, :math:`\tilde I = \mathrm{bilin}(I M) /
-    \mathrm{bilin}(M)` where :math:`\mathrm{bilin}(M) > 1/2` and 0 elsewhere,
-    so no pixel outside the mask reaches the encoder. The NNOPCS map is
-    rendered by the frozen geometry model directly at the in-mask crop pixels
-    (the renderer answers any query pixel), i.e. the encoder always sees
-    *predicted* NNOPCS, in training and at inference (the reference trains on
-    ground truth and tests on predictions). Channels: masked RGB, mask,
-    NNOPCS (7; the RGB-only variant: 4).
-
-Encoder (:class:`TextureEncoder`)
-    A ResNet-like CNN (BatchNorm, ReLU; ``2 x len(widths)`` basic blocks, ~20
-    convolutions, NeTePu: 23) with global average pooling and two dense
-    layers giving :math:`\mu` and :math:`\log\sigma^2`. Training samples
-    :math:`z = \mu + \sigma \epsilon` (:func:`reparameterise`); inference
-    uses :math:`\mu` (the reference stores a sample).
-
-Decoder and renderer (:class:`TextureDecoder`, :class:`ColourRenderer`)
-    :math:`z_{texture} \mapsto f_{texture} \in \mathbb{R}^{K \times d_f}`
-    (an MLP, eq. 3). The colour renderer is the geometry renderer's class
-    (:class:`netepu.geometry.renderer.NeuralRenderer2D`: same view frame, 2D blocks
-    and factorised VCA) with a 3-channel colour head; its keypoint features
-    are the frozen geometry features :math:`f` concatenated with
-    :math:`f_{texture}` and its global code is :math:`[z, z_{texture}]`.
-    The ablation without local texture features (``local_features: false``)
-    keeps only :math:`f`, so the texture reaches the renderer through the
-    global token alone. Only foreground pixels are ever rendered.
+The model (:class:`TextureModel`) holds the networks (:mod:`netepu.texture.networks`),
+the frozen geometry model and the re-identification whitening; it is built from
+:class:`netepu.texture.config.TextureConfig` and loaded from a checkpoint with
+:func:`load_texture_model`. Encoding an image: :mod:`netepu.texture.encoding`; loss:
+:mod:`netepu.texture.losses`.
 
 Re-identification embedding (:meth:`TextureModel.reid_embedding`)
     :math:`\mu` renders; for retrieval, :math:`u = \mu` (or, with
@@ -58,11 +16,6 @@ Re-identification embedding (:meth:`TextureModel.reid_embedding`)
     (:func:`netepu.texture.embedding.within_class_whitening`) that the texture stage fits on
     its training codes after training and stores in the model (buffers
     ``reid_mean``, ``reid_projection``; the identity for models without it).
-
-Loss (:func:`texture_loss`): :math:`\lambda_{col}` MSE of colour on in-mask
-points + :math:`\lambda_{KLD}` KLD (eq. 8; defaults 5 and 1e-8), with
-:math:`\mathrm{KLD} = -\tfrac12 \sum_d (1 + \log\sigma_d^2 - \mu_d^2 - \sigma_d^2)`
-averaged over the batch.
 """
 
 from __future__ import annotations

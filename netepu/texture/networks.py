@@ -1,4 +1,23 @@
-"""TODO docstring."""
+r"""The texture VAE's networks: encoder, decoder and colour renderer (NeTePu sec. 3.2).
+
+Encoder (:class:`TextureEncoder`)
+    A ResNet-like CNN (BatchNorm, ReLU; ``2 x len(widths)`` basic blocks, ~20
+    convolutions, NeTePu: 23) with global average pooling and two dense
+    layers giving :math:`\mu` and :math:`\log\sigma^2`. Training samples
+    :math:`z = \mu + \sigma \epsilon` (:func:`reparameterise`); inference
+    uses :math:`\mu` (the reference stores a sample).
+
+Decoder and renderer (:class:`TextureDecoder`, :class:`ColourRenderer`)
+    :math:`z_{texture} \mapsto f_{texture} \in \mathbb{R}^{K \times d_f}`
+    (an MLP, eq. 3). The colour renderer is the geometry renderer's class
+    (:class:`netepu.geometry.renderer.NeuralRenderer2D`: same view frame, 2D blocks
+    and factorised VCA) with a 3-channel colour head; its keypoint features
+    are the frozen geometry features :math:`f` concatenated with
+    :math:`f_{texture}` and its global code is :math:`[z, z_{texture}]`.
+    The ablation without local texture features (``local_features: false``)
+    keeps only :math:`f`, so the texture reaches the renderer through the
+    global token alone. Only foreground pixels are ever rendered.
+"""
 
 from __future__ import annotations
 

@@ -291,7 +291,6 @@ class Trainer:
         if not self.main:
             return
         if self._tb is None:
-
             self._tb = SummaryWriter(str(self.out_dir / "tb"))
             self._csv = CsvLog(self.out_dir / "metrics.csv")
         for k, v in scalars.items():

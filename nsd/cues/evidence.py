@@ -1,4 +1,13 @@
-"""TODO docstring."""
+r"""Foreground evidence from the background residual: the label-free cue under every other one.
+
+.. math::
+    e(x) = \mathrm{clip}\big(\tfrac{\operatorname{mean}_c |I - B| - \tau}{\kappa}, 0, 1\big)
+
+with :math:`B` the per-camera background, :math:`\tau` the ``threshold`` and :math:`\kappa`
+the ``softness``. Training weights its pixel loss with it (:mod:`nsd.training.losses`),
+proposals and the visual hull are built on it (:mod:`nsd.cues.proposals`,
+:mod:`nsd.cues.occupancy`), and inference uses it to sharpen masks.
+"""
 
 from __future__ import annotations
 

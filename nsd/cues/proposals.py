@@ -1,7 +1,7 @@
-r"""Label-free window proposals from the background residual, and the prior that uses them.
+r"""Label-free window proposals from the background residual, and their matching to windows.
 
 The median background makes the foreground visible for free:
-:math:`e = \mathrm{evidence}(|I - B|)` (see :mod:`nsd.training.losses`). Clustering the
+:math:`e = \mathrm{evidence}(|I - B|)` (:mod:`nsd.cues.evidence`). Clustering the
 foreground pixels of a frame into ``k`` groups (weighted k-means on pixel
 coordinates, the vertical axis shrunk by ``y_weight`` because bodies are
 taller than wide) gives one blob per subject when subjects stand apart, and a
@@ -10,11 +10,7 @@ proposal window centred on its weighted mean with half-size
 :math:`2\sigma / \mathrm{fill}` per axis (:math:`2\sigma` covers a uniform
 blob; ``fill`` = 0.75 keeps the subject inside the focal bump's bright core).
 
-The *proposal prior* pulls each detector window towards its Hungarian-matched
-proposal (squared error on centre and log scale). It seeds localisation,
-which Bi-NVS alone finds only after many GPU iterations (NSD: ~200k), and is
-annealed to zero over ``decay_steps`` so the decomposition is then shaped by
-re-synthesis alone. It uses no labels.
+The priors that use the proposals: :mod:`nsd.priors.proposal`.
 """
 
 from __future__ import annotations

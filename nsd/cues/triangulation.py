@@ -1,4 +1,4 @@
-r"""Multi-view depth of associated windows, and the depth-consistency prior built on it.
+r"""Multi-view depth of associated windows: rays through window centres and their midpoints.
 
 The calibration that Bi-NVS already uses to rotate latent clouds also fixes
 where two associated windows are in 3D. For window :math:`j` of view :math:`v`
@@ -15,18 +15,7 @@ camera-space depth in :math:`v` is the triangulated depth :math:`D_{v,j}`.
 Pairs of nearly parallel rays (:math:`|\det| < 10^{-6}`) or points behind a
 camera are invalid.
 
-The *depth prior* asks the detector's depths to order windows as their
-triangulated depths do, up to an offset per frame (the erf compositor only
-uses depth differences):
-
-.. math::
-    L_{depth} = \frac{1}{|V|}\sum_{j \in V}
-        \Big((z_j - \bar z) - \frac{D_j - \bar D}{\delta}\Big)^2,
-
-with :math:`\delta` the metric depth of one compositor unit (``unit``,
-0.3 m: subjects 0.5 m apart are then 1.7 units apart, erf(1.7) = 0.98) and
-means over the valid windows of a frame. Targets are detached; associations
-are the argmax of the soft association. It uses no labels.
+The depth prior built on these depths: :mod:`nsd.priors.depth`.
 """
 
 from __future__ import annotations

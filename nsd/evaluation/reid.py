@@ -1,4 +1,16 @@
-"""TODO docstring."""
+r"""Re-identification metrics of embeddings: cross-camera rank-1 and mAP.
+
+Protocol (:func:`reid_metrics`)
+    Every embedding is a query once; its gallery is every embedding from
+    *another camera* (same-camera entries are excluded, so a view is never
+    matched to itself or to its own camera's other frames). Distance: cosine
+    (``metric="cosine"``) or Euclidean. Rank-1: share of queries whose nearest
+    gallery entry has the query's identity. mAP: mean over queries of the
+    average precision of the ranked gallery,
+    :math:`\mathrm{AP} = \frac{1}{|P|}\sum_{k \in P} \mathrm{precision@}k`
+    (P: ranks of the true matches). Queries without a true match in the
+    gallery are skipped (counted in ``queries_without_match``).
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,9 @@
-"""TODO docstring."""
+"""The trained model's association score between the windows of two views of one instant.
+
+Appearance similarity plus the geometric term of the calibrated cameras
+(:meth:`nsd.model.bi_nvs.BiNVS.association_score`), and with multi-view inference a bonus
+where both windows were fused with the same visual-hull individual.
+"""
 
 from __future__ import annotations
 

@@ -193,7 +193,8 @@ def associate_views(
         dims: association dims (as in training).
         score: ``score(v, r)`` -> (N, N) association score between the windows of view
             ``v`` and the reference view ``r`` (e.g.
-            :func:`nsd.inference.association_scores.association_scores`, which adds the geometric term); default: cosine similarity of ``app``.
+            :func:`nsd.inference.association_scores.association_scores`, which adds the
+            geometric term); default: cosine similarity of ``app``.
 
     Returns:
         int array (V, N): the subject id of each window, -1 for inactive windows.

@@ -28,6 +28,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from nsd.ops.boxes import box_iou_xywh
+from nsd.ops.vectors import unit_vectors
 
 __all__ = ["SubjectObservation", "SubjectTracker", "track_similarity"]
 
@@ -46,17 +47,14 @@ class SubjectObservation:
     boxes: dict[str, np.ndarray] = field(default_factory=dict)
 
 
-def _unit(x: np.ndarray) -> np.ndarray:
-    return x / max(float(np.linalg.norm(x)), 1e-8)
-
-
 def track_similarity(
     a: SubjectObservation, b: SubjectObservation, appearance_weight: float
 ) -> float:
     """Similarity of two observations: weighted cosine of appearance and mean box IoU."""
-    cos = float(np.dot(_unit(a.appearance), _unit(b.appearance)))
+    cos = float(np.dot(unit_vectors(a.appearance), unit_vectors(b.appearance)))
     common = [c for c in a.boxes if c in b.boxes]
-    iou = float(np.mean([box_iou_xywh(a.boxes[c], b.boxes[c])[0, 0] for c in common])) if common else 0.0
+    ious = [box_iou_xywh(a.boxes[c], b.boxes[c])[0, 0] for c in common]
+    iou = float(np.mean(ious)) if common else 0.0
     return appearance_weight * cos + (1.0 - appearance_weight) * iou
 
 

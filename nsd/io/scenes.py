@@ -1,4 +1,5 @@
-"""TODO docstring."""
+"""Scene folders: the one a user names, or the built-in default synthetic scene.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""TODO docstring."""
+"""Building the Bi-NVS model (detector, encoder, decoder) from the ``model`` config group.
+"""
 
 from __future__ import annotations
 

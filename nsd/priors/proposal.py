@@ -1,4 +1,18 @@
-"""TODO docstring."""
+r"""Proposal and association priors: windows pulled to label-free proposals.
+
+Proposals come from :mod:`nsd.cues.proposals` (single view) or the visual hull
+(:mod:`nsd.cues.occupancy`, multi-view, where slot j of every view is one individual).
+
+The *proposal prior* pulls each detector window towards its Hungarian-matched
+proposal (squared error on centre and log scale). It seeds localisation,
+which Bi-NVS alone finds only after many GPU iterations (NSD: ~200k), and is
+annealed to zero over ``decay_steps`` so the decomposition is then shaped by
+re-synthesis alone. It uses no labels.
+
+The *association prior* pulls the soft association towards the proposals' identities:
+two windows of different views show the same individual when they are matched to the
+same multi-view proposal slot.
+"""
 
 from __future__ import annotations
 

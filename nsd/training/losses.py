@@ -1,4 +1,4 @@
-r"""Image losses for Bi-NVS and the background-residual foreground evidence.
+r"""Image losses for Bi-NVS: residual-weighted pixel loss and SSIM.
 
 NSD's loss is an L2 pixel loss plus a perceptual loss on ImageNet ResNet-18
 features (weight 2). ImageNet weights cannot be downloaded on our machines, so
@@ -17,8 +17,9 @@ pixels that the background already explains (the first probe's failure mode).
 
     L_{pix} = \frac{\sum_x w(x) \|\hat I(x) - I(x)\|^2}{\sum_x w(x)}.
 
-:math:`e` is also the target of the optional foreground-evidence prior on the
-composited coverage :math:`1 - T(\infty)` (see :mod:`nsd.model.bi_nvs`).
+:math:`e` is :func:`nsd.cues.evidence.foreground_evidence`; it is also the target of the
+optional foreground-evidence prior on the composited coverage :math:`1 - T(\infty)`
+(see :mod:`nsd.model.bi_nvs`).
 """
 
 from __future__ import annotations

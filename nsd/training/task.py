@@ -1,4 +1,25 @@
-"""TODO docstring."""
+"""The NSD training task: Bi-NVS re-synthesis with weak priors, per step (:class:`NSDTask`).
+
+Stages (NSD supplement A): with ``model.depth_from_step > 0`` the first steps
+train B, E and D with the additive compositor (stage 1), then E and D are
+re-initialised (``model.reinit_at_depth``) and the depth compositor is turned
+on (stage 2). ``stage=pose`` trains the pose regressor P on the frozen latent
+(stage 3, see :mod:`nsd.training.pose_task`).
+
+Loss per view pair (both directions of Bi-NVS):
+
+* image loss: residual-weighted pixel MSE + ``ssim_weight`` x (1 - SSIM);
+* foreground-evidence prior: the composited coverage 1 - T(inf) should match
+  the background-residual evidence (a label-free cue from the median background);
+* weak priors on the windows of both views (position, scale, aspect) and the
+  presence prior;
+* with ``prior_presence.target=marginal``, the presence learns a detached,
+  label-free target, each window's marginal contribution to explaining the
+  foreground evidence (:mod:`nsd.priors.presence`); with ``target=hull``, in each frame
+  and view the windows ranked first by presence are on, as many as the
+  label-free visual hull finds individuals (:mod:`nsd.cues.occupancy`), and the
+  proposal prior matches those individuals to the windows that are on.
+"""
 
 from __future__ import annotations
 
