@@ -62,7 +62,7 @@ def _worker(rank: int, world: int, port: int, scene: str, root: str) -> None:
         data.sample = recording_sample
         out = {}
         for name, steps in (("a", STEPS), ("b", STEPS // 2), ("b", STEPS)):
-            seed_everything(3)  # model initialisation, as nsd.cli.train.run does
+            seed_everything(3)  # model initialisation, as nsd.training.train.train does
             task = NSDTask(cfg, data)
             init = {k: v.clone() for k, v in task.model.state_dict().items()}
             tc = TrainerConfig(max_steps=steps, log_every=1, checkpoint_every=2, progress=False,

@@ -32,8 +32,8 @@ NO_VIEWS = {"views.tensorboard": False, "views.tsne": False, "progress": False}
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> tuple[Path, Path]:
     """(checkpoint.pt, scene) of a tiny decomposition trained for a few steps."""
-    from nsd.cli.train import run
     from nsd.synth import tiny_config, write_scene
+    from nsd.training.train import train
     from tests.test_nsd_train import tiny_cfg
 
     root = tmp_path_factory.mktemp("export")
@@ -46,7 +46,7 @@ def trained(tmp_path_factory) -> tuple[Path, Path]:
         "trainer.checkpoint_every=0",
         "eval_frames=1",
     )
-    run(cfg, root / "run")
+    train(cfg, root / "run")
     return root / "run" / "checkpoint.pt", scene
 
 

@@ -11,8 +11,7 @@ import pytest
 import torch
 from pycocotools.coco import COCO
 
-import nsd.cli.train
-import nsd.export.subjects
+import netepu.pipeline.stages
 from netepu.pipeline.run import load_run_config, run_pipeline
 from nsd.core.errors import ConfigError
 from tests.conftest import FIXTURES
@@ -68,8 +67,8 @@ def test_tiny_run_then_rerun_does_no_work(tiny_run, monkeypatch):
     def no_work(*args, **kwargs):
         raise AssertionError("a finished stage was recomputed")
 
-    monkeypatch.setattr(nsd.cli.train, "run", no_work)
-    monkeypatch.setattr(nsd.export.subjects, "export_subjects", no_work)
+    monkeypatch.setattr(netepu.pipeline.stages, "train", no_work)
+    monkeypatch.setattr(netepu.pipeline.stages, "export_subjects", no_work)
     again = run_pipeline(_cfg(tiny_scene, out))
     assert all(r.skipped for r in again.values())
     assert again["export"].summary == res["export"].summary
@@ -88,7 +87,7 @@ def test_a_trained_decomposition_is_loaded_instead_of_trained(tiny_run, tmp_path
     def no_training(*args, **kwargs):
         raise AssertionError("trained although a checkpoint was given")
 
-    monkeypatch.setattr(nsd.cli.train, "run", no_training)
+    monkeypatch.setattr(netepu.pipeline.stages, "train", no_training)
     ckpt = first / "train" / "checkpoint.pt"
     res = run_pipeline(_cfg(tiny_scene, tmp_path / "run", f"checkpoint={ckpt}"))
     assert res["train"].summary["loaded_from"] == str(ckpt)
@@ -107,7 +106,9 @@ def test_a_trained_decomposition_is_loaded_instead_of_trained(tiny_run, tmp_path
 def test_changed_grid_setting_reruns_only_grids(tiny_run, tmp_path, monkeypatch):
     tiny_scene, first, _ = tiny_run
     out = shutil.copytree(first, tmp_path / "run")
-    monkeypatch.setattr(nsd.cli.train, "run", lambda *a, **k: pytest.fail("train re-ran"))
+    monkeypatch.setattr(
+        netepu.pipeline.stages, "train", lambda *a, **k: pytest.fail("train re-ran")
+    )
     res = run_pipeline(_cfg(tiny_scene, out, "grids.frames=1"))
     assert res["train"].skipped and res["export"].skipped and not res["grids"].skipped
     assert [g.name for g in (out / "grids").glob("*.png")] == ["frame_000000.png"]

@@ -239,8 +239,8 @@ def one(n: int, minutes: float, extra: list[str], presence: str = "marginal") ->
     import torch
     from hydra import compose, initialize_config_module
 
-    from nsd.cli.train import run as train
     from nsd.synth.cli import run as synth
+    from nsd.training.train import train
 
     torch.set_num_threads(1)
     scene = WORK / f"scene{n}"

@@ -39,7 +39,7 @@ def train_checkpoint(out: Path) -> Path:
     """A default-config decomposition after a few steps on the default scene."""
     from hydra import compose, initialize_config_module
 
-    from nsd.cli.train import run
+    from nsd.training.train import train
 
     with initialize_config_module("nsd.conf", version_base="1.3"):
         cfg = compose(
@@ -51,7 +51,7 @@ def train_checkpoint(out: Path) -> Path:
                 "eval_frames=2",
             ],
         )
-    run(cfg, out)
+    train(cfg, out)
     return out / "checkpoint.pt"
 
 

@@ -91,11 +91,11 @@ CHILD = r"""
 import json, resource, sys, torch
 from hydra import compose, initialize_config_module
 from pathlib import Path
-from nsd.cli.train import run
+from nsd.training.train import train
 overrides = json.loads(sys.argv[1]); out = Path(sys.argv[2])
 with initialize_config_module("nsd.conf", version_base="1.3"):
     cfg = compose("train", overrides=overrides)
-metrics = run(cfg, out)
+metrics = train(cfg, out)
 rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print("RESULT " + json.dumps({"final": metrics, "peak_rss_mb": rss}))
 """

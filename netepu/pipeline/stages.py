@@ -1,0 +1,361 @@
+"""The stages of ``nsd-run``, one factory each: scene, train, evaluate, export, keypoints,
+texture, identities, grids.
+
+Each factory returns a :class:`nsd.core.stages.Stage` whose ``run(out, upstream)`` writes
+its folder; :mod:`netepu.pipeline.run` chains them and decides which ones a run needs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from netepu.pipeline.embed import embed_into_copy
+from netepu.pipeline.pose_keypoints import regress_export
+from netepu.pipeline.subject_keypoints import invert_export, keypoint_error
+from netepu.reid.identities import assign_identities, identity_accuracy
+from nsd.cameras.calibration_io import read_calibration
+from nsd.cli.evaluate import evaluate_checkpoint, markdown_table
+from nsd.core.atomic import atomic_write_text
+from nsd.core.errors import CheckpointError, ConfigError
+from nsd.core.stages import Stage, StageResult, config_hash
+from nsd.core.trainer import load_checkpoint
+from nsd.export.config import load_export_config
+from nsd.export.grids import write_grids
+from nsd.export.subjects import export_subjects
+from nsd.inference.multiview import InferenceSettings
+from nsd.io.embeddings import read_embeddings
+from nsd.io.footage import MultiViewFootage
+from nsd.io.ground_truth import GroundTruth
+from nsd.io.scenes import resolve_scene
+from nsd.training.train import train
+
+__all__ = [
+    "DEFAULT_SCENE",
+    "KEYPOINT_SOURCES",
+    "evaluate_stage",
+    "export_stage",
+    "grids_stage",
+    "identities_stage",
+    "keypoints_stage",
+    "scene_stage",
+    "texture_stage",
+    "train_stage",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SCENE = "default"  # the run folder name of the built-in default scene
+
+
+def _container(node: Any) -> Any:
+    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+
+
+# ------------------------------------------------------------------ stages
+def scene_stage(cfg: DictConfig) -> Stage:
+    spec = str(Path(cfg.scene).expanduser().resolve()) if cfg.scene else DEFAULT_SCENE
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        path = resolve_scene(None if spec == DEFAULT_SCENE else spec)
+        if not path.is_dir():
+            raise ConfigError(f"scene: {path} is not a folder (give scene=<scene folder>)")
+        rig = read_calibration(path)
+        footage = MultiViewFootage(path)
+        summary = {
+            "path": str(path.resolve()),
+            "cameras": list(rig.names),
+            "frames": int(footage.num_frames),
+            "ground_truth": GroundTruth.exists(path),
+        }
+        atomic_write_text(out / "scene.json", json.dumps(summary, indent=2))
+        return summary
+
+    return Stage("scene", run, {"scene": spec})
+
+
+def _train_config(cfg: DictConfig) -> DictConfig:
+    """The ``train`` section as an ``nsd-train`` config (its run-folder settings,
+    ``train.hydra``, do not apply here)."""
+    return OmegaConf.create({k: _container(v) for k, v in cfg.train.items() if k != "hydra"})
+
+
+def _load_stage(path: Path) -> Stage:
+    """The ``train`` stage when ``checkpoint=`` names a trained decomposition: copied, not
+    trained (the stage re-runs when the file changes)."""
+
+    if not path.is_file():
+        raise ConfigError(f"checkpoint: {path} does not exist (an nsd-train checkpoint.pt)")
+    st = path.stat()
+    settings = {"checkpoint": str(path.resolve()), "size": st.st_size, "mtime": st.st_mtime_ns}
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        state = load_checkpoint(path)
+        config = state.get("config") or {}
+        if "model" not in state.get("modules", {}) or config.get("stage") != "decomposition":
+            raise CheckpointError(
+                f"checkpoint: {path} is not an NSD decomposition checkpoint (nsd-train "
+                "stage=decomposition)"
+            )
+        shutil.copyfile(path, out / "checkpoint.pt")
+        return {"checkpoint": "checkpoint.pt", "steps": int(state.get("step", 0)),
+                "loaded_from": str(path)}  # fmt: skip
+
+    return Stage("train", run, settings, needs=("scene",))
+
+
+def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
+    _check_keypoint_source(cfg, ground_truth)  # before any training
+    if cfg.get("checkpoint"):
+        return _load_stage(Path(str(cfg.checkpoint)))
+    tcfg = _train_config(cfg)
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        c = tcfg.copy()
+        c.data.scene = up["scene"].summary["path"]
+        # trained in a work folder that survives an interruption (exact resume), moved at the end
+        work = out.parent / f".train-work-{config_hash(_container(c))}"
+        metrics = train(c, work)
+        for item in work.iterdir():
+            shutil.move(str(item), out / item.name)
+        work.rmdir()
+
+        return {
+            "checkpoint": "checkpoint.pt",
+            "steps": int(load_checkpoint(out / "checkpoint.pt").get("step", 0)),
+            "metrics": {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)},
+        }
+
+    return Stage("train", run, _container(tcfg), needs=("scene",))
+
+
+def _checkpoint(up: dict[str, StageResult]) -> Path:
+    train = up["train"]
+    return train.folder / train.summary["checkpoint"]
+
+
+def _inference(cfg: DictConfig) -> dict[str, Any]:
+    """The run's inference settings (``train.inference``), used by evaluate and export."""
+    return _container(cfg.train.inference)
+
+
+def evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
+    e = cfg.evaluate
+    inference = _inference(cfg)
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        frames = e.frames if isinstance(e.frames, str) else list(e.frames)
+        metrics = evaluate_checkpoint(
+            _checkpoint(up),
+            up["scene"].summary["path"],
+            frames,
+            int(e.max_frames),
+            str(e.refine),
+            InferenceSettings.from_config(inference),
+        )
+        metrics = {k: float(v) for k, v in metrics.items()}
+        atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
+        atomic_write_text(out / "eval.md", markdown_table(metrics))
+        return {"metrics": metrics}
+
+    why = (
+        ""
+        if e.enabled and ground_truth
+        else ("evaluate.enabled=false" if not e.enabled else "the scene has no ground truth (gt/)")
+    )
+    return Stage(
+        "evaluate",
+        run,
+        {**_container(e), "inference": inference},
+        needs=("scene", "train"),
+        enabled=not why,
+        why_disabled=why,
+    )
+
+
+def export_stage(cfg: DictConfig) -> Stage:
+    overrides = _container(OmegaConf.merge({"inference": _inference(cfg)}, cfg.export))
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        ecfg = OmegaConf.merge(load_export_config(), overrides)
+        ecfg.checkpoint = str(_checkpoint(up))
+        ecfg.scene = up["scene"].summary["path"]
+        ecfg.out = str(out)  # the export is built atomically and replaces the stage's folder
+        ecfg.overwrite = True
+        s = export_subjects(ecfg)
+        return {
+            "frames": s.frames,
+            "camera_frames": s.camera_frames,
+            "subjects": s.subjects,
+            "tracks": s.tracks,
+            "seconds": round(s.seconds, 3),
+        }
+
+    return Stage("export", run, overrides, needs=("scene", "train"))
+
+
+KEYPOINT_SOURCES = ("inverse", "regressor")
+
+
+_INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "max_subject_frames")
+
+
+def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
+    """Fail before training on a keypoint source the scene cannot serve."""
+    source = cfg.netepu.keypoints.source
+    if source not in KEYPOINT_SOURCES:
+        raise ConfigError(
+            f"netepu.keypoints.source must be one of {KEYPOINT_SOURCES}, got {source!r}"
+        )
+    if source == "regressor" and not ground_truth:
+        raise ConfigError(
+            "netepu.keypoints.source=regressor trains NSD's pose regressor from a few 3D "
+            "keypoint labels, and this scene has none (no gt/ folder); use source=inverse "
+            "(label-free, needs netepu.geometry)"
+        )
+
+
+def keypoints_stage(cfg: DictConfig) -> Stage:
+    n = cfg.netepu
+    k = n.keypoints
+    regress = k.source == "regressor"
+    settings = {"source": k.source, **{name: k[name] for name in _INVERSE_KEYS}}
+    if regress:  # the regressor is trained on the decomposition of the train stage
+        settings |= {"label_fraction": k.label_fraction, "regressor_steps": k.regressor_steps}
+    else:
+        settings["geometry"] = n.geometry
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        scene = up["scene"].summary["path"]
+        export = up["export"].folder
+        if regress:
+            summary = _regress_keypoints(cfg, scene, _checkpoint(up), export, out)
+        else:
+            summary = invert_export(
+                export, scene, n.geometry, out, **{name: k[name] for name in _INVERSE_KEYS}
+            )
+        if up["scene"].summary["ground_truth"]:
+            summary["accuracy"] = keypoint_error(export, scene, out / "keypoints3d.npz")
+        return summary
+
+    return Stage(
+        "keypoints",
+        run,
+        settings,
+        needs=("scene", "train", "export") if regress else ("scene", "export"),
+        enabled=regress or n.geometry is not None,
+        why_disabled="no geometry model (netepu.geometry=null) and source=inverse",
+    )
+
+
+def _regress_keypoints(
+    cfg: DictConfig, scene: str, checkpoint: Path, export: Path, out: Path
+) -> dict[str, Any]:
+    """Train NSD's pose regressor (stage 3) on the frozen decomposition with
+    ``label_fraction`` of the training frames labelled, then regress the exported subjects."""
+
+    k = cfg.netepu.keypoints
+    c = OmegaConf.create(load_checkpoint(checkpoint)["config"])  # as trained (or loaded)
+    c.data.scene = scene
+    c.trainer.progress = bool(cfg.train.trainer.progress)
+    c.stage, c.init_from = "pose", str(checkpoint)
+    c.pose.label_fraction = float(k.label_fraction)
+    c.trainer.max_steps, c.trainer.max_minutes = int(k.regressor_steps), 0.0
+    c.trainer.eval_at_minutes = []
+    metrics = train(c, out / "pose")
+    summary = regress_export(
+        export, scene, out / "pose" / "checkpoint.pt", out, int(k.frame_step), max(2, k.min_views)
+    )
+    summary["regressor"] = {
+        "held_out_mpjpe_mm": float(metrics.get("mpjpe_mm", float("nan"))),
+        "labelled_frames": float(metrics.get("labelled_frames", float("nan"))),
+    }
+    return summary
+
+
+def texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
+    n = cfg.netepu
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
+        res = embed_into_copy(
+            up["export"].folder, out, n.texture, kp, up["scene"].summary["path"],
+            maps=out / "nnopcs.npz",
+        )  # fmt: skip
+        return {
+            "table": Path(res["path"]).name,
+            "rows": res["rows"],
+            "encoded": res["encoded"],
+            "maps": "nnopcs.npz",
+        }
+
+    return Stage(
+        "texture",
+        run,
+        {"texture": n.texture},
+        needs=("scene", "export", "keypoints"),
+        enabled=n.texture is not None,
+        why_disabled="no texture model (netepu.texture=null)",
+    )
+
+
+def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) -> Stage:
+    i = cfg.netepu.identities
+    column = str(i.column) if have_texture else "app"
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        if not have_texture:
+            log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
+        source = up["texture"].folder if have_texture else up["export"].folder
+        keys = ["id", "camera", "frame", "subject_id"]
+        table = read_embeddings(source, [*keys, column])  # rows without a code hold NaN
+        identity, summary = assign_identities(
+            table, column, int(i.k), str(i.method), int(i.restarts)
+        )
+        lines = [",".join([*keys, "identity"])] + [
+            ",".join(map(str, row))
+            for row in zip(*(table[c].tolist() for c in keys), identity.tolist(), strict=True)
+        ]
+        atomic_write_text(out / "identities.csv", "\n".join(lines) + "\n")
+        summary["column"] = column
+        if ground_truth:
+            summary["accuracy"] = identity_accuracy(
+                up["export"].folder,
+                up["scene"].summary["path"],
+                table["id"],
+                identity,
+            )
+        return summary
+
+    return Stage(
+        "identities",
+        run,
+        {**_container(i), "column": column},
+        needs=("scene", "export", "texture"),
+        enabled=bool(i.enabled),
+        why_disabled="netepu.identities.enabled=false",
+    )
+
+
+def grids_stage(cfg: DictConfig) -> Stage:
+    g = cfg.grids
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        files = write_grids(
+            up["export"].folder, up["scene"].summary["path"], out, int(g.frames), int(g.size)
+        )
+        return {"files": [f.name for f in files]}
+
+    return Stage(
+        "grids",
+        run,
+        _container(g),
+        needs=("scene", "export"),
+        enabled=g.frames > 0,
+        why_disabled="grids.frames=0",
+    )

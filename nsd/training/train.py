@@ -1,0 +1,44 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from nsd.core.errors import ConfigError
+from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
+from nsd.io.ground_truth import GroundTruth
+from nsd.io.scenes import resolve_scene
+from nsd.training.data import SceneData
+from nsd.training.pose_task import PoseTask
+from nsd.training.task import NSDTask
+
+__all__ = ["train"]
+
+
+def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
+    """Train according to ``cfg`` into ``out_dir``; returns the final metrics."""
+    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
+    scene = resolve_scene(cfg.data.scene)
+    data = SceneData(
+        scene, cfg.data.image_size, cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames
+    )
+
+    gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
+    tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
+    seed_everything(tcfg.seed)  # model initialisation is part of the seeded train
+    if cfg.stage == "pose":
+        task = PoseTask(cfg, data, gt)
+    elif cfg.stage == "decomposition":
+        task = NSDTask(cfg, data, gt)
+    else:
+        raise ConfigError(f"stage must be 'decomposition' or 'pose', got {cfg.stage!r}")
+    if cfg.init_from:
+        state = load_checkpoint(cfg.init_from)
+        task.model.load_state_dict(state["modules"]["model"])
+    trainer = Trainer(task, tcfg, out_dir, OmegaConf.to_container(cfg, resolve=True))
+    metrics = trainer.fit()
+    metrics["iterations_per_second"] = trainer.throughput()
+    return metrics
