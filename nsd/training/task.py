@@ -209,8 +209,14 @@ class NSDTask:
         self.model.cfg.depth = self.use_depth and self.stage2_started
 
     def losses(self, batch) -> dict[str, torch.Tensor]:
-        """All loss terms for a batch of view pairs; ``loss`` is their weighted sum."""
-        c = self.cfg
+        """Every loss term of a batch of view pairs by name; ``loss`` is their weighted sum.
+
+        Terms (weights in :meth:`term_weights`): ``pixel`` and ``ssim`` (re-synthesis of
+        both views), ``foreground`` (coverage vs. evidence), the window priors
+        ``prior_position``, ``prior_scale``, ``prior_aspect``, ``prior_presence``, and
+        where configured ``presence_target``, ``prior_proposal``, the marginal presence
+        target, ``prior_depth`` and ``prior_association``.
+        """
         cams = self.data.cameras
         rv, rw, wv, ww = self.model(
             batch.image_v,
@@ -221,76 +227,34 @@ class NSDTask:
             {k: v[batch.view_v] for k, v in cams.items()},
             {k: v[batch.view_w] for k, v in cams.items()},
         )
-        out: dict[str, torch.Tensor] = {}
-        total = torch.zeros(())
-        pairs = ((batch.image_v, batch.background_v), (batch.image_w, batch.background_w))
-        evidence = [
-            foreground_evidence(img, bg, c.loss.evidence_threshold, c.loss.evidence_softness)
-            for img, bg in pairs
-        ]
-        for r, img, ev in ((rv, batch.image_v, evidence[0]), (rw, batch.image_w, evidence[1])):
-            weight = 1 + c.loss.residual_weight * ev if c.loss.residual_weight > 0 else None
-            terms = total_image_loss(
-                r.image, img, weight, c.loss.ssim_weight, c.loss.ssim_window, c.loss.renormalise
-            )
-            for k, v in terms.items():
-                out[k] = out.get(k, 0) + v / 2
-            if c.loss.foreground_weight > 0:
-                cover = 1 - r.composite.background_weight
-                out["foreground"] = out.get("foreground", 0) + (cover - ev).pow(2).mean() / 2
+        evidence = self._evidence(batch)
+        out = self._image_terms(batch, rv, rw, evidence)
         boxes = torch.cat([wv.det.boxes, ww.det.boxes])
-        H, W = batch.image_v.shape[-2:]
-        out["prior_position"] = position_prior(boxes)
-        out["prior_scale"] = scale_prior(boxes, c.prior_scale.target)
-        out["prior_aspect"] = aspect_prior(boxes, c.prior_aspect.ratio, (H, W))
-        out["prior_presence"] = presence_prior(torch.cat([wv.det.presence, ww.det.presence]))
-        matching, active = None, None
-        learn_presence = self.model.detector.use_presence
+        out.update(self._window_priors(boxes, wv, ww, batch.image_v.shape[-2:]))
         valid = None if batch.valid_v is None else torch.cat([batch.valid_v, batch.valid_w])
-        if self.presence_target == "hull" and learn_presence:
-            presence = torch.cat([wv.det.presence, ww.det.presence])
-            count = torch.cat([batch.count_v, batch.count_w])  # NSDTask._hull_counts
-            hull_target = ranked_presence_target(presence, count)
-            out["presence_target"] = presence_target_loss(presence, hull_target)
-            out["presence_target_on"] = hull_target.sum(-1).mean()
-            active = hull_target > 0.5
-        if batch.proposals_v is not None:
-            props = torch.cat([batch.proposals_v, batch.proposals_w])
-            matching = match_proposals(boxes, props, valid, active)
-            out["prior_proposal"] = proposal_prior(boxes, props, valid, matching)
-        if self.presence_target == "marginal" and learn_presence:
+        active = self._hull_presence_term(batch, wv, ww, out)
+        matching = self._proposal_term(batch, boxes, valid, active, out)
+        if self.presence_target == "marginal" and self.model.detector.use_presence:
             caps = (None, None)
             if self.presence_cap == "proposals":
                 caps = (batch.valid_v.sum(-1), batch.valid_w.sum(-1))
+            H, W = batch.image_v.shape[-2:]
             out.update(self._presence_target(evidence, rv, rw, wv, ww, (H, W), caps))
-        if c.prior_depth.weight > 0:
-            if c.prior_depth.source == "proposals" and batch.proposal_depth_v is not None:
-                target = torch.cat([batch.proposal_depth_v, batch.proposal_depth_w])
-                depths = torch.cat([wv.det.depths, ww.det.depths])
-                out["prior_depth"] = depth_prior(
-                    depths,
-                    target.gather(1, matching),
-                    valid.gather(1, matching),
-                    c.prior_depth.unit,
-                )
-            elif c.prior_depth.source == "triangulation":
-                out["prior_depth"] = self._depth_prior(batch, rv, rw, wv, ww)
-            else:
-                raise ConfigError(
-                    f"prior_depth.source {c.prior_depth.source!r} needs multi-view proposals"
-                    if c.prior_depth.source == "proposals"
-                    else f"prior_depth.source must be 'proposals' or 'triangulation', got "
-                    f"{c.prior_depth.source!r}"
-                )
-        if c.prior_association.weight > 0 and batch.proposal_depth_v is not None:
-            B = batch.image_v.shape[0]
-            mv, mw = matching[:B], matching[B:]
-            av, aw = self._prior_associations(rv, rw, wv, ww)
-            out["prior_association"] = (
-                association_prior(av, mv, batch.valid_v, mw, batch.valid_w)
-                + association_prior(aw, mw, batch.valid_w, mv, batch.valid_v)
-            ) / 2
-        weights = {
+        if self.cfg.prior_depth.weight > 0:
+            out["prior_depth"] = self._depth_term(batch, rv, rw, wv, ww, matching, valid)
+        if self.cfg.prior_association.weight > 0 and batch.proposal_depth_v is not None:
+            out["prior_association"] = self._association_term(batch, rv, rw, wv, ww, matching)
+        weights = self.term_weights()
+        total = torch.zeros(())
+        for k, v in out.items():
+            total = total + weights[k] * v
+        out["loss"] = total
+        return out
+
+    def term_weights(self) -> dict[str, float]:
+        """The weight of every named loss term (config values; the proposal prior anneals)."""
+        c = self.cfg
+        return {
             "pixel": 1.0,
             "ssim": c.loss.ssim_weight,
             "foreground": c.loss.foreground_weight,
@@ -304,10 +268,89 @@ class NSDTask:
             "prior_depth": c.prior_depth.weight,
             "prior_association": c.prior_association.weight,
         }
-        for k, v in out.items():
-            total = total + weights[k] * v
-        out["loss"] = total
+
+    def _evidence(self, batch) -> list[torch.Tensor]:
+        """Foreground evidence (B, H, W) of both views of the pairs."""
+        c = self.cfg.loss
+        pairs = ((batch.image_v, batch.background_v), (batch.image_w, batch.background_w))
+        return [
+            foreground_evidence(img, bg, c.evidence_threshold, c.evidence_softness)
+            for img, bg in pairs
+        ]
+
+    def _image_terms(self, batch, rv, rw, evidence) -> dict[str, torch.Tensor]:
+        """``pixel``, ``ssim`` and ``foreground``, averaged over both directions of Bi-NVS."""
+        c = self.cfg.loss
+        out: dict[str, torch.Tensor] = {}
+        for r, img, ev in ((rv, batch.image_v, evidence[0]), (rw, batch.image_w, evidence[1])):
+            weight = 1 + c.residual_weight * ev if c.residual_weight > 0 else None
+            terms = total_image_loss(
+                r.image, img, weight, c.ssim_weight, c.ssim_window, c.renormalise
+            )
+            for k, v in terms.items():
+                out[k] = out.get(k, 0) + v / 2
+            if c.foreground_weight > 0:
+                cover = 1 - r.composite.background_weight
+                out["foreground"] = out.get("foreground", 0) + (cover - ev).pow(2).mean() / 2
         return out
+
+    def _window_priors(self, boxes, wv, ww, size) -> dict[str, torch.Tensor]:
+        """The weak priors on the windows of both views (NSD: position, scale, aspect)."""
+        c = self.cfg
+        return {
+            "prior_position": position_prior(boxes),
+            "prior_scale": scale_prior(boxes, c.prior_scale.target),
+            "prior_aspect": aspect_prior(boxes, c.prior_aspect.ratio, tuple(size)),
+            "prior_presence": presence_prior(torch.cat([wv.det.presence, ww.det.presence])),
+        }
+
+    def _hull_presence_term(self, batch, wv, ww, out: dict) -> torch.Tensor | None:
+        """With ``prior_presence.target=hull``: adds ``presence_target`` and returns the
+        windows that are on (as many per view as the hull counts individuals)."""
+        if not (self.presence_target == "hull" and self.model.detector.use_presence):
+            return None
+        presence = torch.cat([wv.det.presence, ww.det.presence])
+        count = torch.cat([batch.count_v, batch.count_w])  # NSDTask._hull_counts
+        hull_target = ranked_presence_target(presence, count)
+        out["presence_target"] = presence_target_loss(presence, hull_target)
+        out["presence_target_on"] = hull_target.sum(-1).mean()
+        return hull_target > 0.5
+
+    def _proposal_term(self, batch, boxes, valid, active, out: dict) -> torch.Tensor | None:
+        """Adds ``prior_proposal`` where the batch has proposals; returns the matching."""
+        if batch.proposals_v is None:
+            return None
+        props = torch.cat([batch.proposals_v, batch.proposals_w])
+        matching = match_proposals(boxes, props, valid, active)
+        out["prior_proposal"] = proposal_prior(boxes, props, valid, matching)
+        return matching
+
+    def _depth_term(self, batch, rv, rw, wv, ww, matching, valid) -> torch.Tensor:
+        """``prior_depth`` from the multi-view proposals' depths or from triangulation."""
+        c = self.cfg.prior_depth
+        if c.source == "proposals" and batch.proposal_depth_v is not None:
+            target = torch.cat([batch.proposal_depth_v, batch.proposal_depth_w])
+            depths = torch.cat([wv.det.depths, ww.det.depths])
+            return depth_prior(
+                depths, target.gather(1, matching), valid.gather(1, matching), c.unit
+            )
+        if c.source == "triangulation":
+            return self._depth_prior(batch, rv, rw, wv, ww)
+        raise ConfigError(
+            f"prior_depth.source {c.source!r} needs multi-view proposals"
+            if c.source == "proposals"
+            else f"prior_depth.source must be 'proposals' or 'triangulation', got {c.source!r}"
+        )
+
+    def _association_term(self, batch, rv, rw, wv, ww, matching) -> torch.Tensor:
+        """``prior_association`` in both directions of the pair."""
+        B = batch.image_v.shape[0]
+        mv, mw = matching[:B], matching[B:]
+        av, aw = self._prior_associations(rv, rw, wv, ww)
+        return (
+            association_prior(av, mv, batch.valid_v, mw, batch.valid_w)
+            + association_prior(aw, mw, batch.valid_w, mv, batch.valid_v)
+        ) / 2
 
     def _prior_associations(self, rv, rw, wv, ww) -> tuple[torch.Tensor, torch.Tensor]:
         """The soft associations (B, N, N) the association prior pulls on, for v and w.
