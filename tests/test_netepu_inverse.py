@@ -14,7 +14,8 @@ from netepu.geometry.inverse import (
     triangulate_centroids,
 )
 from netepu.geometry.maps import MapSettings, render_maps
-from nsd.evaluation.maps import mpjpe, silhouette_iou
+from nsd.evaluation.maps import silhouette_iou
+from nsd.evaluation.pose import mpjpe
 from tests.base import BaseTester
 from tests.netepu_world import toy_pose, trained_toy
 

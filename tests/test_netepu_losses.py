@@ -15,7 +15,8 @@ from netepu.geometry.losses import (
     nnopcs_loss,
     silhouette_loss,
 )
-from nsd.evaluation.maps import depth_mae, mpjpe, nnopcs_mse, silhouette_iou
+from nsd.evaluation.maps import depth_mae, nnopcs_mse, silhouette_iou
+from nsd.evaluation.pose import mpjpe
 from tests.base import BaseTester
 
 

@@ -364,7 +364,7 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
     """An 'export' made of the ground-truth masks: the true identities score 1, a mapping
     that swaps identities in later frames is wrong there in time but not across views;
     only the rows given an identity are scored."""
-    from netepu.reid.identities import identity_accuracy
+    from nsd.evaluation.identity import identity_accuracy
     from nsd.synth import tiny_config, write_scene
 
     scene = write_scene(tiny_config(num_frames=20), tmp_path / "scene")

@@ -29,7 +29,7 @@ use; no labels are used in training):
   enough stays in the median, and there the foreground evidence is lost);
 * identities: every frame exported (``nsd-export``), tracks grouped into identities
   by NSD's appearance vectors with the label-free count (``netepu.identities``; no
-  texture model here), scored as in ``netepu.reid.identities.identity_accuracy``.
+  texture model here), scored as in ``nsd.evaluation.identity.identity_accuracy``.
 
 Run ``one`` for each N (one core each, e.g. ``taskset -c 1``), then ``report``.
 ``rescore`` measures every trained run again with the current code (the checkpoints
@@ -211,7 +211,8 @@ def background_ghosts(data, gt) -> list[float]:
 def identities(checkpoint: Path, scene: Path, out: Path, overwrite: bool = False) -> dict:
     """Export every frame, group the tracks into identities by NSD's appearance vectors
     (``netepu.identities``, label-free k) and score them against the ground truth."""
-    from netepu.reid.identities import assign_identities, identity_accuracy
+    from netepu.reid.identities import assign_identities
+    from nsd.evaluation.identity import identity_accuracy
     from nsd.export.config import load_export_config
     from nsd.export.subjects import export_subjects
     from nsd.io.embeddings import read_embeddings

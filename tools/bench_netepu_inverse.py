@@ -30,7 +30,8 @@ from netepu.geometry.data import build_geometry_data, render_new_poses  # noqa: 
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes  # noqa: E402
 from netepu.geometry.maps import MapSettings, render_maps  # noqa: E402
 from netepu.geometry.model import load_geometry_model  # noqa: E402
-from nsd.evaluation.maps import mpjpe, silhouette_iou  # noqa: E402
+from nsd.evaluation.maps import silhouette_iou  # noqa: E402
+from nsd.evaluation.pose import mpjpe  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 POSE_SEED = 12345  # held-out poses: a seed the data set never uses

@@ -84,7 +84,7 @@ def rank1(codes: np.ndarray, ident: np.ndarray, candidates: np.ndarray) -> float
 
 def _gt_keypoints(export: Path, scene: Path, label_free: Path, out: Path) -> None:
     """Ground-truth keypoints (npz id, keypoints) for the rows the label-free file covers."""
-    from netepu.reid.identities import ground_truth_identities
+    from nsd.evaluation.identity import ground_truth_identities
     from nsd.io.ground_truth import GroundTruth
 
     truth = GroundTruth.load(scene).scene.keypoints3d
@@ -100,12 +100,8 @@ def _scores(
 ) -> dict[str, dict]:
     """Row-level rank-1 and pipeline identity accuracy of each table's ``column`` (the codes
     or their re-id embeddings), on the rows coded in every table."""
-    from netepu.reid.identities import (
-        IDENTITY_METHODS,
-        assign_identities,
-        ground_truth_identities,
-        identity_accuracy,
-    )
+    from netepu.reid.identities import IDENTITY_METHODS, assign_identities
+    from nsd.evaluation.identity import ground_truth_identities, identity_accuracy
     from nsd.io.embeddings import read_embeddings
 
     matched = ground_truth_identities(export, scene)

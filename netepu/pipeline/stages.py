@@ -17,14 +17,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from netepu.pipeline.embed import embed_into_copy
 from netepu.pipeline.pose_keypoints import regress_export
-from netepu.pipeline.subject_keypoints import invert_export, keypoint_error
-from netepu.reid.identities import assign_identities, identity_accuracy
+from netepu.pipeline.subject_keypoints import invert_export
+from netepu.reid.identities import assign_identities
 from nsd.cameras.calibration_io import read_calibration
 from nsd.cli.evaluate import evaluate_checkpoint, markdown_table
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.stages import Stage, StageResult, config_hash
 from nsd.core.trainer import load_checkpoint
+from nsd.evaluation.identity import identity_accuracy
+from nsd.evaluation.pose import keypoint_error
 from nsd.export.config import load_export_config
 from nsd.export.grids import write_grids
 from nsd.export.subjects import export_subjects

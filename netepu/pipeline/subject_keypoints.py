@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import os
-from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -31,15 +30,13 @@ from pycocotools import mask as mask_utils
 from netepu.geometry.data import DataConfig
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes
 from netepu.geometry.model import load_geometry_model
-from netepu.reid.identities import ground_truth_identities
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
-from nsd.io.ground_truth import GroundTruth
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
 from nsd.synth import make_individual
 from nsd.synth.motion import sample_pose
 
-__all__ = ["invert_export", "keypoint_error", "template_poses"]
+__all__ = ["invert_export", "template_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -151,35 +148,3 @@ def invert_export(
     }
 
 
-def keypoint_error(
-    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
-) -> dict[str, float]:
-    """MPJPE (mm) of the inverted subjects against a synthetic scene's 3D keypoints.
-
-    Each inverted subject-frame is matched to the ground-truth individual most of its
-    rows match (:func:`netepu.reid.identities.ground_truth_identities`); unmatched ones are
-    counted but not scored.
-    """
-
-    truth = GroundTruth.load(scene).scene.keypoints3d
-    matched = ground_truth_identities(export, scene)
-    votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
-    for _cam, t, sid, ident in matched.values():
-        votes[(t, sid)][ident] += 1
-    with np.load(keypoints) as z:
-        frames, sids, kps = z["subject_frame"], z["subject_id"], z["subject_keypoints"]
-    errors = []
-    for t, sid, kp in zip(frames.tolist(), sids.tolist(), kps, strict=True):
-        v = votes.get((t, sid))
-        if not v:
-            continue
-        gt = truth[v.most_common(1)[0][0]][t]
-        if gt.shape != kp.shape:
-            raise ConfigError(f"keypoints: {kp.shape[0]} keypoints, the scene has {gt.shape[0]}")
-        errors.append(1000 * float(np.linalg.norm(kp - gt, axis=-1).mean()))
-    return {
-        "inverted": float(len(frames)),
-        "scored": float(len(errors)),
-        "mpjpe_mm": float(np.mean(errors)) if errors else float("nan"),
-        "mpjpe_mm_median": float(np.median(errors)) if errors else float("nan"),
-    }

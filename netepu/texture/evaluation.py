@@ -26,29 +26,15 @@ from netepu.geometry.model import GeometryModel
 from netepu.texture.crops import query_masked
 from netepu.texture.data import TextureData
 from netepu.texture.model import TextureModel
+from nsd.evaluation.maps import colour_psnr
 
 __all__ = [
-    "colour_psnr",
     "evaluate_colour",
     "heldout_codes",
     "heldout_reid_inputs",
     "render_colour",
     "synthesis_grid",
 ]
-
-
-def colour_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """PSNR (dB) per image over mask pixels; colours in [0, 1].
-
-    Args:
-        pred, target: (n, H, W, 3); mask: (n, H, W) bool.
-
-    Returns:
-        (n,) float64.
-    """
-    err = ((pred.double() - target.double()) ** 2).sum(-1) * mask
-    mse = err.flatten(1).sum(1) / (3 * mask.flatten(1).sum(1).clamp(min=1))
-    return 10 * torch.log10(1.0 / mse.clamp(min=1e-12))
 
 
 def _crop_batch(

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from pycocotools.cocoeval import COCOeval
 from sklearn.metrics import adjusted_rand_score
+from torch import Tensor
 
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
@@ -76,6 +77,19 @@ class FrameScore:
     overlap_pixels: int = 0
     overlap_owned: int = 0
     matches: dict[int, int] = field(default_factory=dict)  # gt identity -> predicted window
+
+    def add(self, other: FrameScore) -> None:
+        """Add ``other``'s counts to these (``matches`` are per camera-frame, not summed)."""
+        self.n_gt += other.n_gt
+        self.detected += other.detected
+        self.iou_sum += other.iou_sum
+        self.order_total += other.order_total
+        self.order_correct += other.order_correct
+        self.ari += other.ari
+        self.multi += other.multi
+        self.merged += other.merged
+        self.overlap_pixels += other.overlap_pixels
+        self.overlap_owned += other.overlap_owned
 
 
 def score_frame(
@@ -199,7 +213,6 @@ def evaluate_model(
     ``inference``: :class:`nsd.inference.multiview.InferenceSettings` (None: the defaults,
     multi-view inference).
     """
-
     settings = inference or InferenceSettings()
     was = model.training
     model.eval()
@@ -208,99 +221,103 @@ def evaluate_model(
         settings.grid(data.rig, data.image_size) if settings.multiview and gt is not None else None
     )
     psnr, ssim = [], []
-    total = FrameScore()
-    raw_iou = 0.0
-    assoc_total = assoc_correct = 0
-    results: list[dict] = []
-    image_ids: list[int] = []
+    tally = _Tally()
     try:
         for t in frames:
             views, bgs = data.views(int(t))
-            # novel view: every ordered pair (v, v+1)
-            w_idx = (torch.arange(V) + 1) % V
-            rv, _, _, _ = model(
-                views, views[w_idx], bgs, bgs[w_idx], data.rotations[torch.arange(V), w_idx]
-            )
-            psnr.append(kornia.metrics.psnr(rv.image.clamp(0, 1), views, 1.0).item())
-            ssim.append(kornia.metrics.ssim(rv.image.clamp(0, 1), views, 7).mean().item())
+            p, s = _novel_view_scores(model, data, views, bgs)
+            psnr.append(p)
+            ssim.append(s)
             if gt is None:
                 continue
             dec = decompose_views(
                 model, views, bgs, V, settings, grid, mask_threshold=threshold, refine=refine
             )
-            per_view = []
-            for v, cam in enumerate(data.rig.names):
-                fgt = gt.frame(cam, int(t), data.image_size)
-                s = score_frame(
-                    dec.masks[v].numpy(),
-                    dec.depths[v].numpy(),
-                    dec.active[v].numpy(),
-                    fgt.visible,
-                    fgt.amodal,
-                    fgt.boxes,
-                    fgt.identity,
-                    threshold,
-                )
-                raw = score_frame(
-                    dec.raw_masks[v].numpy(),
-                    dec.depths[v].numpy(),
-                    dec.active[v].numpy(),
-                    fgt.visible,
-                    fgt.amodal,
-                    fgt.boxes,
-                    fgt.identity,
-                    threshold,
-                )
-                raw_iou += raw.iou_sum
-                total.n_gt += s.n_gt
-                total.detected += s.detected
-                total.iou_sum += s.iou_sum
-                total.order_total += s.order_total
-                total.order_correct += s.order_correct
-                total.ari += s.ari
-                total.multi += s.multi
-                total.merged += s.merged
-                total.overlap_pixels += s.overlap_pixels
-                total.overlap_owned += s.overlap_owned
-                per_view.append(s.matches)
-                results += decomposition_to_coco(dec, v, fgt.image_id, fgt.native_size, threshold)
-                image_ids.append(fgt.image_id)
-            for v in range(V):
-                for w in range(V):
-                    if v == w:
-                        continue
-                    sim = association_scores(
-                        model, dec, data.cameras, data.image_size, v, w, settings.slot_bonus
-                    )
-                    for ident, iv in per_view[v].items():
-                        if ident in per_view[w]:
-                            assoc_total += 1
-                            assoc_correct += int(sim[iv].argmax().item() == per_view[w][ident])
+            per_view = _score_views(dec, data, gt, int(t), threshold, tally)
+            _count_associations(model, dec, data, settings, per_view, tally)
     finally:
         model.train(was)
     out = {"nvs_psnr": float(np.mean(psnr)), "nvs_ssim": float(np.mean(ssim))}
     if gt is not None:
-        n = max(total.n_gt, 1)
-        out.update(
-            {
-                "detection_rate": total.detected / n,
-                "mask_miou": total.iou_sum / n,
-                "mask_miou_raw": raw_iou / n,
-                "fg_ari": float(np.nanmean(total.ari)) if total.ari else float("nan"),
-                "depth_order_accuracy": (
-                    total.order_correct / total.order_total if total.order_total else float("nan")
-                ),
-                "depth_order_pairs": float(total.order_total),
-                "merge_rate": total.merged / total.multi if total.multi else float("nan"),
-                "overlap_ownership": (
-                    total.overlap_owned / total.overlap_pixels
-                    if total.overlap_pixels
-                    else float("nan")
-                ),
-                "association_accuracy": (
-                    assoc_correct / assoc_total if assoc_total else float("nan")
-                ),
-            }
-        )
-        out.update(coco_ap(gt.coco, results, image_ids))
+        out.update(tally.metrics())
+        out.update(coco_ap(gt.coco, tally.results, tally.image_ids))
     return {k: float(v) for k, v in out.items()}  # plain floats (numpy scalars break JSON)
+
+
+@dataclass
+class _Tally:
+    """What :func:`evaluate_model` sums over camera-frames."""
+
+    total: FrameScore = field(default_factory=FrameScore)
+    raw_iou: float = 0.0
+    assoc_total: int = 0
+    assoc_correct: int = 0
+    results: list[dict] = field(default_factory=list)
+    image_ids: list[int] = field(default_factory=list)
+
+    def metrics(self) -> dict[str, float]:
+        total = self.total
+        n = max(total.n_gt, 1)
+        return {
+            "detection_rate": total.detected / n,
+            "mask_miou": total.iou_sum / n,
+            "mask_miou_raw": self.raw_iou / n,
+            "fg_ari": float(np.nanmean(total.ari)) if total.ari else float("nan"),
+            "depth_order_accuracy": (
+                total.order_correct / total.order_total if total.order_total else float("nan")
+            ),
+            "depth_order_pairs": float(total.order_total),
+            "merge_rate": total.merged / total.multi if total.multi else float("nan"),
+            "overlap_ownership": (
+                total.overlap_owned / total.overlap_pixels if total.overlap_pixels else float("nan")
+            ),
+            "association_accuracy": (
+                self.assoc_correct / self.assoc_total if self.assoc_total else float("nan")
+            ),
+        }
+
+
+def _novel_view_scores(model, data, views: Tensor, bgs: Tensor) -> tuple[float, float]:
+    """Novel-view PSNR and SSIM of one instant: every view re-synthesised from the next."""
+    V = data.num_views
+    w_idx = (torch.arange(V) + 1) % V
+    rv, _, _, _ = model(
+        views, views[w_idx], bgs, bgs[w_idx], data.rotations[torch.arange(V), w_idx]
+    )
+    psnr = kornia.metrics.psnr(rv.image.clamp(0, 1), views, 1.0).item()
+    ssim = kornia.metrics.ssim(rv.image.clamp(0, 1), views, 7).mean().item()
+    return psnr, ssim
+
+
+def _score_views(dec, data, gt, t: int, threshold: float, tally: _Tally) -> list[dict[int, int]]:
+    """Score every view of instant ``t`` into ``tally``; returns each view's GT matches."""
+    per_view = []
+    for v, cam in enumerate(data.rig.names):
+        fgt = gt.frame(cam, t, data.image_size)
+        truth = (fgt.visible, fgt.amodal, fgt.boxes, fgt.identity, threshold)
+        depths, active = dec.depths[v].numpy(), dec.active[v].numpy()
+        s = score_frame(dec.masks[v].numpy(), depths, active, *truth)
+        raw = score_frame(dec.raw_masks[v].numpy(), depths, active, *truth)
+        tally.raw_iou += raw.iou_sum
+        tally.total.add(s)
+        per_view.append(s.matches)
+        tally.results += decomposition_to_coco(dec, v, fgt.image_id, fgt.native_size, threshold)
+        tally.image_ids.append(fgt.image_id)
+    return per_view
+
+
+def _count_associations(model, dec, data, settings, per_view, tally: _Tally) -> None:
+    """Cross-view association: for every GT individual seen in views v and w, is the
+    window of w with the highest score for v's window the one matched to it?"""
+    V = data.num_views
+    for v in range(V):
+        for w in range(V):
+            if v == w:
+                continue
+            sim = association_scores(
+                model, dec, data.cameras, data.image_size, v, w, settings.slot_bonus
+            )
+            for ident, iv in per_view[v].items():
+                if ident in per_view[w]:
+                    tally.assoc_total += 1
+                    tally.assoc_correct += int(sim[iv].argmax().item() == per_view[w][ident])

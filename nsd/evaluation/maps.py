@@ -1,11 +1,13 @@
-"""Accuracy measures of rendered geometry and recovered keypoints.
+"""Accuracy measures of rendered maps: silhouette, NNOPCS, depth and colour.
 
 * Silhouette IoU per view.
 * NNOPCS MSE (NeTePu table 1) and depth MAE, over the pixels that are
   foreground in both the ground truth and the render (where both maps are
   defined); the share of ground-truth pixels this covers is the recall
   implied by the IoU.
-* MPJPE: mean per-joint position error of 3D keypoints.
+* Colour PSNR over the pixels of a mask (the texture renderer).
+
+Keypoint errors: :mod:`nsd.evaluation.pose`.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["depth_mae", "mpjpe", "nnopcs_mse", "silhouette_iou"]
+__all__ = ["colour_psnr", "depth_mae", "nnopcs_mse", "silhouette_iou"]
 
 
 def silhouette_iou(pred: Tensor, target: Tensor) -> Tensor:
@@ -42,6 +44,15 @@ def depth_mae(pred: Tensor, target: Tensor, valid: Tensor) -> Tensor:
     return (pred - target)[valid].double().abs().mean()
 
 
-def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
-    """Mean per-joint position error of keypoints (..., K, 3) -> scalar (input units)."""
-    return (pred - target).double().norm(dim=-1).mean()
+def colour_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """PSNR (dB) per image over mask pixels; colours in [0, 1].
+
+    Args:
+        pred, target: (n, H, W, 3); mask: (n, H, W) bool.
+
+    Returns:
+        (n,) float64.
+    """
+    err = ((pred.double() - target.double()) ** 2).sum(-1) * mask
+    mse = err.flatten(1).sum(1) / (3 * mask.flatten(1).sum(1).clamp(min=1))
+    return 10 * torch.log10(1.0 / mse.clamp(min=1e-12))

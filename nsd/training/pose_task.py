@@ -21,18 +21,14 @@ from scipy.optimize import linear_sum_assignment
 from torch import Tensor, nn
 
 from nsd.core.errors import ConfigError
+from nsd.evaluation.pose import mpjpe
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.model.build import build_model
 from nsd.model.pose_regressor import PoseRegressor
 
-__all__ = ["PoseTask", "label_frames", "mpjpe"]
+__all__ = ["PoseTask", "label_frames"]
 
 ROOT = 0  # keypoint index of the root (pelvis / withers) in both species
-
-
-def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
-    """Mean per-joint position error of root-relative poses (..., K, 3)."""
-    return (pred - target).norm(dim=-1).mean()
 
 
 def label_frames(train_frames: np.ndarray, fraction: float, seed: int = 0) -> np.ndarray:

@@ -1,0 +1,57 @@
+"""Keypoint accuracy: MPJPE of 3D keypoints, and of an export's recovered keypoints against a
+synthetic scene (subjects matched to ground-truth individuals by mask IoU,
+:func:`nsd.evaluation.identity.ground_truth_identities`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter, defaultdict
+
+import numpy as np
+from torch import Tensor
+
+from nsd.core.errors import ConfigError
+from nsd.evaluation.identity import ground_truth_identities
+from nsd.io.ground_truth import GroundTruth
+
+__all__ = ["keypoint_error", "mpjpe"]
+
+
+def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean per-joint position error of keypoints (..., K, 3) -> scalar (input units)."""
+    return (pred - target).double().norm(dim=-1).mean()
+
+
+def keypoint_error(
+    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
+) -> dict[str, float]:
+    """MPJPE (mm) of the inverted subjects against a synthetic scene's 3D keypoints.
+
+    Each inverted subject-frame is matched to the ground-truth individual most of its
+    rows match (:func:`nsd.evaluation.identity.ground_truth_identities`); unmatched ones are
+    counted but not scored.
+    """
+
+    truth = GroundTruth.load(scene).scene.keypoints3d
+    matched = ground_truth_identities(export, scene)
+    votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
+    for _cam, t, sid, ident in matched.values():
+        votes[(t, sid)][ident] += 1
+    with np.load(keypoints) as z:
+        frames, sids, kps = z["subject_frame"], z["subject_id"], z["subject_keypoints"]
+    errors = []
+    for t, sid, kp in zip(frames.tolist(), sids.tolist(), kps, strict=True):
+        v = votes.get((t, sid))
+        if not v:
+            continue
+        gt = truth[v.most_common(1)[0][0]][t]
+        if gt.shape != kp.shape:
+            raise ConfigError(f"keypoints: {kp.shape[0]} keypoints, the scene has {gt.shape[0]}")
+        errors.append(1000 * float(np.linalg.norm(kp - gt, axis=-1).mean()))
+    return {
+        "inverted": float(len(frames)),
+        "scored": float(len(errors)),
+        "mpjpe_mm": float(np.mean(errors)) if errors else float("nan"),
+        "mpjpe_mm_median": float(np.median(errors)) if errors else float("nan"),
+    }
