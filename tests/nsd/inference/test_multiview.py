@@ -15,7 +15,7 @@ from nsd.inference.single import decompose, ownership
 from nsd.model.build import build_model
 from nsd.model.detector import Detections
 from nsd.training.data import SceneData
-from tests.test_nsd_train import tiny_cfg
+from tests.nsd.training.test_train import tiny_cfg
 
 
 def _det():

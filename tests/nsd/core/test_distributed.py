@@ -45,7 +45,7 @@ def _worker(rank: int, world: int, port: int, scene: str, root: str) -> None:
     from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
     from nsd.training.data import SceneData
     from nsd.training.task import NSDTask
-    from tests.test_nsd_train import tiny_cfg
+    from tests.nsd.training.test_train import tiny_cfg
 
     assert distributed.init_from_env()
     try:
@@ -146,7 +146,7 @@ def test_world_size_without_torchrun_variables_is_a_clear_error(monkeypatch):
 @pytest.mark.slow
 def test_torchrun_nsd_train_writes_one_run_directory(tmp_path):
     """``torchrun --nproc_per_node=2 -m nsd.cli.train``: one run folder, one log, one .hydra."""
-    from tests.test_nsd_train import TINY
+    from tests.nsd.training.test_train import TINY
 
     scene = tmp_path / "tiny_scene"
     shutil.copytree(FIXTURES / "tiny_scene", scene)

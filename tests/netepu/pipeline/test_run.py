@@ -15,7 +15,7 @@ import netepu.pipeline.stages
 from netepu.pipeline.run import load_run_config, run_pipeline
 from nsd.core.errors import ConfigError
 from tests.conftest import FIXTURES
-from tests.test_nsd_train import TINY
+from tests.nsd.training.test_train import TINY
 
 NO_VIEWS = ["+export.views.tensorboard=false", "+export.views.tsne=false", "+export.progress=false"]
 
@@ -193,8 +193,8 @@ def test_netepu_stages_with_tiny_models(tmp_path):
     from nsd.core.atomic import atomic_save_torch
     from nsd.io.embeddings import read_embeddings
     from nsd.synth import tiny_config, write_scene
+    from tests.netepu.texture.test_texture import K_BIPED, R_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE
     from tests.netepu_world import TINY_MODEL
-    from tests.test_netepu_texture import K_BIPED, R_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE
 
     torch.manual_seed(0)
     geo = build_geometry_model(TINY_MODEL, K_BIPED, R_BIPED)
@@ -396,7 +396,7 @@ def test_presence_is_one_until_its_start_step(tiny_scene):
     """prior_presence.from_step: the detector's presence is 1 before it, learned after it."""
     from nsd.training.data import SceneData
     from nsd.training.task import NSDTask
-    from tests.test_nsd_train import tiny_cfg
+    from tests.nsd.training.test_train import tiny_cfg
 
     cfg = tiny_cfg(
         "model.detector.presence=true",

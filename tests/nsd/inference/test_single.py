@@ -6,7 +6,7 @@ import torch
 
 from nsd.inference.single import decompose
 from nsd.model.build import build_model
-from tests.test_nsd_train import tiny_cfg
+from tests.nsd.training.test_train import tiny_cfg
 
 
 def _model(presence_bias: float):

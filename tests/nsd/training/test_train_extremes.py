@@ -21,7 +21,7 @@ from torch import nn
 from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
 from nsd.training.data import SceneData
 from nsd.training.task import NSDTask
-from tests.test_nsd_train import tiny_cfg
+from tests.nsd.training.test_train import tiny_cfg
 
 PRIORS = (
     "prior_position",

@@ -31,7 +31,7 @@ from nsd.model.focal_st import crop, focal_bump_at, inverse_theta, paste
 from nsd.synth.nnopcs import canonical_points, nnopcs_bounds, nnopcs_of
 from nsd.synth.skeleton import BIPED
 from tests.base import DTYPES, BaseTester
-from tests.test_compositor import reference_composite
+from tests.nsd.model.test_compositor import reference_composite
 
 PROPERTY = settings(max_examples=60, deadline=None, derandomize=True)
 
@@ -411,8 +411,8 @@ class TestNNOPCSExtremes(BaseTester):
 
 # ---------------------------------------------------------------------------- renderer
 def _renderer_case(name: str, dtype):
+    from tests.netepu.geometry.test_renderer import _kps, _tiny_model
     from tests.netepu_world import ring
-    from tests.test_netepu_renderer import _kps, _tiny_model
 
     model = _tiny_model(dtype=dtype)
     cam_obj = ring(n=1)[0]

@@ -148,8 +148,8 @@ def test_embedding_file_round_trip_with_texture_columns(tmp_path):
 
 def _texture_checkpoint(path, use_nnopcs: bool, reid_colour: bool = False):
     from nsd.core.atomic import atomic_save_torch
+    from tests.netepu.texture.test_texture import K_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE, _models
     from tests.netepu_world import TINY_MODEL
-    from tests.test_netepu_texture import K_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE, _models
 
     tex, geo = _models(use_nnopcs=use_nnopcs, reid_colour=reid_colour)
     g = torch.Generator().manual_seed(1)  # a whitening the embeddings must carry
@@ -176,7 +176,7 @@ def _fake_export(folder):
     from nsd.io.crops import CropWriter
     from nsd.io.embeddings import EmbeddingWriter
     from nsd.ops.boxes import mask_boxes_xyxy
-    from tests.test_netepu_texture import TINY_GEOMETRY_DATA, _tiny_data
+    from tests.netepu.texture.test_texture import TINY_GEOMETRY_DATA, _tiny_data
 
     data = _tiny_data()
     h = data.heldout
@@ -334,7 +334,7 @@ def test_within_class_whitening_rejects_bad_input():
 
 
 def test_reid_embedding_is_the_code_until_a_whitening_is_set_and_old_checkpoints_load():
-    from tests.test_netepu_texture import _models
+    from tests.netepu.texture.test_texture import _models
 
     tex, _ = _models()
     mu = torch.randn(5, tex.cfg.latent)
@@ -399,7 +399,7 @@ def test_select_shrinkage_finds_the_weak_identity_direction_and_breaks_ties_upwa
 
 def test_reid_colour_reads_the_crop_and_keeps_old_checkpoints():
     from netepu.texture.embedding import colour_statistics
-    from tests.test_netepu_texture import _models
+    from tests.netepu.texture.test_texture import _models
 
     tex, _ = _models(reid_colour=True)
     d = tex.cfg.latent

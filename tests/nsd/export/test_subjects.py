@@ -25,7 +25,7 @@ from nsd.io.crops import read_crop_index, read_crops
 from nsd.io.embeddings import read_embeddings
 from nsd.io.mot import read_mot
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 NO_VIEWS = {"views.tensorboard": False, "views.tsne": False, "progress": False}
 
 
@@ -34,7 +34,7 @@ def trained(tmp_path_factory) -> tuple[Path, Path]:
     """(checkpoint.pt, scene) of a tiny decomposition trained for a few steps."""
     from nsd.synth import tiny_config, write_scene
     from nsd.training.train import train
-    from tests.test_nsd_train import tiny_cfg
+    from tests.nsd.training.test_train import tiny_cfg
 
     root = tmp_path_factory.mktemp("export")
     scene = write_scene(tiny_config(), root / "scene")

@@ -30,7 +30,7 @@ from nsd.synth import (
 )
 from nsd.synth.scene import default_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 # pycocotools 2.0 + numpy 2: a harmless deprecation warning per decoded mask
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation:DeprecationWarning")
 

@@ -8,7 +8,7 @@ import torch
 
 from nsd.model.build import build_model
 from nsd.priors.presence import marginal_presence_target, presence_target_loss, window_area
-from tests.test_nsd_train import tiny_cfg
+from tests.nsd.training.test_train import tiny_cfg
 
 H = W = 16
 

@@ -12,7 +12,7 @@ from netepu.pipeline.run import run_pipeline
 from nsd.core.errors import ConfigError
 from nsd.cues.triangulation import nearest_point_to_rays
 from tests.conftest import FIXTURES
-from tests.test_run import _cfg
+from tests.netepu.pipeline.test_run import _cfg
 
 
 def test_nearest_point_to_rays_known_point_and_least_squares():

@@ -43,7 +43,7 @@ def test_joblib_launcher_is_a_core_dependency():
 @pytest.mark.slow
 def test_joblib_sweep_over_a_prior_weight(tmp_path):
     """``nsd-train -m prior_position.weight=0,0.1 hydra/launcher=joblib``: both jobs train."""
-    from tests.test_nsd_train import TINY
+    from tests.nsd.training.test_train import TINY
 
     scene = tmp_path / "tiny_scene"
     shutil.copytree(FIXTURES / "tiny_scene", scene)
