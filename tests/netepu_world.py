@@ -195,9 +195,9 @@ def trained_toy(steps: int = 300):
     model = build_geometry_model(TINY_MODEL, K_TOY, RADIUS)
     task = GeometryTask(model, data, GeometryStageConfig(
         batch_size=4, near=150, far=150, foreground=100, lr=3e-3, keypoint_noise=0.0,
-        eval_views=6), GeometryLossWeights(), MapSettings())
+        eval_views=6), GeometryLossWeights.defaults(), MapSettings.defaults())
     out = Path(tempfile.mkdtemp(prefix="netepu-toy-"))
-    trainer = Trainer(task, TrainerConfig(max_steps=steps, progress=False, log_every=50,
+    trainer = Trainer(task, TrainerConfig.defaults(max_steps=steps, progress=False, log_every=50,
                                           checkpoint_every=0, grad_clip=1.0), out)
     trainer.fit()
     model.eval()

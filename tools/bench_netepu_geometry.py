@@ -88,7 +88,7 @@ def accuracy(
             else [("coarse_to_fine", False), ("culled", False), ("coarse_to_fine", True)]
         )
         for mode, subset in passes:
-            settings = MapSettings(**{**config["netepu"]["render"], "mode": mode})
+            settings = MapSettings.from_config({**config["netepu"]["render"], "mode": mode})
             for set_name in ("heldout_poses", "heldout_cameras", "train"):
                 views = data.evaluation[set_name]
                 if subset:
@@ -180,7 +180,7 @@ def cost(models: dict[str, torch.nn.Module], data, quick: bool, light: bool = Fa
             nq = 256 if light else 4096
             q = _query_flops(model, kps[:1], {k: c[:1] for k, c in cams.items()}, size, nq)
             for mode in ["dense"] if is_ref else ["dense", "culled", "coarse_to_fine"]:
-                settings = MapSettings(mode=mode, margin=0.35)
+                settings = MapSettings.defaults(mode=mode, margin=0.35)
                 per_view = []
                 for v in range(kps.shape[0]):
                     cam = {k: c[v : v + 1] for k, c in cams.items()}
@@ -237,7 +237,8 @@ def train_step_child(model_name: str, batch: int, steps: int, species: str) -> d
     stage = GeometryStageConfig.from_mapping(
         {**net["optim"], "batch_size": batch}, net["points"], net["eval"]
     )
-    task = GeometryTask(model, data, stage, GeometryLossWeights(**net["loss"]), MapSettings())
+    weights = GeometryLossWeights.from_config(net["loss"])
+    task = GeometryTask(model, data, stage, weights, MapSettings.defaults())
     rng = np.random.default_rng(0)
 
     def step():  # what nsd.core.trainer.Trainer does per step

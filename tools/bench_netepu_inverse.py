@@ -47,7 +47,8 @@ VIEW_SETS = {
 @torch.no_grad()
 def _render_silhouettes(model, z, centre, camera, size) -> torch.Tensor:
     code = model.decode(z[None], centre[None])
-    return render_maps(model.query, model.prepare(code, camera), size, MapSettings()).silhouette
+    ctx = model.prepare(code, camera)
+    return render_maps(model.query, ctx, size, MapSettings.defaults()).silhouette
 
 
 def main() -> None:

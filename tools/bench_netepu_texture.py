@@ -346,7 +346,7 @@ def _speed_fns(texture, geometry, image, mask, kps, cam, size: int) -> dict:
         with torch.no_grad():
             code = geometry.encode(kps)
             ctx = geometry.prepare(code, cam, keypoints=kps)
-            maps = render_maps(geometry.query, ctx, (size, size), MapSettings())
+            maps = render_maps(geometry.query, ctx, (size, size), MapSettings.defaults())
             surface = maps.nnopcs
             if texture.cfg.use_normals:  # world normals of the depth map, in the silhouettes' box
                 sil = maps.silhouette

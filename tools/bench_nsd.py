@@ -318,7 +318,11 @@ def ablations_inference(out_root: Path) -> None:
         res = {}
         for views in ("multiview", "single"):
             m = evaluate_checkpoint(
-                folder / "checkpoint.pt", None, "val", 30, inference=InferenceSettings(views=views)
+                folder / "checkpoint.pt",
+                None,
+                "val",
+                30,
+                inference=InferenceSettings.defaults(views=views),
             )
             res[views] = {k: float(v) for k, v in m.items()}
         tmp = folder / "inference.json.tmp"
@@ -351,7 +355,7 @@ def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> No
     bgs = torch.cat([data.views(int(t))[1] for t in frames])
     rows, seconds = [], {}
     for views_mode in ("single", "multiview"):
-        st = InferenceSettings(views=views_mode)
+        st = InferenceSettings.defaults(views=views_mode)
         grid = st.grid(data.rig, data.image_size) if st.multiview else None
         sec = median_time(
             lambda st=st, grid=grid: decompose_views(trained.model, views, bgs, V, st, grid),
@@ -366,7 +370,8 @@ def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> No
                 "camera-frames per second": round(instants * V / sec, 1),
             }
         )
-    grid_s = median_time(lambda: InferenceSettings().grid(data.rig, data.image_size), repeats)
+    settings = InferenceSettings.defaults()
+    grid_s = median_time(lambda: settings.grid(data.rig, data.image_size), repeats)
     write_report(
         "nsd_inference",
         "NSD inference speed: single-image and multi-view",

@@ -309,7 +309,7 @@ def netepu_speed_child(name: str, steps: int) -> dict:
     t_step = median_time(step, repeats=steps, warmup=2)
     model = task.model.eval()
     views = task.data.evaluation["heldout_poses"]
-    settings = MapSettings(**OmegaConf.to_container(cfg.netepu.render, resolve=True))
+    settings = MapSettings.from_config(OmegaConf.to_container(cfg.netepu.render, resolve=True))
     j = iter(range(10**9))
 
     @torch.no_grad()

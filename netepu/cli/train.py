@@ -48,8 +48,8 @@ def build_geometry_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
     model = build_geometry_model(net["model"], data.config.n_keypoints, data.config.radius)
     stage = GeometryStageConfig.from_mapping(net["optim"], net["points"], net["eval"])
     try:
-        weights = GeometryLossWeights(**net["loss"])
-        render = MapSettings(**net["render"])
+        weights = GeometryLossWeights.from_config(net["loss"])
+        render = MapSettings.from_config(net["render"])
         render.validate()
     except (TypeError, ValueError) as e:
         raise ConfigError(f"netepu.loss / netepu.render: {e}") from e
@@ -74,7 +74,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
     if cfg.stage not in STAGES:
         raise ConfigError(f"stage must be one of {sorted(STAGES)}, got {cfg.stage!r}")
-    tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
+    tcfg = TrainerConfig.from_config(OmegaConf.to_container(cfg.trainer, resolve=True))
     seed_everything(tcfg.seed)  # model initialisation is part of the seeded run
     task, found = STAGES[cfg.stage](cfg)
     if cfg.get("init_from"):

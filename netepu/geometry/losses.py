@@ -21,9 +21,12 @@ With ``S`` silhouette points, ``P`` in-mask points per view and ``B`` views:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch.nn.functional as F
 from torch import Tensor
+
+from nsd.core.config import ConfigSection
 
 __all__ = [
     "GeometryLossWeights",
@@ -37,14 +40,17 @@ __all__ = [
 
 
 @dataclass
-class GeometryLossWeights:
+class GeometryLossWeights(ConfigSection):
     """Loss weights (NePu / NeTePu defaults; every field is a config value)."""
 
-    silhouette: float = 3.0
-    keypoints: float = 2.0
-    depth: float = 1.0
-    nnopcs: float = 1.0
-    latent: float = 1.0 / 16.0
+    APP: ClassVar[str] = "netepu_train"  # defaults: conf/netepu_train.yaml, section `netepu.loss`
+    KEY: ClassVar[str] = "netepu.loss"
+
+    silhouette: float
+    keypoints: float
+    depth: float
+    nnopcs: float
+    latent: float
 
 
 def silhouette_loss(logit: Tensor, label: Tensor) -> Tensor:

@@ -29,6 +29,7 @@ background (logit ``BACKGROUND_LOGIT``, zero depth and NNOPCS).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -37,6 +38,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from netepu.geometry.renderer import RenderContext
+from nsd.core.config import ConfigSection
 
 __all__ = ["BACKGROUND_LOGIT", "MapSettings", "RenderedMaps", "candidate_region", "render_maps"]
 
@@ -45,7 +47,7 @@ _HULL_DIRECTIONS = 16  # directions of the disc used to dilate the keypoint hull
 
 
 @dataclass
-class MapSettings:
+class MapSettings(ConfigSection):
     """How :func:`render_maps` chooses the pixels it evaluates (every field is a config value).
 
     Attributes:
@@ -58,13 +60,16 @@ class MapSettings:
         chunk: maximum query pixels per network call and image.
     """
 
-    mode: str = "coarse_to_fine"
-    margin: float = 0.35
-    levels: int = 2
-    logit_band: float = 2.0
-    nnopcs_step: float = 0.04
-    depth_step: float = 0.05
-    chunk: int = 32768
+    APP: ClassVar[str] = "netepu_train"  # defaults: conf/netepu_train.yaml, section `netepu.render`
+    KEY: ClassVar[str] = "netepu.render"
+
+    mode: str
+    margin: float
+    levels: int
+    logit_band: float
+    nnopcs_step: float
+    depth_step: float
+    chunk: int
 
     MODES = ("dense", "culled", "coarse_to_fine")
 
@@ -189,7 +194,7 @@ def render_maps(
     Returns:
         :class:`RenderedMaps`.
     """
-    s = settings or MapSettings()
+    s = settings or MapSettings.defaults()
     s.validate()
     w, h = size
     frame = ctx.frame

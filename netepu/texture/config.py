@@ -3,11 +3,11 @@ r"""The texture model's settings (:class:`TextureConfig`), read from ``conf/nete
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 from netepu.texture.embedding import COLOUR_STATISTICS
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 
 __all__ = ["TextureConfig"]
@@ -15,32 +15,29 @@ __all__ = ["TextureConfig"]
 
 # ----------------------------------------------------------------------------- config
 @dataclass
-class TextureConfig:
+class TextureConfig(ConfigSection):
     """The ``netepu.texture.model`` config (every field commented in the YAML file)."""
 
-    latent: int = 128
-    features: int = 64
-    use_nnopcs: bool = True
-    use_normals: bool = False
-    local_features: bool = True
-    crop_size: int = 64
-    crop_margin: float = 0.1
-    widths: list[int] = field(default_factory=lambda: [16, 32, 64, 128])
-    blocks_per_stage: int = 2
-    dense_hidden: int = 256
-    decoder_hidden: int = 256
-    renderer: dict[str, Any] = field(default_factory=dict)
-    reid_colour: bool = False
+    APP: ClassVar[str] = "netepu_train"  # defaults: conf/netepu_train.yaml (netepu/texture)
+    KEY: ClassVar[str] = "netepu.texture.model"
 
-    @classmethod
-    def from_mapping(cls, cfg: Mapping[str, Any]) -> TextureConfig:
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(cfg) - names)
-        if unknown:
-            raise ConfigError(
-                f"netepu.texture.model: unknown keys {unknown}; known {sorted(names)}"
-            )
-        c = cls(**dict(cfg))
+    latent: int
+    features: int
+    use_nnopcs: bool
+    use_normals: bool
+    local_features: bool
+    crop_size: int
+    crop_margin: float
+    widths: list[int]
+    blocks_per_stage: int
+    dense_hidden: int
+    decoder_hidden: int
+    renderer: dict[str, Any]
+    reid_colour: bool
+
+    def validate(self) -> None:
+        """Ranges and combinations (:meth:`from_config` and :meth:`defaults` call it)."""
+        c = self
         if c.crop_size < 16 or c.latent < 1 or c.features < 1 or c.crop_margin < 0:
             raise ConfigError(
                 "netepu.texture.model: crop_size >= 16, latent and features >= 1, crop_margin >= 0"
@@ -51,7 +48,6 @@ class TextureConfig:
                 "geometry model's depth, rendered with the NNOPCS map (an RGB-only model: "
                 "use_nnopcs=false use_normals=false)"
             )
-        return c
 
     @property
     def reid_dims(self) -> int:

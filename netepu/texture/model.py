@@ -184,7 +184,7 @@ def build_texture_model(
 ) -> TextureModel:
     """Texture model for a geometry model (sizes taken from it)."""
     if not isinstance(cfg, TextureConfig):
-        cfg = TextureConfig.from_mapping(cfg)
+        cfg = TextureConfig.from_config(cfg)
     return TextureModel(
         cfg,
         geometry.n_keypoints,
@@ -192,6 +192,11 @@ def build_texture_model(
         geometry.renderer.down.in_features,
         geometry.radius,
     )
+
+
+# Keys that texture checkpoints written before the key existed lack, with the behaviour those
+# models were trained with (not defaults: a new model takes conf/netepu/texture/default.yaml).
+LEGACY_TEXTURE_KEYS = {"use_normals": False, "reid_colour": False}
 
 
 def load_texture_model(
@@ -210,7 +215,9 @@ def load_texture_model(
             net["model"], int(net["data"]["n_keypoints"]), float(net["data"]["radius"])
         )
         geometry.load_state_dict(state["modules"]["geometry"])
-        texture = build_texture_model(net["texture"]["model"], geometry)
+        texture = build_texture_model(
+            {**LEGACY_TEXTURE_KEYS, **net["texture"]["model"]}, geometry
+        )
         texture.load_state_dict(state["modules"]["texture"])
     except (KeyError, RuntimeError, TypeError) as e:
         raise CheckpointError(f"{path} is not a NeTePu texture checkpoint: {e}") from e

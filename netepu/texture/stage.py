@@ -49,10 +49,9 @@ from __future__ import annotations
 
 import hashlib
 import logging
-from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -71,6 +70,7 @@ from netepu.texture.evaluation import (
 from netepu.texture.losses import code_contrast_loss, reparameterise, texture_loss
 from netepu.texture.model import TextureModel, build_texture_model
 from nsd.core.atomic import atomic_save_npz, atomic_save_torch
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.reid import reid_metrics
@@ -85,35 +85,32 @@ BATCH_SAMPLINGS = ("random", "textures")
 
 
 @dataclass
-class TextureStageConfig:
+class TextureStageConfig(ConfigSection):
     """``netepu.texture.optim`` (every field commented in the YAML file)."""
 
-    batch_size: int = 16
-    points: int = 500
-    lr: float = 1e-3
-    weight_decay: float = 0.0
-    lr_decay: float = 0.2
-    lr_decay_every: int = 0
-    colour_weight: float = 5.0
-    kld_weight: float = 1e-8
-    occlusion: float = 0.25
-    cross_view: float = 0.0
-    contrast_weight: float = 0.0
-    contrast_temperature: float = 0.1
-    batch_sampling: str = "random"
-    eval_views: int = 8
-    reid_whitening_samples: int = 0
-    reid_shrinkage: float | str = 0.01
+    APP: ClassVar[str] = "netepu_train"  # defaults: conf/netepu_train.yaml (netepu/texture)
+    KEY: ClassVar[str] = "netepu.texture.optim"
 
-    @classmethod
-    def from_mapping(cls, cfg: Mapping[str, Any]) -> TextureStageConfig:
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(cfg) - names)
-        if unknown:
-            raise ConfigError(
-                f"netepu.texture.optim: unknown keys {unknown}; known {sorted(names)}"
-            )
-        c = cls(**dict(cfg))
+    batch_size: int
+    points: int
+    lr: float
+    weight_decay: float
+    lr_decay: float
+    lr_decay_every: int
+    colour_weight: float
+    kld_weight: float
+    occlusion: float
+    cross_view: float
+    contrast_weight: float
+    contrast_temperature: float
+    batch_sampling: str
+    eval_views: int
+    reid_whitening_samples: int
+    reid_shrinkage: float | str
+
+    def validate(self) -> None:
+        """Ranges and combinations (:meth:`from_config` and :meth:`defaults` call it)."""
+        c = self
         if c.batch_size < 1 or c.points < 1 or not 0 <= c.occlusion <= 1:
             raise ConfigError("netepu.texture.optim: batch_size, points >= 1; occlusion in [0, 1]")
         if c.contrast_weight < 0 or c.contrast_temperature <= 0:
@@ -134,7 +131,6 @@ class TextureStageConfig:
                 f"netepu.texture.optim.batch_sampling must be one of {BATCH_SAMPLINGS}, "
                 f"got {c.batch_sampling!r}"
             )
-        return c
 
 
 def occlude(inside: Tensor, rng: np.random.Generator, prob: float) -> Tensor:
@@ -461,7 +457,7 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
         )
         atomic_save_npz(nn_path, train=nn_train, heldout=nn_held)
     task = TextureTask(
-        texture, geometry, data, TextureStageConfig.from_mapping(optim), nn_train, nn_held
+        texture, geometry, data, TextureStageConfig.from_config(optim), nn_train, nn_held
     )
     # the run's netepu.model / netepu.data become the geometry checkpoint's (netepu.cli.train.run)
     found = {"model": geo_config["netepu"]["model"], **geo_data}
@@ -483,7 +479,7 @@ def add_reid_whitening(
     cfg.netepu.texture.optim.reid_shrinkage = shrinkage
     if colour is not None:
         cfg.netepu.texture.model.reid_colour = bool(colour)
-    TextureStageConfig.from_mapping(cfg.netepu.texture.optim)  # checked before any work
+    TextureStageConfig.from_config(cfg.netepu.texture.optim)  # checked before any work
     task, _ = build_texture_stage(cfg)
     weights = {k: v for k, v in state["modules"]["texture"].items() if not k.startswith("reid_")}
     task.texture.load_state_dict(weights)  # the whitening is refitted: its old buffers go

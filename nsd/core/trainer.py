@@ -31,9 +31,9 @@ import os
 import random
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import cv2
 import numpy as np
@@ -44,6 +44,7 @@ from tqdm import tqdm
 
 from nsd.core import distributed
 from nsd.core.atomic import atomic_save_torch
+from nsd.core.config import ConfigSection
 from nsd.core.errors import CheckpointError, ConfigError
 
 __all__ = [
@@ -96,22 +97,25 @@ class TrainTask(Protocol):
 
 
 @dataclass
-class TrainerConfig:
+class TrainerConfig(ConfigSection):
     """Settings of the training loop (every field is a Hydra config value)."""
 
-    max_steps: int = 1000  # stop after this many steps (<= 0: no step limit)
-    max_minutes: float = 0.0  # stop after this much training time (<= 0: no limit)
-    eval_at_minutes: list[float] = field(default_factory=list)  # extra evals at these times
-    log_every: int = 10  # steps between scalar logs
-    eval_every: int = 0  # steps between evaluations (0: only at the end)
-    grid_every: int = 0  # steps between image grids (0: only at the end)
-    checkpoint_every: int = 500  # steps between checkpoints (0: only at the end)
-    grad_clip: float = 0.0  # max gradient norm per optimiser (0: no clipping)
-    seed: int = 0
-    resume: bool = True  # continue from <out_dir>/checkpoint.pt when it exists
-    progress: bool = True  # tqdm progress bar
-    detect_anomaly: bool = False  # torch.autograd anomaly detection (slow)
-    stop_on_nonfinite: bool = True  # raise with a clear message on a NaN/Inf loss or gradient
+    APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `trainer`
+    KEY: ClassVar[str] = "trainer"
+
+    max_steps: int  # stop after this many steps (<= 0: no step limit)
+    max_minutes: float  # stop after this much training time (<= 0: no limit)
+    eval_at_minutes: list[float]  # extra evals at these times
+    log_every: int  # steps between scalar logs
+    eval_every: int  # steps between evaluations (0: only at the end)
+    grid_every: int  # steps between image grids (0: only at the end)
+    checkpoint_every: int  # steps between checkpoints (0: only at the end)
+    grad_clip: float  # max gradient norm per optimiser (0: no clipping)
+    seed: int
+    resume: bool  # continue from <out_dir>/checkpoint.pt when it exists
+    progress: bool  # tqdm progress bar
+    detect_anomaly: bool  # torch.autograd anomaly detection (slow)
+    stop_on_nonfinite: bool  # raise with a clear message on a NaN/Inf loss or gradient
 
     def validate(self) -> None:
         if self.max_steps <= 0 and self.max_minutes <= 0:

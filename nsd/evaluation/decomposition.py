@@ -213,7 +213,7 @@ def evaluate_model(
     ``inference``: :class:`nsd.inference.multiview.InferenceSettings` (None: the defaults,
     multi-view inference).
     """
-    settings = inference or InferenceSettings()
+    settings = inference or InferenceSettings.defaults()
     was = model.training
     model.eval()
     V = data.num_views

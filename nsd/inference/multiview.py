@@ -26,13 +26,16 @@ latent stay the learned model's. ``views="single"`` is NSD's own single-image in
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals, voxel_grid
@@ -48,7 +51,7 @@ DEPTHS = ("hull", "detector")
 
 
 @dataclass(frozen=True)
-class InferenceSettings:
+class InferenceSettings(ConfigSection):
     """How frames are decomposed at inference (the ``inference`` block of eval and export).
 
     Attributes:
@@ -63,14 +66,17 @@ class InferenceSettings:
             (:func:`nsd.inference.single.ownership`).
     """
 
-    views: str = "multiview"
-    window_blend: float = 0.75
-    depth: str = "hull"
-    slot_bonus: float = 1.0
-    resolution: int = 48
-    colour_sigma: float = 0.2
+    APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `inference`
+    KEY: ClassVar[str] = "inference"
 
-    def __post_init__(self) -> None:
+    views: str
+    window_blend: float
+    depth: str
+    slot_bonus: float
+    resolution: int
+    colour_sigma: float
+
+    def validate(self) -> None:
         def need(ok: bool, key: str, what: str) -> None:
             if not ok:
                 raise ConfigError(f"inference.{key} {what}, got {getattr(self, key)!r}")
@@ -83,15 +89,14 @@ class InferenceSettings:
         need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
 
     @classmethod
-    def from_config(cls, node: DictConfig | dict | None) -> InferenceSettings:
-        """Settings from a config block; unknown keys are an error naming them."""
-        if node is None:
-            return cls()
-        items = dict(node)
+    def from_config(cls, node: DictConfig | Mapping[str, Any] | None) -> InferenceSettings:
+        """Settings from an ``inference`` block: the shipped defaults with the block's values
+        (a block may give only some keys; None: the defaults). Unknown keys are an error."""
+        items = dict(node or {})
         unknown = sorted(set(items) - set(cls.__dataclass_fields__))
         if unknown:
             raise ConfigError(f"inference has no setting {unknown[0]!r}")
-        return cls(**items)
+        return cls.defaults(**items)
 
     @property
     def multiview(self) -> bool:

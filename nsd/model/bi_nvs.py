@@ -24,10 +24,12 @@ classical spatial transformer.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 from nsd.cues.triangulation import ray_distances, window_rays
 from nsd.model.association import (
@@ -55,28 +57,34 @@ __all__ = ["BiNVS", "BiNVSConfig", "Rendering", "Windows"]
 
 
 @dataclass
-class BiNVSConfig:
+class BiNVSConfig(ConfigSection):
     """How windows are cropped, associated and composited (every field a config value)."""
 
-    num_windows: int = 2  # N: subjects per frame (an upper bound when presence is on)
-    crop_size: int = 64  # h = w of the window crops
-    focal: bool = True  # focal spatial transformer (False: classical, for the ablation)
-    depth: bool = True  # erf-transmittance compositor (False: additive eq. 6, ablation)
-    mode: str = "bi_nvs"  # "bi_nvs" or "autoencoder" (each view from itself, ablation)
-    association: bool = True  # appearance association across views (eq. 4-5)
-    association_dims: int = 16  # leading appearance entries compared
-    association_beta: float = 10.0  # softmax sharpness
-    association_geometry: float = 0.0  # weight of the ray-distance term (0: appearance only, NSD)
-    association_unit: float = 0.3  # metres of ray distance per unit of cosine similarity
+    APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `model`
+    KEY: ClassVar[str] = "model"
+    SIBLINGS: ClassVar[frozenset[str]] = frozenset(
+        {"detector", "encoder", "decoder", "depth_from_step", "reinit_at_depth"}
+    )  # keys of the section read by other objects
+
+    num_windows: int  # N: subjects per frame (an upper bound when presence is on)
+    crop_size: int  # h = w of the window crops
+    focal: bool  # focal spatial transformer (False: classical, for the ablation)
+    depth: bool  # erf-transmittance compositor (False: additive eq. 6, ablation)
+    mode: str  # "bi_nvs" or "autoencoder" (each view from itself, ablation)
+    association: bool  # appearance association across views (eq. 4-5)
+    association_dims: int  # leading appearance entries compared
+    association_beta: float  # softmax sharpness
+    association_geometry: float  # weight of the ray-distance term (0: appearance only, NSD)
+    association_unit: float  # metres of ray distance per unit of cosine similarity
     # "max": divide each window's mask by its maximum (reference code); "visible": by the
     # maximum of its pooled, bump-weighted (pasted) mask (nsd/model/window_masks.py); "none"
-    mask_normalisation: str = "max"
-    mask_floor: float = 1e-4  # floor of that maximum
-    mask_pool: int = 3  # averaging window of "visible" (odd)
-    crop_padding: str = "zeros"  # grid_sample padding of crops reaching outside the frame
+    mask_normalisation: str
+    mask_floor: float  # floor of that maximum
+    mask_pool: int  # averaging window of "visible" (odd)
+    crop_padding: str  # grid_sample padding of crops reaching outside the frame
     # how presence acts on the pasted masks in training: "soft" scales them by it, "hard" keeps
     # only windows with presence >= 0.5 (a detached 0/1 gate), "none" leaves them ungated
-    presence_gate: str = "soft"
+    presence_gate: str
 
     def validate(self) -> None:
         if self.num_windows < 1:

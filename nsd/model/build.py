@@ -15,21 +15,13 @@ from nsd.model.encoder import Encoder
 __all__ = ["build_model"]
 
 
-_BINVS_KEYS = {f for f in BiNVSConfig.__dataclass_fields__}
-
-
 def build_model(model_cfg: Mapping[str, Any]) -> BiNVS:
     """BiNVS with its three networks from the ``model`` config group."""
     m = dict(model_cfg)
-    cfg = BiNVSConfig(**{k: v for k, v in m.items() if k in _BINVS_KEYS})
-    det = dict(m.get("detector", {}))
-    det["widths"] = tuple(det.get("widths", (16, 32, 64, 64)))
-    enc = dict(m.get("encoder", {}))
-    enc["widths"] = tuple(enc.get("widths", (32, 64, 96, 128)))
-    dec = dict(m.get("decoder", {}))
-    dec["widths"] = tuple(dec.get("widths", (128, 64, 32)))
+    cfg = BiNVSConfig.from_config(m)
+    det, enc, dec = _section(m, "detector"), _section(m, "encoder"), _section(m, "decoder")
     for name, widths, size in (
-        ("detector", det["widths"], det.get("input_size", 64)),
+        ("detector", det["widths"], det["input_size"]),
         ("encoder", enc["widths"], cfg.crop_size),
         ("decoder", dec["widths"], cfg.crop_size),
     ):
@@ -43,14 +35,25 @@ def build_model(model_cfg: Mapping[str, Any]) -> BiNVS:
         Detector(num_windows=cfg.num_windows, **det),
         Encoder(
             crop_size=cfg.crop_size,
-            app_dims=enc.pop("app_dims", 128),
-            points=enc.pop("points", 200),
+            app_dims=enc.pop("app_dims"),
+            points=enc.pop("points"),
             **enc,
         ),
         Decoder(
             crop_size=cfg.crop_size,
-            app_dims=model_cfg["encoder"].get("app_dims", 128),
-            points=model_cfg["encoder"].get("points", 200),
+            app_dims=model_cfg["encoder"]["app_dims"],
+            points=model_cfg["encoder"]["points"],
             **dec,
         ),
     )
+
+
+def _section(model_cfg: dict[str, Any], name: str) -> dict[str, Any]:
+    """A network's sub-section of the ``model`` config, its ``widths`` as a tuple."""
+    if name not in model_cfg:
+        raise ConfigError(f"model.{name}: missing (defaults: conf/model/nsd.yaml)")
+    sec = dict(model_cfg[name])
+    if "widths" not in sec:
+        raise ConfigError(f"model.{name}.widths: missing (defaults: conf/model/nsd.yaml)")
+    sec["widths"] = tuple(sec["widths"])
+    return sec

@@ -72,24 +72,30 @@ class NSDTask:
     def __init__(self, cfg: DictConfig, data: SceneData, gt: Any = None) -> None:
         self.cfg, self.data, self.gt = cfg, data, gt
         self.model = build_model(OmegaConf.to_container(cfg.model, resolve=True))
-        self.depth_from = int(cfg.model.get("depth_from_step", 0))
-        self.reinit = bool(cfg.model.get("reinit_at_depth", True))
+        self.depth_from = int(cfg.model.depth_from_step)
+        self.reinit = bool(cfg.model.reinit_at_depth)
         self.use_depth = bool(cfg.model.depth)
         self._make_optimizer()
         self.stage2_started = self.depth_from <= 0
         self.step = 0
-        self.presence_target = str(cfg.prior_presence.get("target", "none"))
-        self.presence_normalise = str(cfg.prior_presence.get("normalise", "mask"))
+        self.presence_target = str(cfg.prior_presence.target)
+        self.presence_normalise = str(cfg.prior_presence.normalise)
+        self.presence_cap = str(cfg.prior_presence.cap)
+        self.association_prior_score = str(cfg.prior_association.score)
+        self._check_prior_settings()
+        self._prepare_proposals(data)
+
+    def _check_prior_settings(self) -> None:
+        """The prior settings NSDTask reads, checked before any work (errors name the key)."""
         if self.presence_normalise not in ("mask", "box"):
             raise ConfigError(
                 f"prior_presence.normalise must be 'mask' or 'box', got {self.presence_normalise!r}"
             )
-        self.presence_cap = str(cfg.prior_presence.get("cap", "none"))
         if self.presence_cap not in ("none", "proposals"):
             raise ConfigError(
                 f"prior_presence.cap must be 'none' or 'proposals', got {self.presence_cap!r}"
             )
-        if self.presence_cap == "proposals" and cfg.prior_proposal.source != "multiview":
+        if self.presence_cap == "proposals" and self.cfg.prior_proposal.source != "multiview":
             raise ConfigError(
                 "prior_presence.cap=proposals needs prior_proposal.source=multiview (the "
                 "visual hull's individuals are the cap)"
@@ -99,17 +105,20 @@ class NSDTask:
                 "prior_presence.target must be 'none', 'marginal' or 'hull', got "
                 f"{self.presence_target!r}"
             )
-        if self.presence_target == "hull" and cfg.prior_proposal.source != "multiview":
+        if self.presence_target == "hull" and self.cfg.prior_proposal.source != "multiview":
             raise ConfigError(
                 "prior_presence.target=hull needs prior_proposal.source=multiview (the visual "
                 "hull's individuals say how many windows are on)"
             )
-        self.association_prior_score = str(cfg.prior_association.get("score", "full"))
         if self.association_prior_score not in ("appearance", "full"):
             raise ConfigError(
                 "prior_association.score must be 'appearance' or 'full', got "
                 f"{self.association_prior_score!r}"
             )
+
+    def _prepare_proposals(self, data: SceneData) -> None:
+        """The label-free proposals (and hull counts) that the configured priors need."""
+        cfg = self.cfg
         pp = cfg.prior_proposal
         if (
             pp.weight > 0
@@ -119,7 +128,7 @@ class NSDTask:
         ):
             args = (cfg.model.num_windows, cfg.loss.evidence_threshold, cfg.loss.evidence_softness)
             if pp.source == "multiview":
-                split = pp.get("split", "auto")
+                split = pp.split
                 if split not in ("auto", True, False):
                     raise ConfigError(
                         f"prior_proposal.split must be auto, true or false, got {split!r}"
@@ -140,8 +149,8 @@ class NSDTask:
     @staticmethod
     def _hull_counts(pp: DictConfig, data: SceneData) -> None:
         """The presence target's count per frame and view (``prior_presence.count_*``)."""
-        window = pp.get("count_window", 1)
-        population = pp.get("count_population", "frame")
+        window = pp.count_window
+        population = pp.count_population
         if population not in ("frame", "scene"):
             raise ConfigError(
                 f"prior_presence.count_population must be 'frame' or 'scene', got {population!r}"
@@ -192,8 +201,8 @@ class NSDTask:
         low presence also scales down the gradients that would improve them;
         docs/benchmarks/count.md), so the decomposition forms first.
         """
-        want = bool(self.cfg.model.detector.get("presence", False))
-        start = int(self.cfg.prior_presence.get("from_step", 0))
+        want = bool(self.cfg.model.detector.presence)
+        start = int(self.cfg.prior_presence.from_step)
         self.model.detector.use_presence = want and step >= start
 
     def _update_stage(self, step: int) -> None:
@@ -262,7 +271,7 @@ class NSDTask:
             "prior_scale": c.prior_scale.weight,
             "prior_aspect": c.prior_aspect.weight,
             "prior_presence": c.prior_presence.weight,
-            "presence_target": c.prior_presence.get("target_weight", 0.0),
+            "presence_target": c.prior_presence.target_weight,
             "presence_target_on": 0.0,  # logged only: windows on per view in the target
             "prior_proposal": self.proposal_weight(),
             "prior_depth": c.prior_depth.weight,
@@ -423,18 +432,18 @@ class NSDTask:
         self.step = step
         self._update_stage(step)
         self._update_presence(step)
-        same = float(self.cfg.data.get("same_view", 0.0))
+        same = float(self.cfg.data.same_view)
         return self.losses(self.data.sample(rng, self.cfg.batch_size, same_view=same))
 
     def evaluate(self, step: int) -> dict[str, float]:
         """Metrics with the configured inference; with ground truth and multi-view
         inference, also NSD's single-image inference (prefixed ``single_``)."""
-        settings = InferenceSettings.from_config(self.cfg.get("inference"))
+        settings = InferenceSettings.from_config(self.cfg.inference)
         runs = [("", settings)]
         if settings.multiview and self.gt is not None:
             runs.append(("single_", dataclasses.replace(settings, views="single")))
         sets = [("", _spread(self.data.val_frames, self.cfg.eval_frames))]
-        if self.cfg.get("eval_train_frames", 0) > 0:
+        if self.cfg.eval_train_frames > 0:
             sets.append(("train_", _spread(self.data.train_frames, self.cfg.eval_train_frames)))
         metrics = {}
         for where, frames in sets:

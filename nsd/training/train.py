@@ -27,7 +27,7 @@ def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     )
 
     gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
-    tcfg = TrainerConfig(**OmegaConf.to_container(cfg.trainer, resolve=True))
+    tcfg = TrainerConfig.from_config(OmegaConf.to_container(cfg.trainer, resolve=True))
     seed_everything(tcfg.seed)  # model initialisation is part of the seeded train
     if cfg.stage == "pose":
         task = PoseTask(cfg, data, gt)

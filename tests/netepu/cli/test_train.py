@@ -33,8 +33,8 @@ def test_configs_compose(model, data):
     net = OmegaConf.to_container(cfg.netepu, resolve=True)
     assert net["data"]["margin"] == net["render"]["margin"]
     assert cfg.trainer.grad_clip == 1.0 and cfg.stage == "geometry"
-    MapSettings(**net["render"]).validate()
-    GeometryLossWeights(**net["loss"])
+    MapSettings.from_config(net["render"]).validate()
+    GeometryLossWeights.from_config(net["loss"])
     GeometryStageConfig.from_mapping(net["optim"], net["points"], net["eval"])
     if model == "fast":
         m = build_geometry_model(net["model"], 25, net["data"]["radius"])
@@ -57,13 +57,13 @@ def test_bad_model_config():
 def test_trained_tiny_model_reproduces_training_silhouettes():
     model, data, _ = trained_toy()
     views = data.evaluation["train"]
-    maps = render_view_set(model, views, MapSettings())
+    maps = render_view_set(model, views, MapSettings.defaults())
     iou = silhouette_iou(maps.silhouette, views.mask)
     assert iou.min() > 0.75 and iou.mean() > 0.85, iou
     # an untrained model of the same size does not
     torch.manual_seed(0)
     fresh = build_geometry_model(TINY_MODEL, K_TOY, RADIUS).eval()
-    assert silhouette_iou(render_view_set(fresh, views, MapSettings()).silhouette,
+    assert silhouette_iou(render_view_set(fresh, views, MapSettings.defaults()).silhouette,
                           views.mask).mean() < 0.6
 
 
@@ -73,13 +73,13 @@ def _task(seed=0, lr=5e-4):
     model = build_geometry_model(TINY_MODEL, K_TOY, RADIUS)
     return GeometryTask(model, data, GeometryStageConfig(batch_size=2, near=40, far=40,
                                                          foreground=30, eval_views=2, lr=lr),
-                        GeometryLossWeights(), MapSettings())
+                        GeometryLossWeights.defaults(), MapSettings.defaults())
 
 
 def test_exact_resume(tmp_path):
     def cfg(steps):
-        return TrainerConfig(max_steps=steps, progress=False, checkpoint_every=0, grad_clip=1.0,
-                             log_every=0)
+        return TrainerConfig.defaults(max_steps=steps, progress=False, checkpoint_every=0,
+                                      grad_clip=1.0, log_every=0)
 
     Trainer(_task(), cfg(6), tmp_path / "straight").fit()
     a = Trainer(_task(), cfg(3), tmp_path / "resumed")
@@ -141,7 +141,7 @@ def test_render_losses_reach_the_encoder_only_when_asked(reach):
     from netepu.geometry.data import sample_batch
 
     batch = sample_batch(task.data, np.random.default_rng(0), 2, 40, 40, 30)
-    task.weights = GeometryLossWeights(keypoints=0.0, latent=0.0)  # render terms only
+    task.weights = GeometryLossWeights.defaults(keypoints=0.0, latent=0.0)  # render terms only
     task.losses(batch, np.random.default_rng(1))["loss"].backward()
     enc = [p.grad for p in task.model.encoder.parameters()]
     pos = [p.grad for p in task.model.decoder.mlp_pos.parameters()]

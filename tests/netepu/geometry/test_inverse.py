@@ -54,7 +54,7 @@ def test_recovers_known_pose_from_own_renders():
     with torch.no_grad():
         code = model.encode(truth[None])
         own = render_maps(model.query, model.prepare(code, cam), views.size,
-                          MapSettings()).silhouette
+                          MapSettings.defaults()).silhouette
     template = torch.from_numpy(toy_pose(np.random.default_rng(7))).float()[None]
     start_error = mpjpe(template[0] - template[0].mean(0) + truth.mean(0), truth)
     res = invert_silhouettes(model, own, cam, template,
@@ -64,7 +64,7 @@ def test_recovers_known_pose_from_own_renders():
     with torch.no_grad():
         again = render_maps(model.query, model.prepare(model.decode(res.z[None],
                                                                     res.centre[None]), cam),
-                            views.size, MapSettings()).silhouette
+                            views.size, MapSettings.defaults()).silhouette
     assert silhouette_iou(again, own).min() > 0.85
     assert all(p.requires_grad for p in model.parameters())  # model left as found
 
@@ -100,7 +100,7 @@ def test_recovery_does_not_depend_on_the_scale_of_codes():
     cam = {k: v[sel] for k, v in views.camera.items()}
     with torch.no_grad():
         own = render_maps(model.query, model.prepare(model.encode(truth[None]), cam),
-                          views.size, MapSettings()).silhouette
+                          views.size, MapSettings.defaults()).silhouette
     template = torch.from_numpy(toy_pose(np.random.default_rng(7))).float()[None]
     settings = InverseSettings(steps=80, points_per_view=256, headings=4, latent_weight=0.0)
     plain = invert_silhouettes(model, own, cam, template, settings)

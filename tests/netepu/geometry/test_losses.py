@@ -35,7 +35,7 @@ class TestLosses(BaseTester):
         self.assert_close(latent_loss(torch.tensor([[3.0, 4.0], [0.0, 0.0]])), torch.tensor(2.5))
 
     def test_weights_are_the_papers(self):
-        w = GeometryLossWeights()
+        w = GeometryLossWeights.defaults()
         assert (w.silhouette, w.keypoints, w.depth, w.nnopcs, w.latent) == (3, 2, 1, 1, 1 / 16)
         terms = {k: torch.tensor(1.0) for k in ("silhouette", "keypoints", "depth", "nnopcs",
                                                 "latent")}

@@ -61,7 +61,7 @@ class TestCandidateRegion(BaseTester):
 class TestRenderMaps(BaseTester):
     def test_dense_known_values(self):
         q, _ = disc_query()
-        maps = render_maps(q, _context([(40.0, 30.0)]), (W, H), MapSettings(mode="dense"))
+        maps = render_maps(q, _context([(40.0, 30.0)]), (W, H), MapSettings.defaults(mode="dense"))
         yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
         inside = ((xx - 40.0) ** 2 + (yy - 30.0) ** 2).sqrt() < 14.0
         assert torch.equal(maps.silhouette[0], inside)
@@ -75,8 +75,8 @@ class TestRenderMaps(BaseTester):
     def test_coarse_to_fine_matches_dense(self, levels):
         q, calls = disc_query()
         ctx = _context([(40.0, 30.0), (61.3, 40.7)])
-        dense = render_maps(q, ctx, (W, H), MapSettings(mode="dense"))
-        c2f = render_maps(q, ctx, (W, H), MapSettings(mode="coarse_to_fine", margin=1.0,
+        dense = render_maps(q, ctx, (W, H), MapSettings.defaults(mode="dense"))
+        c2f = render_maps(q, ctx, (W, H), MapSettings.defaults(mode="coarse_to_fine", margin=1.0,
                                                       levels=levels))
         assert torch.equal(c2f.silhouette, dense.silhouette)
         fg = dense.silhouette
@@ -85,13 +85,14 @@ class TestRenderMaps(BaseTester):
         self.assert_close(c2f.depth[fg], dense.depth[fg])
         assert (c2f.evaluated < 0.5 * dense.evaluated).all()
         calls.clear()
-        render_maps(q, ctx, (W, H), MapSettings(mode="coarse_to_fine", margin=1.0, levels=levels))
+        s = MapSettings.defaults(mode="coarse_to_fine", margin=1.0, levels=levels)
+        render_maps(q, ctx, (W, H), s)
         assert sum(calls) >= int(c2f.evaluated.sum())  # padded batches hold every evaluation
 
     def test_culled_only_evaluates_region(self):
         q, _ = disc_query()
         ctx = _context([(40.0, 30.0)])
-        maps = render_maps(q, ctx, (W, H), MapSettings(mode="culled", margin=1.0))
+        maps = render_maps(q, ctx, (W, H), MapSettings.defaults(mode="culled", margin=1.0))
         region = candidate_region(np.array([[40.0, 30.0]]), 20.0, 1.0, (W, H))
         assert int(maps.evaluated[0]) == int(region.sum())
         assert (maps.logit[0][~torch.from_numpy(region)] == BACKGROUND_LOGIT).all()
@@ -99,12 +100,12 @@ class TestRenderMaps(BaseTester):
     def test_small_margin_cuts_the_silhouette(self):
         q, _ = disc_query()
         maps = render_maps(q, _context([(40.0, 30.0)]), (W, H),
-                           MapSettings(mode="culled", margin=0.3))  # 6 px < 14 px disc
+                           MapSettings.defaults(mode="culled", margin=0.3))  # 6 px < 14 px disc
         assert maps.silhouette.sum() < math.pi * 7**2
 
     def test_bad_settings(self):
         with pytest.raises(ValueError, match="mode"):
-            MapSettings(mode="fast").validate()
+            MapSettings.defaults(mode="fast").validate()
 
 
 @pytest.mark.parametrize("stride", [1, 2, 4, 8])

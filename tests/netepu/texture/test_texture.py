@@ -19,12 +19,15 @@ from netepu.texture.model import build_texture_model
 from tests.netepu_world import TINY_MODEL
 
 K_BIPED, R_BIPED = 17, 0.9
-TINY_TEXTURE = {
+TINY_TEXTURE_SIZES = {
     "latent": 8, "features": 8, "crop_size": 16, "widths": [8, 16], "blocks_per_stage": 1,
     "dense_hidden": 32, "decoder_hidden": 32,
     "renderer": {"width": 16, "n_blocks_2d": 1, "k_2d": 4, "k": 6, "n_freq": 3, "hidden": 8,
                  "groups": 4, "head_hidden": 16, "head_blocks": 1},
 }  # fmt: skip
+# a whole netepu.texture.model section: the sizes above, NeTePu's encoder inputs otherwise
+TINY_TEXTURE = {**TINY_TEXTURE_SIZES, "use_nnopcs": True, "use_normals": False,
+                "local_features": True, "crop_margin": 0.1, "reid_colour": False}  # fmt: skip
 TINY_GEOMETRY_DATA = {
     "species": "biped", "radius": R_BIPED, "image_size": [64, 48], "train_poses": 2,
     "rig": {"kind": "ring", "rings": [{"count": 3, "radius": 5.0, "height": 1.5}]},
@@ -257,8 +260,11 @@ def _task(textures=(0, 2), per_view=2, **optim):
         h["window"],
         h["inside"],
     )
-    cfg = TextureStageConfig(
-        **{"batch_size": 6, "points": 100, "lr": 3e-3, "occlusion": 0.0, "eval_views": 2, **optim}
+    # NeTePu's recipe (no cross-view sources, no contrast, no whitening) unless ``optim`` says
+    cfg = TextureStageConfig.defaults(
+        **{"batch_size": 6, "points": 100, "lr": 3e-3, "occlusion": 0.0, "eval_views": 2,
+           "cross_view": 0.0, "contrast_weight": 0.0, "reid_whitening_samples": 0,
+           "reid_shrinkage": 0.01, **optim}
     )
     return TextureTask(tex, geo, data, cfg, nn_tr, nn_h)
 
@@ -276,7 +282,9 @@ def test_tiny_model_overfits_one_individuals_views():
         start = float(np.mean([task.training_step(0, rng)["colour"] for _ in range(3)]))
     out = Path(tempfile.mkdtemp(prefix="netepu-texture-fit-"))
     Trainer(
-        task, TrainerConfig(max_steps=200, progress=False, log_every=0, checkpoint_every=0), out
+        task,
+        TrainerConfig.defaults(max_steps=200, progress=False, log_every=0, checkpoint_every=0),
+        out,
     ).fit()
     with torch.no_grad():
         end = float(np.mean([task.training_step(0, rng)["colour"] for _ in range(5)]))
@@ -340,8 +348,9 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
                        "modules": {"geometry": geo.state_dict()},
                        "config": {"netepu": {"model": TINY_MODEL, "data": data}}},
                       tmp_path / "geo.pt")  # fmt: skip
-    m = {f"netepu.texture.model.{k}": v for k, v in TINY_TEXTURE.items() if k != "renderer"}
-    m |= {f"netepu.texture.model.renderer.{k}": v for k, v in TINY_TEXTURE["renderer"].items()}
+    sizes = TINY_TEXTURE_SIZES
+    m = {f"netepu.texture.model.{k}": v for k, v in sizes.items() if k != "renderer"}
+    m |= {f"netepu.texture.model.renderer.{k}": v for k, v in sizes["renderer"].items()}
     ov = [f"{k}={v}".replace(" ", "") for k, v in m.items()] + [
         "stage=texture", f"init_from={tmp_path / 'geo.pt'}", "trainer.max_steps=3",
         "trainer.progress=false", "netepu.texture.data.textures=[0,2]",
@@ -418,7 +427,7 @@ def test_texture_config_rejects_unknown_keys():
     from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="unknown keys \\['colour'\\]"):
-        TextureConfig.from_mapping({"colour": 1})
+        TextureConfig.defaults(colour=1)
 
 
 def test_cross_view_sources_keep_the_texture_and_change_the_view():
@@ -478,7 +487,7 @@ def test_contrast_settings_are_checked():
     from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="contrast_temperature"):
-        TextureStageConfig.from_mapping({"contrast_temperature": 0.0})
+        TextureStageConfig.defaults(contrast_temperature=0.0)
 
 
 def test_texture_batches_hold_every_texture_of_the_pool():
@@ -500,7 +509,7 @@ def test_batch_sampling_is_checked():
     from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"batch_sampling.*'identity'"):
-        TextureStageConfig.from_mapping({"batch_sampling": "identity"})
+        TextureStageConfig.defaults(batch_sampling="identity")
 
 
 # ----------------------------------------------------------------------------- normals
@@ -575,4 +584,4 @@ def test_normals_need_the_nnopcs_encoder():
     from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="use_normals needs use_nnopcs"):
-        TextureConfig.from_mapping({"use_normals": True, "use_nnopcs": False})
+        TextureConfig.defaults(use_normals=True, use_nnopcs=False)

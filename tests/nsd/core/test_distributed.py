@@ -65,8 +65,8 @@ def _worker(rank: int, world: int, port: int, scene: str, root: str) -> None:
             seed_everything(3)  # model initialisation, as nsd.training.train.train does
             task = NSDTask(cfg, data)
             init = {k: v.clone() for k, v in task.model.state_dict().items()}
-            tc = TrainerConfig(max_steps=steps, log_every=1, checkpoint_every=2, progress=False,
-                               seed=3)
+            tc = TrainerConfig.defaults(max_steps=steps, log_every=1, checkpoint_every=2,
+                                        progress=False, seed=3)
             metrics = Trainer(task, tc, Path(root) / name).fit()
             out[f"{name}{steps}"] = {"init": init, "final": task.model.state_dict(),
                                      "metrics": metrics}

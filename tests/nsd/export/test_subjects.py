@@ -67,7 +67,7 @@ def _reference(ckpt, scene):
     trained = load_decomposition(ckpt)
     H, W = trained.image_size
     data = SceneData(scene, (W, H), val_fraction=0.0)
-    st = InferenceSettings()
+    st = InferenceSettings.defaults()
     grid = st.grid(data.rig, data.image_size)
     V = data.num_views
     return data, [

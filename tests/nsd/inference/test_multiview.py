@@ -100,7 +100,7 @@ def test_slot_bonus_is_added_only_for_the_same_valid_individual(tiny_scene):
 def test_wrong_settings_name_their_key(kv):
     (key,) = kv
     with pytest.raises(ConfigError, match=f"inference.{key}"):
-        InferenceSettings(**kv)
+        InferenceSettings.defaults(**kv)
 
 
 def test_unknown_setting_and_single_camera_are_clear_errors(tiny_scene):
@@ -109,7 +109,7 @@ def test_unknown_setting_and_single_camera_are_clear_errors(tiny_scene):
     data = SceneData(tiny_scene, (32, 24))
     one = data.rig.select(data.rig.names[:1])
     with pytest.raises(ConfigError, match="at least 2 cameras"):
-        InferenceSettings().grid(one, data.image_size)
+        InferenceSettings.defaults().grid(one, data.image_size)
 
 
 def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scene):
@@ -120,7 +120,7 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     views = torch.cat([data.views(t)[0] for t in (0, 1)])
     bgs = torch.cat([data.views(t)[1] for t in (0, 1)])
     V = data.num_views
-    same = InferenceSettings(window_blend=0.0, depth="detector", resolution=16)
+    same = InferenceSettings.defaults(window_blend=0.0, depth="detector", resolution=16)
     multi = decompose_views(model, views, bgs, V, same, same.grid(data.rig, data.image_size))
     single = decompose(model, views, bgs)
     for key in ("windows", "depths", "masks", "raw_masks", "app"):
@@ -128,7 +128,7 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     assert multi.slots.shape == (2 * V, model.cfg.num_windows)
     assert single.slots is None
     # the single setting is decompose itself
-    one = decompose_views(model, views, bgs, V, InferenceSettings(views="single"))
+    one = decompose_views(model, views, bgs, V, InferenceSettings.defaults(views="single"))
     assert torch.equal(one.masks, single.masks) and one.slots is None
     with pytest.raises(ValueError, match="whole instants"):
         decompose_views(model, views[:3], bgs[:3], V, same, same.grid(data.rig, data.image_size))

@@ -453,7 +453,7 @@ class TestRendererExtremes(BaseTester):
         model, cam_obj, cam, kps = _renderer_case("outside_image", torch.float64)
         with torch.no_grad():
             ctx = model.prepare(model.encode(kps), cam, kps)
-            maps = render_maps(model.query, ctx, cam_obj.size, MapSettings(mode=mode))
+            maps = render_maps(model.query, ctx, cam_obj.size, MapSettings.defaults(mode=mode))
         assert maps.evaluated.tolist() == [0]
         assert torch.equal(maps.logit, torch.full_like(maps.logit, BACKGROUND_LOGIT))
         assert torch.equal(maps.depth, torch.zeros_like(maps.depth))
@@ -467,7 +467,7 @@ class TestRendererExtremes(BaseTester):
         with torch.no_grad():
             ctx = model.prepare(model.encode(kps), cam, kps)
             for mode in ("dense", "culled", "coarse_to_fine"):
-                maps = render_maps(model.query, ctx, cam_obj.size, MapSettings(mode=mode))
+                maps = render_maps(model.query, ctx, cam_obj.size, MapSettings.defaults(mode=mode))
                 assert _finite(maps.logit, maps.depth, maps.depth_norm, maps.nnopcs)
 
     def test_every_keypoint_behind_the_camera_is_a_clear_error(self):

@@ -91,4 +91,4 @@ def test_all_zero_masks_stay_zero_and_finite():
 )
 def test_config_errors_name_the_key(field, value, match):
     with pytest.raises(ConfigError, match=match):
-        BiNVSConfig(**{field: value}).validate()
+        BiNVSConfig.defaults(**{field: value}).validate()

@@ -41,7 +41,9 @@ def tiny_data(tiny_scene):
 
 def _trainer(cfg, data, out, steps):
     seed_everything(3)  # model initialisation, as nsd.training.train.train does
-    tc = TrainerConfig(max_steps=steps, log_every=5, checkpoint_every=0, progress=False, seed=3)
+    tc = TrainerConfig.defaults(
+        max_steps=steps, log_every=5, checkpoint_every=0, progress=False, seed=3
+    )
     return Trainer(NSDTask(cfg, data), tc, out)
 
 

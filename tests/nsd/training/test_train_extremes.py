@@ -51,7 +51,7 @@ def _train(cfg, scene, out, steps: int, **trainer) -> Trainer:
     data = SceneData(scene, (32, 24), val_fraction=0.25)
     seed_everything(0)
     settings = {"log_every": 10, "checkpoint_every": 0, "progress": False, **trainer}
-    tc = TrainerConfig(max_steps=steps, **settings)
+    tc = TrainerConfig.defaults(max_steps=steps, **settings)
     t = Trainer(NSDTask(cfg, data), tc, out)
     t.fit()
     return t
@@ -118,7 +118,7 @@ class _ToyTask:
 
 
 def _toy_trainer(task, tmp_path, **kw):
-    tc = TrainerConfig(max_steps=5, log_every=0, checkpoint_every=0, progress=False, **kw)
+    tc = TrainerConfig.defaults(max_steps=5, log_every=0, checkpoint_every=0, progress=False, **kw)
     return Trainer(task, tc, tmp_path)
 
 
