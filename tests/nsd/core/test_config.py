@@ -116,7 +116,7 @@ def test_overrides_and_bad_keys_name_the_key():
     del full["mask_floor"]
     with pytest.raises(ConfigError, match=r"model: missing keys \['mask_floor'\]"):
         BiNVSConfig.from_config(full)
-    with pytest.raises(ConfigError, match="model.num_windows must be >= 1"):
+    with pytest.raises(ConfigError, match=r"model\.num_windows must be >= 1"):
         BiNVSConfig.defaults(num_windows=0)
 
 
