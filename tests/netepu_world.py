@@ -121,7 +121,7 @@ def view_set(poses: list[np.ndarray], rig: CameraRig) -> ViewSet:
     ci = torch.arange(C).repeat(len(poses))
     return ViewSet(
         kp,
-        {k: v[ci] for k, v in cams.items()},
+        cams[ci],
         torch.from_numpy(maps["mask"]),
         torch.from_numpy(maps["depth"]).float(),
         torch.from_numpy(maps["nnopcs"]).half(),

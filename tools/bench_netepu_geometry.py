@@ -138,7 +138,7 @@ def _square_rig_views(data, size: int, n: int = 4):
     rig = _make_rig(data.config.rig, (size, size))
     cams = rig.stacked(torch.float32)
     idx = torch.arange(n) * 3 % len(rig)
-    return views.keypoints[:n], {k: v[idx] for k, v in cams.items()}
+    return views.keypoints[:n], cams[idx]
 
 
 def _flops(fn) -> int:
@@ -178,12 +178,12 @@ def cost(models: dict[str, torch.nn.Module], data, quick: bool, light: bool = Fa
         for size in (128, 256):
             kps, cams = _square_rig_views(data, size, n=1 if (is_ref or light) else 4)
             nq = 256 if light else 4096
-            q = _query_flops(model, kps[:1], {k: c[:1] for k, c in cams.items()}, size, nq)
+            q = _query_flops(model, kps[:1], cams[:1], size, nq)
             for mode in ["dense"] if is_ref else ["dense", "culled", "coarse_to_fine"]:
                 settings = MapSettings.defaults(mode=mode, margin=0.35)
                 per_view = []
                 for v in range(kps.shape[0]):
-                    cam = {k: c[v : v + 1] for k, c in cams.items()}
+                    cam = cams[v : v + 1]
                     render = partial(_full_render, model, kps[v : v + 1], cam, size, settings)
                     if light and is_ref:  # dense: every pixel once, plus the per-view part
                         per_view_part = _flops(partial(_prepare, model, kps[v : v + 1], cam))

@@ -74,7 +74,7 @@ def main() -> None:
         truth = torch.from_numpy(maps["keypoints"][p])
         masks = torch.from_numpy(maps["mask"][p])
         for V, sel in VIEW_SETS.items():
-            cam = {k: c[sel] for k, c in cams.items()}
+            cam = cams[sel]
             t0 = time.perf_counter()
             res = invert_silhouettes(
                 model, masks[sel], cam, templates, settings, np.random.default_rng(p)
@@ -83,7 +83,7 @@ def main() -> None:
             others = [c for c in range(len(rig)) if c not in sel]
             sil_in = _render_silhouettes(model, res.z, res.centre, cam, size)
             sil_out = _render_silhouettes(
-                model, res.z, res.centre, {k: c[others] for k, c in cams.items()}, size
+                model, res.z, res.centre, cams[others], size
             )
             row = {
                 "pose": p,

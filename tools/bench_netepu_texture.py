@@ -361,7 +361,7 @@ def _speed_fns(texture, geometry, image, mask, kps, cam, size: int) -> dict:
                 uv = torch.stack([xs, ys], -1).expand(len(kps), -1, -1, -1)
                 n = torch.zeros_like(surface)
                 n[:, y0:y1, x0:x1] = surface_normals(
-                    maps.depth[:, y0:y1, x0:x1], uv, sil[:, y0:y1, x0:x1], cam["K"], cam["R"]
+                    maps.depth[:, y0:y1, x0:x1], uv, sil[:, y0:y1, x0:x1], cam.K, cam.R
                 )
                 surface = torch.cat([surface, n], -1)
         encode_texture(texture, image, maps.silhouette, surface)
@@ -393,7 +393,7 @@ def _speed_rows(run: str, repeats: int, threads: int) -> list[dict]:
         image = r["rgb"][views]
         mask = r["visible"][views, 0]
         kps = r["keypoints3d"][0].float()[None].expand(len(views), -1, -1)
-        cam = {k: v[views] for k, v in cams.items()}
+        cam = cams[views]
         for batch in (1, 8):
             sl = slice(0, batch)
             c = {k: v[sl] for k, v in cam.items()}

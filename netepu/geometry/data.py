@@ -40,6 +40,7 @@ from torch import Tensor
 from netepu.geometry.maps import candidate_region
 from netepu.geometry.renderer import view_frame
 from netepu.geometry.sampling import sample_foreground_points, sample_silhouette_points
+from nsd.cameras.batch import CameraBatch
 from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_save_npz
 from nsd.core.errors import ConfigError
@@ -121,7 +122,7 @@ class ViewSet:
     """
 
     keypoints: Tensor
-    camera: dict[str, Tensor]
+    camera: CameraBatch
     mask: Tensor
     depth: Tensor
     nnopcs: Tensor
@@ -135,7 +136,7 @@ class ViewSet:
 
     def subset(self, idx: list[int] | Tensor) -> ViewSet:
         idx = torch.as_tensor(idx, dtype=torch.int64)
-        return ViewSet(self.keypoints[idx], {k: v[idx] for k, v in self.camera.items()},
+        return ViewSet(self.keypoints[idx], self.camera[idx],
                        self.mask[idx], self.depth[idx], self.nnopcs[idx])
 
 
@@ -191,14 +192,14 @@ class GeometryData:
     evaluation: dict[str, ViewSet]
 
     @property
-    def camera(self) -> dict[str, Tensor]:
+    def camera(self) -> CameraBatch:
         """Training cameras as stacked tensors (C, ...)."""
         return self.rig.stacked(torch.float32)
 
 
 def make_point_pools(
     keypoints: Tensor,
-    camera: dict[str, Tensor],
+    camera: CameraBatch,
     mask: np.ndarray,
     depth: np.ndarray,
     nnopcs: np.ndarray,
@@ -218,7 +219,7 @@ def make_point_pools(
         rng: random generator.
     """
     n, h, w = mask.shape
-    frame = view_frame(keypoints.double(), {k: v.double() for k, v in camera.items()},
+    frame = view_frame(keypoints.double(), CameraBatch.from_mapping(camera).to(torch.float64),
                        cfg.radius)
     out: dict[str, list] = {f.name: [] for f in fields(PointPools)}
     for i in range(n):
@@ -275,7 +276,7 @@ def sample_batch(
 
     return {
         "keypoints": data.keypoints[torch.from_numpy(p.pose[v])],
-        "camera": {k: c[ci] for k, c in cams.items()},
+        "camera": cams[ci],
         "sil_uv": t(sil_uv),
         "sil_label": t(sil_label),
         "fg_uv": t(p.fg_uv[rows, fg]),
@@ -320,7 +321,7 @@ def _view_set(keypoints: np.ndarray, rig: CameraRig, maps: dict[str, np.ndarray]
     p = np.array([a for a, _ in views], np.int64)
     c = np.array([b for _, b in views], np.int64)
     return ViewSet(
-        torch.from_numpy(keypoints[p]), {k: v[torch.from_numpy(c)] for k, v in cams.items()},
+        torch.from_numpy(keypoints[p]), cams[torch.from_numpy(c)],
         torch.from_numpy(maps["mask"][p, c]), torch.from_numpy(maps["depth"][p, c]),
         torch.from_numpy(maps["nnopcs"][p, c]),
     )
@@ -329,7 +330,7 @@ def _view_set(keypoints: np.ndarray, rig: CameraRig, maps: dict[str, np.ndarray]
 def _store(arrays: dict[str, Any], name: str, vs: ViewSet) -> None:
     for f in ("keypoints", "mask", "depth", "nnopcs"):
         arrays[f"{name}/{f}"] = getattr(vs, f).numpy()
-    for k, v in vs.camera.items():
+    for k, v in vs.camera.as_dict().items():
         arrays[f"{name}/camera_{k}"] = v.numpy()
 
 
@@ -352,7 +353,7 @@ def _build(cfg: DataConfig, progress: Callable[[str], None]) -> dict[str, Any]:
         flat = {k: maps[k].reshape(P * C, *maps[k].shape[2:])
                 for k in ("mask", "depth", "nnopcs")}
         kp = torch.from_numpy(maps["keypoints"]).repeat_interleave(C, 0)
-        cam = {k: v[torch.from_numpy(cam_idx)] for k, v in cams.items()}
+        cam = cams[torch.from_numpy(cam_idx)]
         pools.append(make_point_pools(kp, cam, flat["mask"], flat["depth"], flat["nnopcs"],
                                       pose_idx, cam_idx, cfg, rng))
         kps.append(maps["keypoints"])
@@ -442,7 +443,9 @@ def build_geometry_data(
     for name in ("heldout_poses", "heldout_cameras", "train"):
         evaluation[name] = ViewSet(
             torch.from_numpy(arrays[f"{name}/keypoints"]),
-            {k: torch.from_numpy(arrays[f"{name}/camera_{k}"]) for k in ("K", "R", "t", "dist")},
+            CameraBatch.from_mapping(
+                {k: arrays[f"{name}/camera_{k}"] for k in ("K", "R", "t", "dist")}
+            ),
             torch.from_numpy(arrays[f"{name}/mask"]), torch.from_numpy(arrays[f"{name}/depth"]),
             torch.from_numpy(arrays[f"{name}/nnopcs"]),
         )

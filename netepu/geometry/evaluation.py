@@ -49,7 +49,7 @@ def evaluate_views(
     both = pred & gt
     iou = silhouette_iou(pred, gt)
     frame = view_frame(views.keypoints.double(),
-                       {k: v.double() for k, v in views.camera.items()}, model.radius)
+                       views.camera.to(torch.float64), model.radius)
     region = torch.stack([torch.from_numpy(candidate_region(
         frame.uv[i], float(frame.scale[i]), settings.margin, views.size))
         for i in range(len(views))])

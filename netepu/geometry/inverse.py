@@ -37,6 +37,7 @@ from torch import Tensor
 from netepu.geometry.maps import BACKGROUND_LOGIT, candidate_region
 from netepu.geometry.model import GeometryModel
 from netepu.geometry.sampling import sample_silhouette_points
+from nsd.cameras.batch import CameraBatch
 from nsd.cameras.projection import pixel_to_normalized
 
 __all__ = [
@@ -95,7 +96,7 @@ class InverseResult:
     start_losses: Tensor
 
 
-def triangulate_centroids(masks: Tensor, camera: dict[str, Tensor]) -> Tensor:
+def triangulate_centroids(masks: Tensor, camera: CameraBatch) -> Tensor:
     """Least-squares point closest to the viewing rays through the silhouettes' centroids.
 
     Args:
@@ -112,8 +113,9 @@ def triangulate_centroids(masks: Tensor, camera: dict[str, Tensor]) -> Tensor:
     m = masks.double()
     n = m.flatten(1).sum(1).clamp(min=1)
     uv = torch.stack([(m * xs).flatten(1).sum(1) / n, (m * ys).flatten(1).sum(1) / n], -1)
-    K, R, t = (camera[k].double() for k in ("K", "R", "t"))
-    dist = camera.get("dist")
+    camera = CameraBatch.from_mapping(camera)
+    K, R, t = (x.double() for x in (camera.K, camera.R, camera.t))
+    dist = camera.dist
     xy = pixel_to_normalized(uv[:, None], K, None if dist is None else dist.double())[:, 0]
     d_cam = torch.cat([xy, torch.ones(V, 1, dtype=torch.float64)], -1)
     d = (R.transpose(-1, -2) @ d_cam[..., None])[..., 0]
@@ -170,7 +172,7 @@ def _optimise(model, masks, camera, templates, s: InverseSettings, rng):
 
     opt = adam(w, centre)
     np_masks = masks.numpy()
-    cams = {k: v.float() for k, v in camera.items()}
+    cams = CameraBatch.from_mapping(camera).to(torch.float32)
     losses = torch.zeros(len(starts))
     for step in range(s.steps):
         S = w.shape[0]
@@ -179,7 +181,7 @@ def _optimise(model, masks, camera, templates, s: InverseSettings, rng):
         px, py = uv[..., 0].long(), uv[..., 1].long()
         label = masks[torch.arange(V)[:, None], py, px].float()
         code = model.decode(z, centre)
-        rep = {k: v.repeat(S, *[1] * (v.dim() - 1)) for k, v in cams.items()}
+        rep = cams.repeat(S)
         ctx = model.renderer.prepare(code.keypoints.repeat_interleave(V, 0),
                                      code.features.repeat_interleave(V, 0),
                                      code.z.repeat_interleave(V, 0), rep)
@@ -212,7 +214,7 @@ def _optimise(model, masks, camera, templates, s: InverseSettings, rng):
 def invert_silhouettes(
     model: GeometryModel,
     masks: Tensor,
-    camera: dict[str, Tensor],
+    camera: CameraBatch,
     templates: Tensor,
     settings: InverseSettings | None = None,
     rng: np.random.Generator | None = None,

@@ -23,6 +23,7 @@ from netepu.geometry.networks import (
     normalise_keypoints,
 )
 from netepu.geometry.renderer import NeuralRenderer2D, RenderContext
+from nsd.cameras.batch import CameraBatch
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.trainer import load_checkpoint
 
@@ -77,20 +78,21 @@ class GeometryModel(nn.Module):
         return GeometryCode(z, centre, denormalise_keypoints(pos, centre, self.radius), feats)
 
     def prepare(
-        self, code: GeometryCode, camera: dict[str, Tensor], keypoints: Tensor | None = None
+        self, code: GeometryCode, camera: CameraBatch, keypoints: Tensor | None = None
     ) -> RenderContext:
         """Per-view render context.
 
         Args:
             code: the individual's code (batch B = number of views, or 1 to
                 broadcast over the views).
-            camera: camera tensors with batch B.
+            camera: a :class:`nsd.cameras.batch.CameraBatch` of B cameras (or a mapping).
             keypoints: world keypoints (B, K, 3) that drive the render; default
                 the decoded ``code.keypoints`` (inverse rendering). Training and
                 puppeteering pass the input keypoints.
         """
         kps = code.keypoints if keypoints is None else keypoints
-        B = camera["K"].shape[0]
+        camera = CameraBatch.from_mapping(camera)
+        B = len(camera)
         kps, feats, z = (x.expand(B, *x.shape[1:]) if x.shape[0] == 1 else x
                          for x in (kps, code.features, code.z))
         return self.renderer.prepare(kps, feats, z, camera)

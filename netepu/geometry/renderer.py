@@ -37,6 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from netepu.geometry.attention import PointTransformerBlock, VectorCrossAttention
+from nsd.cameras.batch import CameraBatch
 from nsd.cameras.projection import project_points
 
 __all__ = [
@@ -74,13 +75,13 @@ class ViewFrame:
     positions: Tensor
 
 
-def view_frame(keypoints: Tensor, camera: dict[str, Tensor], radius: float) -> ViewFrame:
+def view_frame(keypoints: Tensor, camera: CameraBatch, radius: float) -> ViewFrame:
     """Project keypoints and build the view frame (see the module docstring).
 
     Args:
         keypoints: world keypoints, (B, K, 3).
-        camera: ``K`` (B, 3, 3), ``R`` (B, 3, 3), ``t`` (B, 3) and optionally
-            ``dist`` (B, n), as :meth:`nsd.cameras.calibration.CameraRig.stacked` gives.
+        camera: a :class:`nsd.cameras.batch.CameraBatch` of B cameras (or a mapping with
+            ``K``, ``R``, ``t`` and optionally ``dist``).
         radius: body radius r.
 
     Returns:
@@ -89,12 +90,13 @@ def view_frame(keypoints: Tensor, camera: dict[str, Tensor], radius: float) -> V
     Raises:
         ValueError: when the keypoints' mean lies behind the camera.
     """
-    uv, Z = project_points(keypoints, camera["K"], camera["R"], camera["t"], camera.get("dist"))
+    camera = CameraBatch.from_mapping(camera)
+    uv, Z = project_points(keypoints, camera.K, camera.R, camera.t, camera.dist)
     depth_ref = Z.mean(dim=1)
     if not torch.all(depth_ref > MIN_DEPTH):
         bad = torch.nonzero(depth_ref <= MIN_DEPTH).flatten().tolist()
         raise ValueError(f"keypoints of batch items {bad} lie behind their camera")
-    K = camera["K"]
+    K = camera.K
     focal = torch.sqrt(K[..., 0, 0] * K[..., 1, 1])
     scale = focal * radius / depth_ref
     origin = uv.mean(dim=1)
@@ -217,7 +219,7 @@ class NeuralRenderer2D(nn.Module):
             )
 
     def prepare(
-        self, keypoints: Tensor, features: Tensor, z: Tensor, camera: dict[str, Tensor]
+        self, keypoints: Tensor, features: Tensor, z: Tensor, camera: CameraBatch
     ) -> RenderContext:
         """Everything that does not depend on the query pixel.
 
@@ -257,7 +259,7 @@ class NeuralRenderer2D(nn.Module):
         }
 
     def forward(
-        self, keypoints: Tensor, features: Tensor, z: Tensor, camera: dict[str, Tensor],
+        self, keypoints: Tensor, features: Tensor, z: Tensor, camera: CameraBatch,
         uv: Tensor,
     ) -> dict[str, Tensor]:
         """:meth:`prepare` then :meth:`query`."""

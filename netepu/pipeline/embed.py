@@ -153,7 +153,7 @@ def embed_export(
                 raise ConfigError(
                     f"calibration: {calibration} lacks a camera of the export: {e}"
                 ) from e
-            cam = {k: v[ci] for k, v in cams.items()}
+            cam = cams[ci]
             kp = torch.from_numpy(np.stack([kps[i] for i in ids])).float()
         mu, rgb, inside, surface = texture_codes(
             texture,

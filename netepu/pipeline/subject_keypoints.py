@@ -129,7 +129,7 @@ def invert_export(
         res = invert_silhouettes(
             model,
             masks,
-            {k: v[cam_idx] for k, v in cams.items()},
+            cams[cam_idx],
             starts,
             settings,
             np.random.default_rng(t),

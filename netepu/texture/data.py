@@ -46,6 +46,7 @@ from netepu.geometry.data import DataConfig
 from netepu.geometry.sampling import sample_foreground_points
 from netepu.texture.crops import crop_grid, crop_windows, sample_masked
 from netepu.texture.encoding import predicted_surface
+from nsd.cameras.batch import CameraBatch
 from nsd.core.atomic import atomic_save_npz
 from nsd.core.errors import ConfigError
 from nsd.synth import get_texture, make_individual, make_rig, render_views, sample_pose
@@ -117,10 +118,12 @@ class TextureData:
     textures: np.ndarray
     train: dict[str, np.ndarray]
     heldout: dict[str, np.ndarray]
-    train_camera: dict[str, Tensor]
+    train_camera: CameraBatch
 
-    def heldout_camera_tensors(self, idx: np.ndarray) -> dict[str, Tensor]:
-        return {k: torch.from_numpy(self.heldout[f"cam_{k}"][idx]) for k in ("K", "R", "t", "dist")}
+    def heldout_camera_tensors(self, idx: np.ndarray) -> CameraBatch:
+        return CameraBatch.from_mapping(
+            {k: self.heldout[f"cam_{k}"][idx] for k in ("K", "R", "t", "dist")}
+        )
 
 
 def shade_texture(texture_id: int, nnopcs: Tensor, normal: Tensor) -> Tensor:
@@ -296,10 +299,7 @@ def _build(
             "psnr_view",
         )
     }
-    cams = {
-        k: torch.cat([rig.stacked(torch.float32)[k], held.stacked(torch.float32)[k]])
-        for k in ("K", "R", "t", "dist")
-    }
+    cams = CameraBatch.cat([rig.stacked(torch.float32), held.stacked(torch.float32)])
     held_rays = camera_rays(held, geo.image_size)
     E = 0
     for p, pose in enumerate(_poses(ind, cfg.eval_poses, geo, rng)):
@@ -331,7 +331,7 @@ def _build(
     for k, v in ev.items():
         out[f"heldout/{k}"] = np.stack(v) if isinstance(v[0], np.ndarray) else np.asarray(v)
     camera_index = out["heldout/camera"]
-    for k, v in cams.items():
+    for k, v in cams.as_dict().items():
         out[f"heldout/cam_{k}"] = v.numpy()[camera_index]
     out["textures"] = tex
     return out
@@ -428,7 +428,7 @@ def predicted_nnopcs_crops(
         uv = crop_grid(torch.from_numpy(window[sl]).double(), S).float()
         keep = torch.from_numpy(inside[sl])
         kps = torch.from_numpy(keypoints[sl]).float()
-        cam = {k: v[sl].float() for k, v in camera.items()}
+        cam = camera[sl].to(torch.float32)
         out[sl] = predicted_surface(geometry, kps, cam, uv, keep, normals).numpy()
         if progress and (s // batch) % 10 == 0:
             progress(f"predicted NNOPCS crops {min(n, s + batch)}/{n}")

@@ -41,6 +41,7 @@ from torch import Tensor
 from netepu.geometry.model import GeometryModel
 from netepu.texture.crops import crop_grid, crop_windows, query_masked, sample_masked
 from netepu.texture.model import TextureModel
+from nsd.cameras.batch import CameraBatch
 
 __all__ = [
     "encode_texture",
@@ -60,7 +61,7 @@ def _as_float_image(image: Tensor) -> Tensor:
 
 
 def predicted_nnopcs(
-    geometry: GeometryModel, keypoints: Tensor, camera: dict[str, Tensor], uv: Tensor, keep: Tensor
+    geometry: GeometryModel, keypoints: Tensor, camera: CameraBatch, uv: Tensor, keep: Tensor
 ) -> Tensor:
     """NNOPCS rendered by the geometry model at kept pixels, clamped to [0, 1].
 
@@ -76,7 +77,7 @@ def predicted_nnopcs(
     return out.clamp(0, 1)
 
 
-def _posed_context(geometry: GeometryModel, keypoints: Tensor, camera: dict[str, Tensor]):
+def _posed_context(geometry: GeometryModel, keypoints: Tensor, camera: CameraBatch):
     """The geometry model's query context for keypoints (B, K, 3) seen by cameras (batch B)."""
     return geometry.prepare(geometry.encode(keypoints), camera, keypoints=keypoints)
 
@@ -133,7 +134,7 @@ def surface_normals(depth: Tensor, uv: Tensor, inside: Tensor, K: Tensor, R: Ten
 def predicted_surface(
     geometry: GeometryModel,
     keypoints: Tensor,
-    camera: dict[str, Tensor],
+    camera: CameraBatch,
     uv: Tensor,
     keep: Tensor,
     normals: bool,
@@ -161,7 +162,7 @@ def predicted_surface(
         return torch.cat([out["nnopcs"].clamp(0, 1), out["depth"][..., None]], -1)
 
     out = query_masked(both, flat_uv, flat_keep).reshape(B, S1, S2, 4)
-    K, R = camera["K"].to(out.dtype), camera["R"].to(out.dtype)
+    K, R = camera.K.to(out.dtype), camera.R.to(out.dtype)
     n = surface_normals(out[..., 3], uv.to(out.dtype), keep, K, R)
     return torch.cat([out[..., :3], n], -1)
 
@@ -246,7 +247,7 @@ def texture_codes(
     image: Tensor,
     mask: Tensor,
     keypoints: Tensor | None,
-    camera: dict[str, Tensor] | None,
+    camera: CameraBatch | None,
     window: Tensor | None = None,
     return_crops: bool = False,
 ) -> Tensor | tuple[Tensor, Tensor, Tensor, Tensor | None]:
@@ -277,7 +278,7 @@ def texture_codes(
             )
         geometry.eval()
         kps = keypoints.float()
-        cam = {k: v.float() for k, v in camera.items()}
+        cam = CameraBatch.from_mapping(camera).to(torch.float32)
 
         def render(uv: Tensor, keep: Tensor) -> Tensor:
             return predicted_surface(geometry, kps, cam, uv, keep, texture.cfg.use_normals)

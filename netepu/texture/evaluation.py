@@ -26,6 +26,7 @@ from netepu.geometry.model import GeometryModel
 from netepu.texture.crops import query_masked
 from netepu.texture.data import TextureData
 from netepu.texture.model import TextureModel
+from nsd.cameras.batch import CameraBatch
 from nsd.evaluation.maps import colour_psnr
 
 __all__ = [
@@ -89,7 +90,7 @@ def render_colour(
     texture: TextureModel,
     geometry: GeometryModel,
     keypoints: Tensor,
-    camera: dict[str, Tensor],
+    camera: CameraBatch,
     mask: Tensor,
     z: Tensor,
 ) -> Tensor:

@@ -32,6 +32,7 @@ from netepu.geometry.renderer import RenderContext
 from netepu.texture.config import TextureConfig
 from netepu.texture.embedding import colour_statistics
 from netepu.texture.networks import ColourRenderer, TextureDecoder, TextureEncoder
+from nsd.cameras.batch import CameraBatch
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.trainer import load_checkpoint
 
@@ -157,7 +158,7 @@ class TextureModel(nn.Module):
         geometry_z: Tensor,
         geometry_features: Tensor,
         keypoints: Tensor,
-        camera: dict[str, Tensor],
+        camera: CameraBatch,
     ) -> RenderContext:
         """Per-view colour render context.
 

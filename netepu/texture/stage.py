@@ -260,7 +260,7 @@ class TextureTask:
         x = self.encoder_input(src, rng)
         pts = rng.integers(0, tr["pool_uv"].shape[1], (c.batch_size, c.points))
         vv = torch.from_numpy(v)
-        cam = {k: t[torch.from_numpy(tr["camera"][v])] for k, t in self.data.train_camera.items()}
+        cam = self.data.train_camera[torch.from_numpy(tr["camera"][v])]
         out = {
             "x": x,
             "view": vv,
@@ -437,7 +437,7 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
             nn_train, nn_held = z["train"], z["heldout"]
     else:
         tr, h = data.train, data.heldout
-        cams = {k: v[torch.from_numpy(tr["camera"])] for k, v in data.train_camera.items()}
+        cams = data.train_camera[torch.from_numpy(tr["camera"])]
         nn_train = predicted_nnopcs_crops(
             geometry,
             tr["keypoints"],

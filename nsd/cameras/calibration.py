@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import torch
 
+from nsd.cameras.batch import CameraBatch
 from nsd.cameras.projection import (
     SUPPORTED_DISTORTION_SIZES,
     pixel_to_normalized,
@@ -124,7 +125,10 @@ class Camera:
     def tensors(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
     ) -> dict[str, torch.Tensor]:
-        """K (3, 3), R (3, 3), t (3,), dist (n,) as tensors for :mod:`nsd.cameras.projection`."""
+        """This one camera's K (3, 3), R (3, 3), t (3,), dist (n,) as unbatched tensors.
+
+        A batch of cameras: :meth:`CameraRig.stacked` (a :class:`CameraBatch`).
+        """
         return {
             k: torch.as_tensor(getattr(self, k), dtype=dtype, device=device)
             for k in ("K", "R", "t", "dist")
@@ -241,8 +245,8 @@ class CameraRig(Sequence[Camera]):
 
     def stacked(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
-    ) -> dict[str, torch.Tensor]:
-        """K (V, 3, 3), R (V, 3, 3), t (V, 3), dist (V, n) for batched projection.
+    ) -> CameraBatch:
+        """The rig as a :class:`CameraBatch` of V cameras, for batched projection.
 
         Distortion vectors are zero-padded to the longest in the rig.
         """
@@ -251,12 +255,11 @@ class CameraRig(Sequence[Camera]):
         dist = np.zeros((len(self), n))
         for i, c in enumerate(self._cameras):
             dist[i, : c.dist.size] = c.dist
-        out = {
-            k: torch.as_tensor(np.stack([getattr(c, k) for c in self._cameras]), dtype=dtype)
+        K, R, t = (
+            torch.as_tensor(np.stack([getattr(c, k) for c in self._cameras]), dtype=dtype)
             for k in ("K", "R", "t")
-        }
-        out["dist"] = torch.as_tensor(dist, dtype=dtype)
-        return {k: v.to(device) for k, v in out.items()}
+        )
+        return CameraBatch(K, R, t, torch.as_tensor(dist, dtype=dtype)).to(device)
 
     def scaled(self, size: tuple[int, int]) -> CameraRig:
         """Every camera rescaled to images of ``size`` = (width, height)."""

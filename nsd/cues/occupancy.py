@@ -136,13 +136,13 @@ def voxel_grid(
     centres = torch.as_tensor(g, dtype=torch.float32)
     cams = rig.stacked(torch.float32)
     uv, z = project_points(
-        centres.expand(len(rig), -1, -1), cams["K"], cams["R"], cams["t"], cams["dist"]
+        centres.expand(len(rig), -1, -1), cams.K, cams.R, cams.t, cams.dist
     )
     H, W = image_size
     u, v = uv[..., 0].round().long(), uv[..., 1].round().long()
     inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
     pixel = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).long()
-    focal = (cams["K"][:, 0, 0] + cams["K"][:, 1, 1]) / 2
+    focal = (cams.K[:, 0, 0] + cams.K[:, 1, 1]) / 2
     return VoxelGrid(
         centres, size, pixel, inside, uv, z, torch.as_tensor(up, dtype=torch.float32), focal, (H, W)
     )

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from nsd.cameras.batch import CameraBatch
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import FootageError
 from nsd.io.footage import ImageFolderSource, MultiViewFootage
@@ -36,7 +37,7 @@ class ExportInputs:
     frames: np.ndarray
     images: ImageEntries  # (view, frame) -> COCO image entry
     backgrounds: torch.Tensor  # (V, 3, H, W) in [0, 1]
-    cameras: dict[str, torch.Tensor]  # stacked K, R, t, dist at the training size
+    cameras: CameraBatch  # stacked K, R, t, dist at the training size
 
 
 class ImageEntries:

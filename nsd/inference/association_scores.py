@@ -11,13 +11,15 @@ from collections.abc import Sequence
 
 import torch
 
+from nsd.cameras.batch import CameraBatch
+
 __all__ = ["association_scores"]
 
 
 def association_scores(
     model,
     dec,
-    cameras: dict[str, torch.Tensor],
+    cameras: CameraBatch,
     image_size: Sequence[int],
     v: int,
     w: int,
@@ -38,8 +40,8 @@ def association_scores(
     cost = model.geometry_cost(
         dec.windows[v][None],
         dec.windows[w][None],
-        {k: c[v][None] for k, c in cameras.items()},
-        {k: c[w][None] for k, c in cameras.items()},
+        cameras[v],
+        cameras[w],
         tuple(image_size),
     )
     score = model.association_score(dec.app[v][None], dec.app[w][None], cost)[0]

@@ -29,6 +29,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
+from nsd.cameras.batch import CameraBatch
 from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 from nsd.cues.triangulation import ray_distances, window_rays
@@ -320,8 +321,8 @@ class BiNVS(nn.Module):
         background_v: Tensor,
         background_w: Tensor,
         rotation_vw: Tensor,
-        cameras_v: dict[str, Tensor] | None = None,
-        cameras_w: dict[str, Tensor] | None = None,
+        cameras_v: CameraBatch | None = None,
+        cameras_w: CameraBatch | None = None,
     ) -> tuple[Rendering, Rendering, Windows, Windows]:
         """Both directions of Bi-NVS for a batch of view pairs.
 
@@ -377,8 +378,8 @@ class BiNVS(nn.Module):
     def geometry_cost(
         boxes_v: Tensor,
         boxes_w: Tensor,
-        cameras_v: dict[str, Tensor],
-        cameras_w: dict[str, Tensor],
+        cameras_v: CameraBatch,
+        cameras_w: CameraBatch,
         image_size,
     ) -> Tensor:
         """Ray distances (B, N_v, N_w) between the window centres of two views (detached).
@@ -391,18 +392,18 @@ class BiNVS(nn.Module):
         with torch.no_grad():
             o_v, d_v = window_rays(
                 boxes_v,
-                cameras_v["K"],
-                cameras_v["R"],
-                cameras_v["t"],
-                cameras_v["dist"],
+                cameras_v.K,
+                cameras_v.R,
+                cameras_v.t,
+                cameras_v.dist,
                 tuple(image_size),
             )
             o_w, d_w = window_rays(
                 boxes_w,
-                cameras_w["K"],
-                cameras_w["R"],
-                cameras_w["t"],
-                cameras_w["dist"],
+                cameras_w.K,
+                cameras_w.R,
+                cameras_w.t,
+                cameras_w.dist,
                 tuple(image_size),
             )
             return ray_distances(o_v, d_v, o_w, d_w)

@@ -155,11 +155,11 @@ def camera_rays(
     vv, uu = torch.meshgrid(v, u, indexing="ij")
     uv = torch.stack([uu, vv], dim=-1).reshape(1, -1, 2).expand(len(rig), -1, -1)
     p = rig.stacked(torch.float64)
-    xy = pixel_to_normalized(uv, p["K"], p["dist"])
+    xy = pixel_to_normalized(uv, p.K, p.dist)
     d_cam = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
     norm = d_cam.norm(dim=-1)
-    d_world = (d_cam / norm[..., None]) @ p["R"]  # rows: (R^T d)^T = d^T R
-    origins = -(p["R"].transpose(-1, -2) @ p["t"][..., None])[..., 0]
+    d_world = (d_cam / norm[..., None]) @ p.R  # rows: (R^T d)^T = d^T R
+    origins = -(p.R.transpose(-1, -2) @ p.t[..., None])[..., 0]
     shape = (len(rig), H * s, W * s)
     return ViewRays(
         cameras=rig,

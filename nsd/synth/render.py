@@ -86,7 +86,7 @@ def keypoint_visibility(
     for n, (ind, X) in enumerate(zip(individuals, keypoints, strict=True)):
         Xd = X.to(torch.float64)
         uv, z = project_points(
-            Xd.expand(len(rays.cameras), -1, -1), p["K"], p["R"], p["t"], p["dist"]
+            Xd.expand(len(rays.cameras), -1, -1), p.K, p.R, p.t, p.dist
         )
         inside = (
             (z > 0)

@@ -233,8 +233,8 @@ class NSDTask:
             batch.background_v,
             batch.background_w,
             batch.rotation_vw,
-            {k: v[batch.view_v] for k, v in cams.items()},
-            {k: v[batch.view_w] for k, v in cams.items()},
+            cams[batch.view_v],
+            cams[batch.view_w],
         )
         evidence = self._evidence(batch)
         out = self._image_terms(batch, rv, rw, evidence)
@@ -408,15 +408,15 @@ class NSDTask:
             (rw, ww, wv, batch.view_w, batch.view_v),
         ):
             o_t, d_t = window_rays(
-                tgt.det.boxes, cams["K"][vt], cams["R"][vt], cams["t"][vt], cams["dist"][vt], (H, W)
+                tgt.det.boxes, cams.K[vt], cams.R[vt], cams.t[vt], cams.dist[vt], (H, W)
             )
             o_s, d_s = window_rays(
-                src.det.boxes, cams["K"][vs], cams["R"][vs], cams["t"][vs], cams["dist"][vs], (H, W)
+                src.det.boxes, cams.K[vs], cams.R[vs], cams.t[vs], cams.dist[vs], (H, W)
             )
             partner = r.association.argmax(-1)  # target slot j <- source window
             d_s = d_s.gather(1, partner[..., None].expand(-1, -1, 3))
             points, ok = triangulate_midpoints(o_t, d_t.detach(), o_s, d_s.detach())
-            depth = (points @ cams["R"][vt].transpose(-1, -2) + cams["t"][vt][:, None])[..., 2]
+            depth = (points @ cams.R[vt].transpose(-1, -2) + cams.t[vt][:, None])[..., 2]
             ok = ok & (tgt.det.presence > 0.5)
             total = total + depth_prior(tgt.det.depths, depth, ok, self.cfg.prior_depth.unit) / 2
         return total

@@ -50,7 +50,7 @@ def test_recovers_known_pose_from_own_renders():
     views = data.evaluation["train"]
     truth = views.keypoints[0]
     sel = [0, 2, 4]
-    cam = {k: v[sel] for k, v in views.camera.items()}
+    cam = views.camera[sel]
     with torch.no_grad():
         code = model.encode(truth[None])
         own = render_maps(model.query, model.prepare(code, cam), views.size,
@@ -97,7 +97,7 @@ def test_recovery_does_not_depend_on_the_scale_of_codes():
     model, data, _ = trained_toy()
     views = data.evaluation["train"]
     truth, sel = views.keypoints[0], [0, 2, 4]
-    cam = {k: v[sel] for k, v in views.camera.items()}
+    cam = views.camera[sel]
     with torch.no_grad():
         own = render_maps(model.query, model.prepare(model.encode(truth[None]), cam),
                           views.size, MapSettings.defaults()).silhouette

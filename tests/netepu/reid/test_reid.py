@@ -240,7 +240,7 @@ def test_netepu_embed_appends_texture_columns(tmp_path, use_nnopcs, reid_colour)
         torch.from_numpy(images),
         torch.from_numpy(masks > 0),
         torch.from_numpy(np.stack(kps[: len(enc)])),
-        {k: v[ci] for k, v in cams.items()},
+        cams[ci],
         window=window,
         return_crops=True,
     )

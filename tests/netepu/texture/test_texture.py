@@ -160,7 +160,7 @@ def test_codes_ignore_pixels_outside_the_mask_and_are_deterministic(normals):
     # deterministic (mu, eval-mode batch norm) and independent of the rest of the batch
     torch.testing.assert_close(texture_codes(tex, geo, image, mask, kps, cam), mu, rtol=0, atol=0)
     one = texture_codes(
-        tex, geo, image[1:2], mask[1:2], kps[1:2], {k: v[1:2] for k, v in cam.items()}
+        tex, geo, image[1:2], mask[1:2], kps[1:2], cam[1:2]
     )
     torch.testing.assert_close(one, mu[1:2], rtol=1e-5, atol=1e-6)
     # pixels inside the mask do change the code
@@ -251,7 +251,7 @@ def _task(textures=(0, 2), per_view=2, **optim):
     data = _tiny_data(textures, 2, per_view)
     tex, geo = _models()
     tr, h = data.train, data.heldout
-    cams = {k: v[torch.from_numpy(tr["camera"])] for k, v in data.train_camera.items()}
+    cams = data.train_camera[torch.from_numpy(tr["camera"])]
     nn_tr = predicted_nnopcs_crops(geo, tr["keypoints"], cams, tr["window"], tr["inside"])
     nn_h = predicted_nnopcs_crops(
         geo,

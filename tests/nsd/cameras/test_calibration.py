@@ -105,7 +105,7 @@ class TestGeometry:
         with pytest.raises(KeyError, match="no camera named 'nope'"):
             rig["nope"]
         stacked = rig.stacked()
-        assert stacked["K"].shape == (6, 3, 3) and stacked["dist"].shape == (6, 8)
+        assert stacked.K.shape == (6, 3, 3) and stacked.dist.shape == (6, 8)
 
     def test_undistort_image_straightens_lines(self):
         """A straight world line imaged through a distorting lens is straight after undistortion."""

@@ -68,10 +68,10 @@ class TestTriangulation(BaseTester):
         rig = self._rig()
         X = np.array([[0.2, -0.3, 0.9], [-0.5, 0.4, 1.2]])
         st = rig.stacked(torch.float64)
-        ca = {k: v[0:1] for k, v in st.items()}
-        cb = {k: v[1:2] for k, v in st.items()}
-        o1, d1 = window_rays(self._windows_at(rig[0], X), image_size=(128, 128), **ca)
-        o2, d2 = window_rays(self._windows_at(rig[1], X), image_size=(128, 128), **cb)
+        ca = st[0:1]
+        cb = st[1:2]
+        o1, d1 = window_rays(self._windows_at(rig[0], X), image_size=(128, 128), **ca.as_dict())
+        o2, d2 = window_rays(self._windows_at(rig[1], X), image_size=(128, 128), **cb.as_dict())
         P, ok = triangulate_midpoints(o1, d1, o2, d2)
         assert ok.all()
         self.assert_close(P[0], torch.as_tensor(X), atol=1e-9)
