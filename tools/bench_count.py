@@ -79,7 +79,7 @@ def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -
     from nsd.training.data import SceneData
 
     trained = load_decomposition(checkpoint)
-    H, W = trained.image_size
+    H, W = trained.frame_hw
     data = SceneData(scene, (W, H), val_fraction=0.0)
     gt = GroundTruth.load(scene)
     model = trained.model
@@ -182,7 +182,7 @@ def hull_target_accuracy(scene: Path) -> dict:
     gt = GroundTruth.load(scene)
     visible = np.array(
         [
-            [visible_count(gt, cam, t, data.image_size) for cam in data.rig.names]
+            [visible_count(gt, cam, t, data.frame_hw) for cam in data.rig.names]
             for t in range(len(data.frames))
         ]
     )

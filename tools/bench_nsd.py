@@ -347,7 +347,7 @@ def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> No
     torch.set_num_threads(2)
     trained = load_decomposition(checkpoint)
     cfg = trained.config
-    H, W = trained.image_size
+    H, W = trained.frame_hw
     data = SceneData(resolve_scene(cfg.data.scene), (W, H), cfg.data.cameras, cfg.data.val_fraction)
     V = data.num_views
     frames = np.asarray(data.val_frames)[:instants]
@@ -356,7 +356,7 @@ def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> No
     rows, seconds = [], {}
     for views_mode in ("single", "multiview"):
         st = InferenceSettings.defaults(views=views_mode)
-        grid = st.grid(data.rig, data.image_size) if st.multiview else None
+        grid = st.grid(data.rig, data.frame_hw) if st.multiview else None
         sec = median_time(
             lambda st=st, grid=grid: decompose_views(trained.model, views, bgs, V, st, grid),
             repeats,
@@ -371,7 +371,7 @@ def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> No
             }
         )
     settings = InferenceSettings.defaults()
-    grid_s = median_time(lambda: settings.grid(data.rig, data.image_size), repeats)
+    grid_s = median_time(lambda: settings.grid(data.rig, data.frame_hw), repeats)
     write_report(
         "nsd_inference",
         "NSD inference speed: single-image and multi-view",

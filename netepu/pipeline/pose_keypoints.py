@@ -126,7 +126,7 @@ def regress_export(
     cams = ecfg.get("cameras") or d.get("cameras")
     data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0))
     rig = data.rig  # the exported views
-    grid = settings.grid(rig, data.image_size) if settings.multiview else None
+    grid = settings.grid(rig, data.frame_hw) if settings.multiview else None
     decompose_kw = {
         "mask_threshold": float(ecfg.get("threshold", 0.5)),
         "refine": str(ecfg.get("refine", "residual")),

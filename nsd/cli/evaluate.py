@@ -59,7 +59,7 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
         scene = resolve_scene(None)
     if not GroundTruth.exists(scene):
         raise FootageError(f"{scene} has no gt/ folder: nsd-eval needs a synthetic scene")
-    H, W = trained.image_size
+    H, W = trained.frame_hw
     cfg = trained.config
     data = SceneData(scene, (W, H), cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames)
     trained.check_cameras(data.rig.names, scene)

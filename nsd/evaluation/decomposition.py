@@ -218,7 +218,7 @@ def evaluate_model(
     model.eval()
     V = data.num_views
     grid = (
-        settings.grid(data.rig, data.image_size) if settings.multiview and gt is not None else None
+        settings.grid(data.rig, data.frame_hw) if settings.multiview and gt is not None else None
     )
     psnr, ssim = [], []
     tally = _Tally()
@@ -293,7 +293,7 @@ def _score_views(dec, data, gt, t: int, threshold: float, tally: _Tally) -> list
     """Score every view of instant ``t`` into ``tally``; returns each view's GT matches."""
     per_view = []
     for v, cam in enumerate(data.rig.names):
-        fgt = gt.frame(cam, t, data.image_size)
+        fgt = gt.frame(cam, t, data.frame_hw)
         truth = (fgt.visible, fgt.amodal, fgt.boxes, fgt.identity, threshold)
         depths, active = dec.depths[v].numpy(), dec.active[v].numpy()
         s = score_frame(dec.masks[v].numpy(), depths, active, *truth)
@@ -315,7 +315,7 @@ def _count_associations(model, dec, data, settings, per_view, tally: _Tally) -> 
             if v == w:
                 continue
             sim = association_scores(
-                model, dec, data.cameras, data.image_size, v, w, settings.slot_bonus
+                model, dec, data.cameras, data.frame_hw, v, w, settings.slot_bonus
             )
             for ident, iv in per_view[v].items():
                 if ident in per_view[w]:

@@ -91,7 +91,7 @@ def prepare_inputs(cfg: DictConfig) -> ExportInputs:
     if not scene:
         scene = resolve_scene(None)
     scene = Path(scene).expanduser()
-    H, W = trained.image_size
+    H, W = trained.frame_hw
     cameras = list(cfg.cameras) if cfg.cameras is not None else None
     if cameras is None and scene.is_dir():
         trained.check_cameras(read_calibration(scene).names, scene)

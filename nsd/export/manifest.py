@@ -95,7 +95,7 @@ def build_manifest(
             "sha256": sha256_file(trained.path),
             "step": trained.step,
             "cameras": trained.cameras,
-            "image_size": list(trained.image_size),
+            "image_size": list(trained.frame_hw),
         },
         "config": OmegaConf.to_container(cfg, resolve=True),
         "training_config": OmegaConf.to_container(trained.config, resolve=True),

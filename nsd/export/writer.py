@@ -60,7 +60,7 @@ class SubjectWriter:
         self.sample = Reservoir(int(cfg.views.max_points), int(cfg.views.seed))
         self.inference = InferenceSettings.from_config(cfg.get("inference"))
         self.grid = (
-            self.inference.grid(inp.footage.rig, inp.trained.image_size)
+            self.inference.grid(inp.footage.rig, inp.trained.frame_hw)
             if self.inference.multiview
             else None
         )
@@ -69,7 +69,7 @@ class SubjectWriter:
     def batch(self, items: list[tuple[int, list[np.ndarray]]]) -> None:
         """Decompose and write B instants: ``items`` = [(t, native views)]."""
         V = len(self.names)
-        H, W = self.inp.trained.image_size
+        H, W = self.inp.trained.frame_hw
         small = np.stack([to_model_size(views, (W, H)) for _, views in items])  # B, V, H, W, 3
         images = torch.from_numpy(small).flatten(0, 1).permute(0, 3, 1, 2).float().div_(255.0)
         bgs = self.inp.backgrounds.repeat(len(items), 1, 1, 1)
@@ -106,7 +106,7 @@ class SubjectWriter:
         sl = slice(first, first + len(self.names))
         slots = None if dec.slots is None else dec.slots[sl]
         one = SimpleNamespace(windows=dec.windows[sl], app=dec.app[sl], slots=slots)
-        H, W = self.inp.trained.image_size
+        H, W = self.inp.trained.frame_hw
         bonus = self.inference.slot_bonus
 
         def score(v: int, r: int) -> torch.Tensor:

@@ -31,7 +31,7 @@ class TrainedDecomposition:
         model: the BiNVS model (eval mode).
         config: the training config.
         cameras: camera names seen in training.
-        image_size: training frame size (H, W).
+        frame_hw: training frame size (H, W).
         path: the checkpoint file.
         step: training steps done.
     """
@@ -39,7 +39,7 @@ class TrainedDecomposition:
     model: BiNVS
     config: DictConfig
     cameras: list[str]
-    image_size: tuple[int, int]
+    frame_hw: tuple[int, int]
     path: Path
     step: int
 

@@ -126,7 +126,7 @@ class SceneData:
         """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
         ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`."""
 
-        grid = voxel_grid(self.rig, self.image_size, resolution)
+        grid = voxel_grid(self.rig, self.frame_hw, resolution)
         boxes, depths, valid = [], [], []
         for t in range(len(self.frames)):
             ev = foreground_evidence(
@@ -172,8 +172,8 @@ class SceneData:
         return self.frames.shape[1]
 
     @property
-    def image_size(self) -> tuple[int, int]:
-        """(H, W)."""
+    def frame_hw(self) -> tuple[int, int]:
+        """(H, W) of the training frames (the constructor's ``image_size`` is (W, H))."""
         return tuple(self.frames.shape[-2:])
 
     def pairs(self, t: np.ndarray, v: np.ndarray, w: np.ndarray) -> PairBatch:

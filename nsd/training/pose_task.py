@@ -72,7 +72,7 @@ class PoseTask:
         latents, targets = [], []
         rig = self.data.rig
         settings = InferenceSettings.from_config(self.cfg.get("inference")).for_views(len(rig))
-        grid = settings.grid(rig, self.data.image_size) if settings.multiview else None
+        grid = settings.grid(rig, self.data.frame_hw) if settings.multiview else None
         for t in frames:
             views, bgs = self.data.views(int(t))
             dec = decompose_views(self.model, views, bgs, len(rig), settings, grid)

@@ -185,7 +185,7 @@ class NSDTask:
         return {
             "stage2_started": self.stage2_started,
             "cameras": list(self.data.rig.names),
-            "image_size": list(self.data.image_size),
+            "image_size": list(self.data.frame_hw),
             "scene": str(self.data.footage.scene),
         }
 

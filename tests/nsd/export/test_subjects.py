@@ -65,10 +65,10 @@ def _reference(ckpt, scene):
     from nsd.training.data import SceneData
 
     trained = load_decomposition(ckpt)
-    H, W = trained.image_size
+    H, W = trained.frame_hw
     data = SceneData(scene, (W, H), val_fraction=0.0)
     st = InferenceSettings.defaults()
-    grid = st.grid(data.rig, data.image_size)
+    grid = st.grid(data.rig, data.frame_hw)
     V = data.num_views
     return data, [
         decompose_views(trained.model, *data.views(t), V, st, grid) for t in range(len(data.frames))

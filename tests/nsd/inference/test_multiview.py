@@ -109,7 +109,7 @@ def test_unknown_setting_and_single_camera_are_clear_errors(tiny_scene):
     data = SceneData(tiny_scene, (32, 24))
     one = data.rig.select(data.rig.names[:1])
     with pytest.raises(ConfigError, match="at least 2 cameras"):
-        InferenceSettings.defaults().grid(one, data.image_size)
+        InferenceSettings.defaults().grid(one, data.frame_hw)
 
 
 def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scene):
@@ -121,7 +121,7 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     bgs = torch.cat([data.views(t)[1] for t in (0, 1)])
     V = data.num_views
     same = InferenceSettings.defaults(window_blend=0.0, depth="detector", resolution=16)
-    multi = decompose_views(model, views, bgs, V, same, same.grid(data.rig, data.image_size))
+    multi = decompose_views(model, views, bgs, V, same, same.grid(data.rig, data.frame_hw))
     single = decompose(model, views, bgs)
     for key in ("windows", "depths", "masks", "raw_masks", "app"):
         assert torch.allclose(getattr(multi, key), getattr(single, key), atol=1e-6), key
@@ -131,4 +131,4 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     one = decompose_views(model, views, bgs, V, InferenceSettings.defaults(views="single"))
     assert torch.equal(one.masks, single.masks) and one.slots is None
     with pytest.raises(ValueError, match="whole instants"):
-        decompose_views(model, views[:3], bgs[:3], V, same, same.grid(data.rig, data.image_size))
+        decompose_views(model, views[:3], bgs[:3], V, same, same.grid(data.rig, data.frame_hw))
