@@ -75,8 +75,8 @@ def count_metrics(checkpoint: Path, scene: Path, n: int, frames: int = FRAMES) -
     from nsd.inference.association_scores import association_scores
     from nsd.inference.single import associate_views, decompose
     from nsd.io.ground_truth import GroundTruth
+    from nsd.io.scene_data import SceneData
     from nsd.model.checkpoint import load_decomposition
-    from nsd.training.data import SceneData
 
     trained = load_decomposition(checkpoint)
     H, W = trained.frame_hw
@@ -133,7 +133,7 @@ def _hull_data(scene: Path, frames: int = 0):
     import torch
     from hydra import compose, initialize_config_module
 
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
 
     with initialize_config_module("nsd.conf", version_base="1.3"):
         cfg = compose("train", overrides=[f"data.scene={scene}", *TRAIN])

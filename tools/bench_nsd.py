@@ -308,7 +308,7 @@ def ablations_inference(out_root: Path) -> None:
     """Re-score every ablation run's final checkpoint under ``out_root`` with multi-view and
     single-image inference (``<run>/inference.json``; the same 30 held-out frames as
     training's evaluations), then rewrite the report."""
-    from nsd.cli.evaluate import evaluate_checkpoint
+    from nsd.evaluation.checkpoint import evaluate_checkpoint
     from nsd.inference.multiview import InferenceSettings
 
     for name in ABLATIONS:
@@ -339,9 +339,9 @@ def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> No
     import torch
 
     from nsd.inference.multiview import InferenceSettings, decompose_views
+    from nsd.io.scene_data import SceneData
     from nsd.io.scenes import resolve_scene
     from nsd.model.checkpoint import load_decomposition
-    from nsd.training.data import SceneData
     from tools.benchlib import median_time
 
     torch.set_num_threads(2)

@@ -62,8 +62,8 @@ def gemm_peak(n: int = 4096) -> dict:
 
 
 def _task(overrides: list[str]):
+    from nsd.io.scene_data import SceneData
     from nsd.io.scenes import resolve_scene
-    from nsd.training.data import SceneData
     from nsd.training.task import NSDTask
 
     cfg = _compose("train", [f"data.max_frames={SCALING_FRAMES}", *overrides])

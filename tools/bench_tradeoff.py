@@ -243,8 +243,8 @@ def nsd_speed_child(name: str, steps: int) -> dict:
     import torch
 
     from nsd.inference.single import decompose
+    from nsd.io.scene_data import SceneData
     from nsd.io.scenes import resolve_scene
-    from nsd.training.data import SceneData
     from nsd.training.task import NSDTask
     from tools.benchlib import median_time, peak_rss_mb
 

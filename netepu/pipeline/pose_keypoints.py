@@ -37,9 +37,9 @@ from nsd.core.trainer import load_checkpoint
 from nsd.cues.triangulation import nearest_point_to_rays
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
+from nsd.io.scene_data import SceneData
 from nsd.model.build import build_model
 from nsd.model.pose_regressor import PoseRegressor
-from nsd.training.data import SceneData
 from nsd.training.pose_task import ROOT
 
 __all__ = ["load_pose_checkpoint", "regress_export", "world_keypoints"]

@@ -20,11 +20,11 @@ from netepu.pipeline.pose_keypoints import regress_export
 from netepu.pipeline.subject_keypoints import invert_export
 from netepu.reid.identities import assign_identities
 from nsd.cameras.calibration_io import read_calibration
-from nsd.cli.evaluate import evaluate_checkpoint, markdown_table
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.stages import Stage, StageResult, config_hash
 from nsd.core.trainer import load_checkpoint
+from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
 from nsd.evaluation.identity import identity_accuracy
 from nsd.evaluation.pose import keypoint_error
 from nsd.export.config import load_export_config

@@ -206,7 +206,7 @@ def evaluate_model(
     refine: str = "residual",
     inference=None,
 ) -> dict[str, float]:
-    """All metrics on ``frames`` of ``data`` (an :class:`nsd.training.data.SceneData`).
+    """All metrics on ``frames`` of ``data`` (an :class:`nsd.io.scene_data.SceneData`).
 
     Without ground truth only the self-supervised novel-view PSNR/SSIM is returned.
     With it, ``mask_miou_raw`` also scores the compositor's raw masks (no refinement).

@@ -41,6 +41,7 @@ from nsd.cues.triangulation import triangulate_midpoints, window_rays
 from nsd.evaluation.decomposition import evaluate_model
 from nsd.evaluation.visualise import training_grid
 from nsd.inference.multiview import InferenceSettings
+from nsd.io.scene_data import SceneData
 from nsd.model.association import appearance_similarity, association_softmax, exclude_absent
 from nsd.model.build import build_model
 from nsd.priors.depth import depth_prior
@@ -52,7 +53,6 @@ from nsd.priors.presence import (
 )
 from nsd.priors.proposal import association_prior, proposal_prior
 from nsd.priors.window import aspect_prior, position_prior, presence_prior, scale_prior
-from nsd.training.data import SceneData
 from nsd.training.losses import total_image_loss
 
 __all__ = ["NSDTask"]

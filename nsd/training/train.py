@@ -10,8 +10,8 @@ from omegaconf import DictConfig, OmegaConf
 from nsd.core.errors import ConfigError
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 from nsd.io.ground_truth import GroundTruth
+from nsd.io.scene_data import SceneData
 from nsd.io.scenes import resolve_scene
-from nsd.training.data import SceneData
 from nsd.training.pose_task import PoseTask
 from nsd.training.task import NSDTask
 

@@ -165,7 +165,7 @@ def test_switched_off_windows_get_no_export_rows(tmp_path):
     ckpt = tmp_path / "off.pt"
     torch.save(state, ckpt)
     trained = load_decomposition(ckpt)
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
 
     data = SceneData(scene, (48, 48), val_fraction=0.0)
     dec = decompose(trained.model, *data.views(0))
@@ -394,7 +394,7 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
 
 def test_presence_is_one_until_its_start_step(tiny_scene):
     """prior_presence.from_step: the detector's presence is 1 before it, learned after it."""
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
     from nsd.training.task import NSDTask
     from tests.nsd.training.test_train import tiny_cfg
 

@@ -43,7 +43,7 @@ def _worker(rank: int, world: int, port: int, scene: str, root: str) -> None:
     )
     torch.set_num_threads(1)
     from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
     from nsd.training.task import NSDTask
     from tests.nsd.training.test_train import tiny_cfg
 

@@ -61,8 +61,8 @@ def _reference(ckpt, scene):
     """The model's own outputs on every frame, one frame (all views) at a time, with the
     export's default (multi-view) inference."""
     from nsd.inference.multiview import InferenceSettings, decompose_views
+    from nsd.io.scene_data import SceneData
     from nsd.model.checkpoint import load_decomposition
-    from nsd.training.data import SceneData
 
     trained = load_decomposition(ckpt)
     H, W = trained.frame_hw
@@ -140,7 +140,7 @@ def test_crops_index_and_manifest_checksums(trained, tmp_path):
 
 
 def test_coco_ap_equals_nsd_eval(trained, tmp_path):
-    from nsd.cli.evaluate import evaluate_checkpoint
+    from nsd.evaluation.checkpoint import evaluate_checkpoint
     from nsd.evaluation.decomposition import coco_ap
     from nsd.io.ground_truth import GroundTruth
 

@@ -12,9 +12,9 @@ from nsd.core.errors import ConfigError
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views, fuse_detections
 from nsd.inference.single import decompose, ownership
+from nsd.io.scene_data import SceneData
 from nsd.model.build import build_model
 from nsd.model.detector import Detections
-from nsd.training.data import SceneData
 from tests.nsd.training.test_train import tiny_cfg
 
 

@@ -174,7 +174,7 @@ def test_bad_presence_gate_raises():
 
 def test_marginal_group_ungates_and_trains_presence(tiny_scene):
     """prior_presence=marginal: hard gate, the BCE term is logged and moves only presence."""
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
     from nsd.training.task import NSDTask
 
     assert tiny_cfg().model.presence_gate == "soft"  # fixed-N default unchanged
@@ -198,7 +198,7 @@ def test_marginal_group_ungates_and_trains_presence(tiny_scene):
 
 def test_unknown_presence_target_raises(tiny_scene):
     from nsd.core.errors import ConfigError
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
     from nsd.training.task import NSDTask
 
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence.target=oracle")
@@ -226,7 +226,7 @@ def test_cap_keeps_at_most_max_on_windows_in_presence_order():
 
 def test_presence_cap_is_checked(tiny_scene):
     from nsd.core.errors import ConfigError
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
     from nsd.training.task import NSDTask
 
     data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
@@ -245,7 +245,7 @@ def test_presence_cap_is_checked(tiny_scene):
 
 
 def test_capped_target_trains_and_never_exceeds_the_hull_count(tiny_scene):
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
     from nsd.training.task import NSDTask
 
     cfg = tiny_cfg(
@@ -292,7 +292,7 @@ def test_matching_gives_valid_proposals_to_active_windows():
 
 def test_hull_target_trains_the_most_present_windows(tiny_scene):
     from nsd.core.errors import ConfigError
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
     from nsd.training.task import NSDTask
 
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence=hull")
@@ -350,8 +350,8 @@ def test_scene_population_adds_back_individuals_merged_for_long():
 
 def test_hull_target_uses_the_smoothed_count(tiny_scene):
     from nsd.core.errors import ConfigError
+    from nsd.io.scene_data import SceneData
     from nsd.priors.presence import smoothed_counts
-    from nsd.training.data import SceneData
     from nsd.training.task import NSDTask
 
     data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
@@ -379,7 +379,7 @@ def test_hull_target_uses_the_smoothed_count(tiny_scene):
 def test_hull_target_needs_no_other_proposal_prior(tiny_scene):
     """The hull's count is computed for the presence target even when every prior that
     reads the proposals is off."""
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
     from nsd.training.task import NSDTask
 
     cfg = tiny_cfg("model.detector.presence=true", "prior_presence=hull",

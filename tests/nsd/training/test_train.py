@@ -8,8 +8,8 @@ import torch
 from hydra import compose, initialize_config_module
 
 from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
+from nsd.io.scene_data import SceneData
 from nsd.model.build import build_model
-from nsd.training.data import SceneData
 from nsd.training.task import NSDTask
 
 TINY = [
@@ -146,7 +146,7 @@ def test_same_view_pairs_share_and_default_draws(tiny_scene):
     """data.same_view: that share of the pairs re-synthesises a view from itself; at 0 the
     draws are exactly the Bi-NVS pairs (v != w); out-of-range values are config errors."""
     from nsd.core.errors import ConfigError
-    from nsd.training.data import SceneData
+    from nsd.io.scene_data import SceneData
 
     data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
     a = data.sample(np.random.default_rng(0), 400)

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
-from nsd.training.data import SceneData
+from nsd.io.scene_data import SceneData
 from nsd.training.task import NSDTask
 from tests.nsd.training.test_train import tiny_cfg
 
