@@ -47,6 +47,7 @@ from netepu.geometry.sampling import sample_foreground_points
 from netepu.texture.crops import crop_grid, crop_windows, sample_masked
 from netepu.texture.encoding import predicted_surface
 from nsd.cameras.batch import CameraBatch
+from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_save_npz
 from nsd.core.errors import ConfigError
 from nsd.synth import get_texture, make_individual, make_rig, render_views, sample_pose
@@ -207,6 +208,20 @@ def _to_u8(x: Tensor) -> np.ndarray:
     return (x.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
 
 
+@dataclass
+class _World:
+    """What both the training and the held-out renders of :func:`_build` share."""
+
+    cfg: TextureDataConfig
+    geo: DataConfig
+    individual: Any
+    textures: np.ndarray  # (T,) pool ids
+    crop_size: int
+    margin: float
+    rng: np.random.Generator
+    progress: Callable[[str], None]
+
+
 def _build(
     cfg: TextureDataConfig,
     geo: DataConfig,
@@ -223,53 +238,67 @@ def _build(
     )
     rig = _rig(geo.rig, geo.image_size)
     held = _rig(geo.heldout_rig, geo.image_size)
-    T = len(cfg.textures)
-    tex = np.asarray(cfg.textures)
-    rays = camera_rays(rig, geo.image_size)
-    C = len(rig)
-    tr: dict[str, list] = {
-        k: []
-        for k in (
-            "keypoints",
-            "camera",
-            "window",
-            "inside",
-            "nnopcs",
-            "pool_uv",
-            "sample_view",
-            "sample_texture",
-            "rgb",
-            "pool_colour",
-        )
+    world = _World(cfg, geo, ind, np.asarray(cfg.textures), crop_size, margin, rng, progress)
+    out = _training_views(world, rig)
+    out.update(_heldout_views(world, rig, held))
+    out["textures"] = world.textures
+    return out
+
+
+def _stacked(lists: dict[str, list], prefix: str) -> dict[str, np.ndarray]:
+    return {
+        f"{prefix}/{k}": np.stack(v) if isinstance(v[0], np.ndarray) else np.asarray(v)
+        for k, v in lists.items()
     }
-    order = rng.permutation(T)
-    cursor = 0
+
+
+def _texture_choices(w: _World, n_views: int, state: list) -> list[list[int]]:
+    """``textures_per_view`` distinct textures for each of ``n_views`` views, cycling through
+    permutations of the pool so that every texture is shown equally often.
+    ``state`` = [order, cursor] carries the cycle from pose to pose."""
+    T = len(w.textures)
+    chosen = []
+    for _ in range(n_views):
+        pick: list[int] = []
+        while len(pick) < w.cfg.textures_per_view:
+            if state[1] == T:
+                state[0], state[1] = w.rng.permutation(T), 0
+            if state[0][state[1]] not in pick:
+                pick.append(int(state[0][state[1]]))
+            state[1] += 1
+        chosen.append(pick)
+    return chosen
+
+
+_TRAIN_KEYS = ("keypoints", "camera", "window", "inside", "nnopcs", "pool_uv", "sample_view",
+               "sample_texture", "rgb", "pool_colour")  # fmt: skip
+
+
+def _training_views(w: _World, rig: CameraRig) -> dict[str, np.ndarray]:
+    """Training poses from every camera of ``rig``, each view with a few textures."""
+    cfg = w.cfg
+    rays = camera_rays(rig, w.geo.image_size)
+    C = len(rig)
+    tr: dict[str, list] = {k: [] for k in _TRAIN_KEYS}
+    state = [w.rng.permutation(len(w.textures)), 0]
     V = 0
-    for p, pose in enumerate(_poses(ind, cfg.train_poses, geo, rng)):
-        r = _render_pose(ind, pose, rays)
+    for p, pose in enumerate(_poses(w.individual, cfg.train_poses, w.geo, w.rng)):
+        r = _render_pose(w.individual, pose, rays)
         views = [c for c in range(C) if r["mask"][c].any()]
-        chosen = []
-        for _ in views:  # cycle through a permutation: every texture equally often
-            pick = []
-            while len(pick) < cfg.textures_per_view:
-                if cursor == T:
-                    order, cursor = rng.permutation(T), 0
-                if order[cursor] not in pick:
-                    pick.append(int(order[cursor]))
-                cursor += 1
-            chosen.append(pick)
+        chosen = _texture_choices(w, len(views), state)
         mask = r["mask"][views]
-        window, inside, nn_crop = _crops(r["nnopcs"][views], mask, crop_size, margin)
+        window, inside, nn_crop = _crops(r["nnopcs"][views], mask, w.crop_size, w.margin)
         for i, c in enumerate(views):
-            uv = sample_foreground_points(mask[i].numpy(), cfg.pool, rng).astype(np.int64)
+            uv = sample_foreground_points(mask[i].numpy(), cfg.pool, w.rng).astype(np.int64)
             tr["keypoints"].append(r["keypoints"].numpy())
             tr["camera"].append(c)
             tr["window"].append(window[i].numpy())
             tr["inside"].append(inside[i].numpy())
             tr["nnopcs"].append(nn_crop[i].numpy().astype(np.float16))
             tr["pool_uv"].append(uv.astype(np.int16))
-            col = _colours(tex[chosen[i]], r, [c])[0]  # (textures_per_view, H, W, 3)
-            _, _, rgb = _crops(col, mask[i : i + 1].expand(len(col), -1, -1), crop_size, margin)
+            col = _colours(w.textures[chosen[i]], r, [c])[0]  # (textures_per_view, H, W, 3)
+            one = mask[i : i + 1].expand(len(col), -1, -1)
+            _, _, rgb = _crops(col, one, w.crop_size, w.margin)
             for j, t in enumerate(chosen[i]):
                 tr["sample_view"].append(V)
                 tr["sample_texture"].append(t)
@@ -277,43 +306,33 @@ def _build(
                 tr["pool_colour"].append(_to_u8(col[j][uv[:, 1], uv[:, 0]]))
             V += 1
         if (p + 1) % 20 == 0:
-            progress(f"texture data: training poses {p + 1}/{cfg.train_poses}")
-    out = {
-        f"train/{k}": np.stack(v) if isinstance(v[0], np.ndarray) else np.asarray(v)
-        for k, v in tr.items()
-    }
-    # held-out poses, seen by every camera of both rigs, with every texture
-    ev: dict[str, list] = {
-        k: []
-        for k in (
-            "keypoints",
-            "pose",
-            "camera",
-            "heldout_camera",
-            "window",
-            "inside",
-            "nnopcs",
-            "rgb",
-            "mask",
-            "colour",
-            "psnr_view",
-        )
-    }
+            w.progress(f"texture data: training poses {p + 1}/{cfg.train_poses}")
+    return _stacked(tr, "train")
+
+
+_HELDOUT_KEYS = ("keypoints", "pose", "camera", "heldout_camera", "window", "inside", "nnopcs",
+                 "rgb", "mask", "colour", "psnr_view")  # fmt: skip
+
+
+def _heldout_views(w: _World, rig: CameraRig, held: CameraRig) -> dict[str, np.ndarray]:
+    """Held-out poses, seen by every camera of both rigs, with every texture."""
+    cfg, T, C = w.cfg, len(w.textures), len(rig)
+    ev: dict[str, list] = {k: [] for k in _HELDOUT_KEYS}
     cams = CameraBatch.cat([rig.stacked(torch.float32), held.stacked(torch.float32)])
-    held_rays = camera_rays(held, geo.image_size)
+    rays, held_rays = camera_rays(rig, w.geo.image_size), camera_rays(held, w.geo.image_size)
     E = 0
-    for p, pose in enumerate(_poses(ind, cfg.eval_poses, geo, rng)):
+    for p, pose in enumerate(_poses(w.individual, cfg.eval_poses, w.geo, w.rng)):
         for offset, rr in ((0, rays), (C, held_rays)):
-            r = _render_pose(ind, pose, rr)
+            r = _render_pose(w.individual, pose, rr)
             views = [c for c in range(r["mask"].shape[0]) if r["mask"][c].any()]
-            col = _colours(tex, r, views)
+            col = _colours(w.textures, r, views)
             mask = r["mask"][views]
-            window, inside, nn_crop = _crops(r["nnopcs"][views], mask, crop_size, margin)
-            psnr = set(
-                rng.choice(len(views), min(cfg.psnr_cameras, len(views)), replace=False).tolist()
-            )
+            window, inside, nn_crop = _crops(r["nnopcs"][views], mask, w.crop_size, w.margin)
+            n_psnr = min(cfg.psnr_cameras, len(views))
+            psnr = set(w.rng.choice(len(views), n_psnr, replace=False).tolist())
             for i, c in enumerate(views):
-                rgb = _crops(col[i], mask[i : i + 1].expand(T, -1, -1), crop_size, margin)[2]
+                one = mask[i : i + 1].expand(T, -1, -1)
+                rgb = _crops(col[i], one, w.crop_size, w.margin)[2]
                 ev["keypoints"].append(r["keypoints"].numpy())
                 ev["pose"].append(p)
                 ev["camera"].append(offset + c)
@@ -327,13 +346,11 @@ def _build(
                     ev["mask"].append(mask[i].numpy())
                     ev["colour"].append(_to_u8(col[i]))
                 E += 1
-        progress(f"texture data: held-out poses {p + 1}/{cfg.eval_poses}")
-    for k, v in ev.items():
-        out[f"heldout/{k}"] = np.stack(v) if isinstance(v[0], np.ndarray) else np.asarray(v)
+        w.progress(f"texture data: held-out poses {p + 1}/{cfg.eval_poses}")
+    out = _stacked(ev, "heldout")
     camera_index = out["heldout/camera"]
     for k, v in cams.as_dict().items():
         out[f"heldout/cam_{k}"] = v.numpy()[camera_index]
-    out["textures"] = tex
     return out
 
 

@@ -83,58 +83,72 @@ def build_manifest(
         views_written: which embedding views were written (``tensorboard``, ``tsne``).
         timing: wall times of the export.
     """
-    trained, footage = inputs.trained, inputs.footage
     n_frames = int(writer.frames_done)
-    V = len(writer.names)
     return {
         "format": FORMAT,
         "toolkit": {"name": "nsd-netepu", "version": toolkit_version(), "torch": torch.__version__},
         "created": created,
-        "checkpoint": {
-            "path": str(trained.path.resolve()),
-            "sha256": sha256_file(trained.path),
-            "step": trained.step,
-            "cameras": trained.cameras,
-            "image_size": list(trained.frame_hw),
-        },
+        "checkpoint": _checkpoint_section(inputs.trained),
         "config": OmegaConf.to_container(cfg, resolve=True),
-        "training_config": OmegaConf.to_container(trained.config, resolve=True),
-        "scene": {
-            "path": str(inputs.scene.resolve()),
-            "cameras": writer.names,
-            "native_sizes": {
-                c: list(footage.native_rig[v].size) for v, c in enumerate(writer.names)
-            },
-            "num_frames": footage.num_frames,
-            "ground_truth": (inputs.scene / "gt" / "coco.json").is_file(),
-        },
+        "training_config": OmegaConf.to_container(inputs.trained.config, resolve=True),
+        "scene": _scene_section(inputs, writer.names),
         "frames": {
             "selection": _selection(cfg.frames),
             "count": n_frames,
             "first": int(inputs.frames[0]),
             "last": int(inputs.frames[-1]),
         },
-        "counts": {
-            "frames": n_frames,
-            "camera_frames": n_frames * V,
-            "subjects": writer.coco.num_annotations,
-            "tracks": writer.tracker.next_id - 1,
-            "crops": writer.crops.count,
-            "crop_files": writer.crops.files,
-            "embedding_rows": writer.embeddings.rows,
-            "mot_lines": dict(writer.mot.counts),
-            "sample": len(writer.sample),
-        },
+        "counts": _counts_section(writer),
         "views": views_written,
-        "timing": {
-            "seconds": round(timing.seconds, 3),
-            "frames_per_second": round(n_frames / max(timing.seconds, 1e-9), 3),
-            "camera_frames_per_second": round(n_frames * V / max(timing.seconds, 1e-9), 3),
-            "views_seconds": round(timing.views_seconds, 3),
-        },
+        "timing": _timing_section(timing, n_frames, len(writer.names)),
         "files": {
             p.relative_to(root).as_posix(): {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
             for p in sorted(root.rglob("*"))
             if p.is_file()
         },
+    }
+
+
+def _checkpoint_section(trained: Any) -> dict[str, Any]:
+    return {
+        "path": str(trained.path.resolve()),
+        "sha256": sha256_file(trained.path),
+        "step": trained.step,
+        "cameras": trained.cameras,
+        "image_size": list(trained.frame_hw),
+    }
+
+
+def _scene_section(inputs: Any, names: list[str]) -> dict[str, Any]:
+    footage = inputs.footage
+    return {
+        "path": str(inputs.scene.resolve()),
+        "cameras": names,
+        "native_sizes": {c: list(footage.native_rig[v].size) for v, c in enumerate(names)},
+        "num_frames": footage.num_frames,
+        "ground_truth": (inputs.scene / "gt" / "coco.json").is_file(),
+    }
+
+
+def _counts_section(writer: Any) -> dict[str, Any]:
+    n_frames = int(writer.frames_done)
+    return {
+        "frames": n_frames,
+        "camera_frames": n_frames * len(writer.names),
+        "subjects": writer.coco.num_annotations,
+        "tracks": writer.tracker.next_id - 1,
+        "crops": writer.crops.count,
+        "crop_files": writer.crops.files,
+        "embedding_rows": writer.embeddings.rows,
+        "mot_lines": dict(writer.mot.counts),
+        "sample": len(writer.sample),
+    }
+
+
+def _timing_section(timing: Timing, n_frames: int, V: int) -> dict[str, float]:
+    return {
+        "seconds": round(timing.seconds, 3),
+        "frames_per_second": round(n_frames / max(timing.seconds, 1e-9), 3),
+        "camera_frames_per_second": round(n_frames * V / max(timing.seconds, 1e-9), 3),
+        "views_seconds": round(timing.views_seconds, 3),
     }
