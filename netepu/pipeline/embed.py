@@ -100,23 +100,7 @@ def embed_export(
             f"export: {crops / 'index.csv'} does not exist (not an nsd-export folder with crops)"
         )
     texture, geometry, _ = load_texture_model(checkpoint)
-    need_geometry = texture.cfg.use_nnopcs
-    kps = rig = None
-    if need_geometry:
-        if keypoints is None or calibration is None:
-            raise ConfigError(
-                "this texture model reads NNOPCS maps: give keypoints=<npz with id, "
-                "keypoints> and calibration=<scene calibration file or folder>"
-            )
-
-        kps = _keypoints(keypoints)
-        rig = read_calibration(calibration)
-        if kps and next(iter(kps.values())).shape[0] != geometry.n_keypoints:
-            raise ConfigError(
-                f"keypoints: {keypoints} has K = "
-                f"{next(iter(kps.values())).shape[0]}, the model wants "
-                f"{geometry.n_keypoints}"
-            )
+    kps, rig = _surface_inputs(texture, geometry, keypoints, calibration)
     index = {r["id"]: r for r in read_crop_index(crops)}
     row_ids = read_embeddings(table, columns=["id"])["id"].astype(np.int64)
     codes = np.full((len(row_ids), texture.cfg.latent), np.nan, np.float32)
@@ -128,43 +112,16 @@ def embed_export(
             "%d of %d rows have no crop%s; their codes are NaN",
             skipped,
             len(row_ids),
-            " or keypoints" if need_geometry else "",
+            " or keypoints" if texture.cfg.use_nnopcs else "",
         )
-    cams = rig.stacked(torch.float32) if rig is not None else None
     read: dict[str, list] = {"id": [], "rgb": [], "inside": [], "surface": []}
+    batch = _Batcher(texture, geometry, crops, index, kps, rig, calibration)
     for s in range(0, len(todo), batch_size):
         rows = todo[s : s + batch_size]
-        ids = [int(row_ids[k]) for k in rows]
-        images, masks = read_crops(crops, ids)
-        keep = masks.reshape(len(ids), -1).any(1)
-        if not keep.any():
+        got = batch.encode(rows, [int(row_ids[k]) for k in rows])
+        if got is None:
             continue
-        ids = [i for i, k in zip(ids, keep, strict=True) if k]
-        rows = [r for r, k in zip(rows, keep, strict=True) if k]
-        window = torch.tensor(
-            [[index[i]["crop_x"], index[i]["crop_y"], index[i]["crop_side"]] for i in ids],
-            dtype=torch.float64,
-        )
-        kp = cam = None
-        if need_geometry:
-            try:
-                ci = torch.tensor([rig.index(index[i]["camera"]) for i in ids])
-            except (KeyError, ValueError) as e:
-                raise ConfigError(
-                    f"calibration: {calibration} lacks a camera of the export: {e}"
-                ) from e
-            cam = cams[ci]
-            kp = torch.from_numpy(np.stack([kps[i] for i in ids])).float()
-        mu, rgb, inside, surface = texture_codes(
-            texture,
-            geometry,
-            torch.from_numpy(images[keep]),
-            torch.from_numpy(masks[keep] > 0),
-            kp,
-            cam,
-            window=window,
-            return_crops=True,
-        )
+        rows, ids, mu, rgb, inside, surface = got
         codes[rows] = mu.numpy()
         if maps is not None:
             read["id"] += ids
@@ -178,6 +135,70 @@ def embed_export(
         write_surface_maps(Path(maps), read, texture.cfg.crop_size)
     path = add_columns(table, {column: codes, f"{column}_valid": valid, f"{column}_reid": reid})
     return {"rows": len(row_ids), "encoded": int(valid.sum()), "path": str(path)}
+
+
+def _surface_inputs(texture, geometry, keypoints, calibration) -> tuple[dict | None, Any]:
+    """The keypoints (id -> (K, 3)) and calibration a model that reads NNOPCS maps needs."""
+    if not texture.cfg.use_nnopcs:
+        return None, None
+    if keypoints is None or calibration is None:
+        raise ConfigError(
+            "this texture model reads NNOPCS maps: give keypoints=<npz with id, "
+            "keypoints> and calibration=<scene calibration file or folder>"
+        )
+    kps = _keypoints(keypoints)
+    rig = read_calibration(calibration)
+    if kps and next(iter(kps.values())).shape[0] != geometry.n_keypoints:
+        raise ConfigError(
+            f"keypoints: {keypoints} has K = "
+            f"{next(iter(kps.values())).shape[0]}, the model wants "
+            f"{geometry.n_keypoints}"
+        )
+    return kps, rig
+
+
+class _Batcher:
+    """Texture codes of batches of an export's rows, from their crops (and keypoints)."""
+
+    def __init__(self, texture, geometry, crops, index, kps, rig, calibration) -> None:
+        self.texture, self.geometry, self.crops, self.index = texture, geometry, crops, index
+        self.kps, self.rig, self.calibration = kps, rig, calibration
+        self.cams = rig.stacked(torch.float32) if rig is not None else None
+
+    def encode(self, rows: list[int], ids: list[int]):
+        """(rows, ids, mu, rgb, inside, surface) of the rows whose crop mask is not empty."""
+        images, masks = read_crops(self.crops, ids)
+        keep = masks.reshape(len(ids), -1).any(1)
+        if not keep.any():
+            return None
+        ids = [i for i, k in zip(ids, keep, strict=True) if k]
+        rows = [r for r, k in zip(rows, keep, strict=True) if k]
+        index = self.index
+        window = torch.tensor(
+            [[index[i]["crop_x"], index[i]["crop_y"], index[i]["crop_side"]] for i in ids],
+            dtype=torch.float64,
+        )
+        kp = cam = None
+        if self.texture.cfg.use_nnopcs:
+            try:
+                ci = torch.tensor([self.rig.index(index[i]["camera"]) for i in ids])
+            except (KeyError, ValueError) as e:
+                raise ConfigError(
+                    f"calibration: {self.calibration} lacks a camera of the export: {e}"
+                ) from e
+            cam = self.cams[ci]
+            kp = torch.from_numpy(np.stack([self.kps[i] for i in ids])).float()
+        mu, rgb, inside, surface = texture_codes(
+            self.texture,
+            self.geometry,
+            torch.from_numpy(images[keep]),
+            torch.from_numpy(masks[keep] > 0),
+            kp,
+            cam,
+            window=window,
+            return_crops=True,
+        )
+        return rows, ids, mu, rgb, inside, surface
 
 
 def write_surface_maps(path: Path, read: dict[str, list], size: int, grid_rows: int = 12) -> None:

@@ -35,6 +35,7 @@ from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.trainer import load_checkpoint
 from nsd.cues.triangulation import nearest_point_to_rays
+from nsd.export.config import load_export_config
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
 from nsd.io.scene_data import SceneData
@@ -114,23 +115,9 @@ def regress_export(
     if frame_step < 1 or min_views < 2:
         raise ConfigError(f"frame_step >= 1 and min_views >= 2, got {frame_step}, {min_views}")
     model, pose, cfg = load_pose_checkpoint(checkpoint)
-    d = cfg["data"]
-    # decompose exactly as the export did (its cameras and inference), so that an
-    # annotation's slot is the window whose latent is regressed; exports written before
-    # multi-view inference record no inference: single-image, weights alone
-    manifest = Path(export) / "manifest.json"
-    ecfg = json.loads(manifest.read_text()).get("config", {}) if manifest.is_file() else {}
-    settings = InferenceSettings.from_config(
-        ecfg.get("inference", {"views": "single", "colour_sigma": 0.0})
-    )
-    cams = ecfg.get("cameras") or d.get("cameras")
-    data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0))
+    data, settings, decompose_kw = _as_exported(export, scene, cfg["data"])
     rig = data.rig  # the exported views
     grid = settings.grid(rig, data.frame_hw) if settings.multiview else None
-    decompose_kw = {
-        "mask_threshold": float(ecfg.get("threshold", 0.5)),
-        "refine": str(ecfg.get("refine", "residual")),
-    }
     native = read_calibration(scene)  # the export's boxes are in native pixels
     images, groups, n_frames = subject_groups(
         export, frame_step, lambda a, im: im["camera"] in rig.names
@@ -144,19 +131,7 @@ def regress_export(
             views, bgs = data.views(t)
             dec = decompose_views(model, views, bgs, len(rig), settings, grid, **decompose_kw)
             dec_frame = t
-        rel, rot, origins, dirs = [], [], [], []
-        for a in anns:
-            name = images[int(a["image_id"])]["camera"]
-            v, cam = rig.index(name), native[name]
-            x = pose(dec.latent[v, int(a["slot"])][None])[0].double().numpy()
-            rel.append(x - x[ROOT])
-            rot.append(cam.R)
-            bx, by, bw, bh = a["bbox"]
-            origins.append(cam.center)
-            dirs.append(cam.unproject(np.array([[bx + bw / 2 - 0.5, by + bh / 2 - 0.5]]))[0])
-        kp, spread = world_keypoints(
-            np.stack(rel), np.stack(rot), np.stack(origins), np.stack(dirs)
-        )
+        kp, spread = _subject_keypoints(pose, dec, anns, images, rig, native)
         fitted.add(t, sid, anns, kp, spread)
     fitted.save(Path(out) / "keypoints3d.npz", pose.keypoints)
     log.info("keypoints: %d subject-frames regressed, %d frames", len(fitted), n_frames)
@@ -167,3 +142,37 @@ def regress_export(
         "frames": n_frames,
         "mean_view_disagreement": float(np.mean(spreads)) if spreads else None,
     }
+
+
+def _as_exported(export, scene, d) -> tuple[SceneData, InferenceSettings, dict[str, Any]]:
+    """The scene data, inference and decomposition settings the export was made with, so
+    that an annotation's slot is the window whose latent is regressed. Exports written
+    before multi-view inference record no inference: single-image, weights alone."""
+    manifest = Path(export) / "manifest.json"
+    ecfg = json.loads(manifest.read_text()).get("config", {}) if manifest.is_file() else {}
+    settings = InferenceSettings.from_config(
+        ecfg.get("inference", {"views": "single", "colour_sigma": 0.0})
+    )
+    cams = ecfg.get("cameras") or d.get("cameras")
+    data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0))
+    shipped = load_export_config()  # what an export that records no setting used
+    decompose_kw = {
+        "mask_threshold": float(ecfg.get("threshold", shipped.threshold)),
+        "refine": str(ecfg.get("refine", shipped.refine)),
+    }
+    return data, settings, decompose_kw
+
+
+def _subject_keypoints(pose, dec, anns, images, rig, native) -> tuple[np.ndarray, float]:
+    """One subject's world keypoints from its views' regressed, root-relative poses."""
+    rel, rot, origins, dirs = [], [], [], []
+    for a in anns:
+        name = images[int(a["image_id"])]["camera"]
+        v, cam = rig.index(name), native[name]
+        x = pose(dec.latent[v, int(a["slot"])][None])[0].double().numpy()
+        rel.append(x - x[ROOT])
+        rot.append(cam.R)
+        bx, by, bw, bh = a["bbox"]
+        origins.append(cam.center)
+        dirs.append(cam.unproject(np.array([[bx + bw / 2 - 0.5, by + bh / 2 - 0.5]]))[0])
+    return world_keypoints(np.stack(rel), np.stack(rot), np.stack(origins), np.stack(dirs))

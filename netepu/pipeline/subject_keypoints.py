@@ -29,6 +29,7 @@ from pycocotools import mask as mask_utils
 
 from netepu.geometry.data import DataConfig
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes
+from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import load_geometry_model
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
@@ -92,7 +93,8 @@ def invert_export(
     model, config = load_geometry_model(checkpoint)
     net = config["netepu"]
     starts = template_poses(net["data"], templates)
-    settings = InverseSettings(steps=steps, margin=float(net.get("render", {}).get("margin", 0.35)))
+    render = net.get("render") or MapSettings.default_mapping()  # checkpoints before it: defaults
+    settings = InverseSettings(steps=steps, margin=float(render["margin"]))
     rig = read_calibration(scene)
     cams = rig.stacked(torch.float32)
     images, groups, n_frames = subject_groups(
@@ -100,24 +102,7 @@ def invert_export(
     )
     fitted = SubjectKeypoints()
     for (t, sid), anns in groups:
-        sizes = {
-            (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"]))
-            for a in anns
-        }
-        if len(sizes) > 1:  # invert_silhouettes takes one (V, H, W) stack: keep the common size
-            common = max(
-                sizes,
-                key=lambda s: sum(
-                    (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"])) == s
-                    for a in anns
-                ),
-            )
-            anns = [
-                a
-                for a in anns
-                if (int(images[a["image_id"]]["height"]), int(images[a["image_id"]]["width"]))
-                == common
-            ]
+        anns = _views_of_one_size(anns, images)
         if len(anns) < min_views:
             continue
         if max_subject_frames and len(fitted) >= max_subject_frames:
@@ -148,3 +133,16 @@ def invert_export(
     }
 
 
+def _views_of_one_size(anns: list[dict], images: dict[int, dict]) -> list[dict]:
+    """The subject's views whose images share the most common size: the inversion takes
+    one (V, H, W) stack of masks."""
+
+    def size(a: dict) -> tuple[int, int]:
+        im = images[a["image_id"]]
+        return int(im["height"]), int(im["width"])
+
+    sizes = [size(a) for a in anns]
+    if len(set(sizes)) == 1:
+        return anns
+    common = max(set(sizes), key=sizes.count)
+    return [a for a, s in zip(anns, sizes, strict=True) if s == common]
