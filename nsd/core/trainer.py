@@ -380,16 +380,7 @@ class Trainer:
         Under torch.distributed every rank calls it and gets rank 0's metrics.
         """
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        resume = self.cfg.resume and self.checkpoint_path.is_file()
-        if self.world > 1:
-            decided = distributed.broadcast_object(resume)  # rank 0 decides for everyone
-            if decided and not resume:
-                raise CheckpointError(
-                    f"rank {self.rank} cannot read {self.checkpoint_path}, which rank 0 resumes "
-                    "from: put the run directory on a filesystem that every node shares"
-                )
-            resume = decided
-        if resume:
+        if self._should_resume():
             self.load(self.checkpoint_path)
         distributed.broadcast_parameters(self.task.modules().values())
         for m in self.task.modules().values():
@@ -404,47 +395,13 @@ class Trainer:
             ctx.__enter__()
         try:
             while not self._done():
-                t0 = time.perf_counter()
-                opts = self.task.optimizers()
-                for o in opts.values():
-                    o.zero_grad(set_to_none=True)
-                losses = self.task.training_step(self.step, self.rng)
-                losses["loss"].backward()
-                if self.world > 1:
-                    losses = self._synchronise(losses, t0)
-                if self.cfg.stop_on_nonfinite:
-                    self._check_finite(losses)
-                if self.cfg.grad_clip > 0:
-                    for o in opts.values():
-                        params = [p for g in o.param_groups for p in g["params"]]
-                        torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
-                for o in opts.values():
-                    o.step()
-                for s in getattr(self.task, "schedulers", lambda: {})().values():
-                    s.step()
-                self.step += 1
-                if self.world > 1:
-                    self._own_seconds += time.perf_counter() - t0
-                    self.train_seconds = self._shared_clock
-                else:
-                    self.train_seconds += time.perf_counter() - t0
+                losses = self._step()
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(
                         loss=f"{losses['loss'].item():.4f}", min=f"{self.train_seconds / 60:.1f}"
                     )
-                c = self.cfg
-                if c.log_every and self.step % c.log_every == 0:
-                    self._log({k: v.item() for k, v in losses.items()}, "train")
-                while minute_marks and self.train_seconds >= 60 * minute_marks[0]:
-                    self._evaluate()
-                    self._evals_done.add(minute_marks.pop(0))
-                if c.eval_every and self.step % c.eval_every == 0:
-                    self._evaluate()
-                if c.grid_every and self.step % c.grid_every == 0:
-                    self._grids()
-                if c.checkpoint_every and self.step % c.checkpoint_every == 0:
-                    self.save()
+                self._after_step(losses, minute_marks)
         finally:
             if ctx is not None:
                 ctx.__exit__(None, None, None)
@@ -459,6 +416,62 @@ class Trainer:
         if self._tb is not None:
             self._tb.flush()
         return distributed.broadcast_object(metrics)
+
+    def _should_resume(self) -> bool:
+        """Resume from the run's checkpoint? Rank 0 decides for every rank."""
+        resume = self.cfg.resume and self.checkpoint_path.is_file()
+        if self.world > 1:
+            decided = distributed.broadcast_object(resume)
+            if decided and not resume:
+                raise CheckpointError(
+                    f"rank {self.rank} cannot read {self.checkpoint_path}, which rank 0 resumes "
+                    "from: put the run directory on a filesystem that every node shares"
+                )
+            resume = decided
+        return resume
+
+    def _step(self) -> dict[str, torch.Tensor]:
+        """One optimisation step of every optimiser; returns the step's losses."""
+        t0 = time.perf_counter()
+        opts = self.task.optimizers()
+        for o in opts.values():
+            o.zero_grad(set_to_none=True)
+        losses = self.task.training_step(self.step, self.rng)
+        losses["loss"].backward()
+        if self.world > 1:
+            losses = self._synchronise(losses, t0)
+        if self.cfg.stop_on_nonfinite:
+            self._check_finite(losses)
+        if self.cfg.grad_clip > 0:
+            for o in opts.values():
+                params = [p for g in o.param_groups for p in g["params"]]
+                torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+        for o in opts.values():
+            o.step()
+        for s in getattr(self.task, "schedulers", lambda: {})().values():
+            s.step()
+        self.step += 1
+        if self.world > 1:
+            self._own_seconds += time.perf_counter() - t0
+            self.train_seconds = self._shared_clock
+        else:
+            self.train_seconds += time.perf_counter() - t0
+        return losses
+
+    def _after_step(self, losses: dict[str, torch.Tensor], minute_marks: list[float]) -> None:
+        """Logs, evaluations (at steps and at training minutes), grids and checkpoints due."""
+        c = self.cfg
+        if c.log_every and self.step % c.log_every == 0:
+            self._log({k: v.item() for k, v in losses.items()}, "train")
+        while minute_marks and self.train_seconds >= 60 * minute_marks[0]:
+            self._evaluate()
+            self._evals_done.add(minute_marks.pop(0))
+        if c.eval_every and self.step % c.eval_every == 0:
+            self._evaluate()
+        if c.grid_every and self.step % c.grid_every == 0:
+            self._grids()
+        if c.checkpoint_every and self.step % c.checkpoint_every == 0:
+            self.save()
 
     def throughput(self) -> float:
         """Training iterations per second so far."""

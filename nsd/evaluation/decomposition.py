@@ -129,8 +129,28 @@ def score_frame(
             s.detected += 1
         matched_gt[g] = int(win[p])
         s.matches[int(gt_ids[g])] = int(win[p])
-    # depth order over overlapping GT pairs
+    _score_depth_order(s, pred_depths, gt_visible, gt_amodal, matched_gt)
     G = len(gt_ids)
+    H, W = gt_visible.shape[-2:]
+    gt_lab = np.full((H, W), -1, np.int64)
+    for g in range(G):
+        gt_lab[gt_visible[g]] = g
+    if len(win):
+        weights = pred_masks[win]
+        pred_lab = np.where(weights.max(0) > threshold, weights.argmax(0), -1)
+    else:
+        pred_lab = np.full((H, W), -1)
+    if G == 0:
+        return s
+    s.ari.append(fg_ari(gt_lab, pred_lab))
+    _score_merges_and_overlaps(s, pm, gt_visible, gt_amodal, gt_lab, pred_lab, pairs)
+    return s
+
+
+def _score_depth_order(s, pred_depths, gt_visible, gt_amodal, matched_gt) -> None:
+    """Depth order over pairs of matched GT individuals whose amodal masks overlap: the one
+    more visible in the overlap is in front, and its window must have the smaller depth."""
+    G = len(gt_visible)
     for a in range(G):
         for b in range(a + 1, G):
             overlap = gt_amodal[a] & gt_amodal[b]
@@ -142,36 +162,25 @@ def score_frame(
             front, back = (a, b) if va > vb else (b, a)
             s.order_total += 1
             s.order_correct += int(pred_depths[matched_gt[front]] < pred_depths[matched_gt[back]])
-    # foreground ARI
-    H, W = gt_visible.shape[-2:]
-    gt_lab = np.full((H, W), -1, np.int64)
-    for g in range(G):
-        gt_lab[gt_visible[g]] = g
-    if len(win):
-        weights = pred_masks[win]
-        pred_lab = np.where(weights.max(0) > threshold, weights.argmax(0), -1)
-    else:
-        pred_lab = np.full((H, W), -1)
-    if G:
-        s.ari.append(fg_ari(gt_lab, pred_lab))
-    if G == 0:
-        return s
-    # merged subjects and ownership of overlaps
+
+
+def _score_merges_and_overlaps(s, pm, gt_visible, gt_amodal, gt_lab, pred_lab, pairs) -> None:
+    """Merged subjects (one window covering half of two) and who owns amodal overlaps."""
+    G, n_win = len(gt_visible), len(pm)
     gt_area = gt_visible.reshape(G, -1).sum(1)
     if (gt_area > 0).sum() >= 2:
         s.multi += 1
-        if len(win):
-            inter = pm.reshape(len(win), -1).astype(np.int64) @ gt_visible.reshape(G, -1).T
+        if n_win:
+            inter = pm.reshape(n_win, -1).astype(np.int64) @ gt_visible.reshape(G, -1).T
             covered = inter >= 0.5 * np.maximum(gt_area, 1)[None]
             s.merged += int((covered.sum(1) >= 2).any())
     in_overlap = (gt_amodal.sum(0) >= 2) & (gt_lab >= 0)
     s.overlap_pixels += int(in_overlap.sum())
-    if len(win) and in_overlap.any():
+    if n_win and in_overlap.any():
         owner = np.full(G, -2)  # row of pred_lab's window per GT individual (-2: unmatched)
         for p, g in pairs:
             owner[g] = p
         s.overlap_owned += int((pred_lab[in_overlap] == owner[gt_lab[in_overlap]]).sum())
-    return s
 
 
 def coco_ap(gt_coco, results: list[dict], image_ids: Sequence[int]) -> dict[str, float]:

@@ -255,6 +255,40 @@ class BiNVS(nn.Module):
             geometry_cost: ray distances between target and source windows (B, N, N),
                 metres; subtracted from the similarity with ``association_geometry``.
         """
+        rgb, mask = self._decode(source, rotation)
+        associate = self.cfg.association if associate is None else associate
+        B, N = source.app.shape[:2]
+        if associate:
+            M = exclude_absent(
+                self.association_score(target.app, source.app, geometry_cost),
+                self.present(source),
+            )
+            A = hard_association(M) if hard else association_softmax(M, self.cfg.association_beta)
+            rgb, mask = apply_association(A, rgb), apply_association(A, mask)
+        else:
+            A = torch.eye(N, dtype=rgb.dtype, device=rgb.device).expand(B, N, N)
+        H, W = background.shape[-2:]
+        boxes = target.det.boxes
+        layers = paste(rgb, boxes, (H, W), focal=self.cfg.focal, padding_mode="border")
+        masks = paste(mask, boxes, (H, W), focal=self.cfg.focal, padding_mode="zeros")[:, :, 0]
+        ungated = masks = masks.clamp(0.0, 1.0)
+        masks = self._gate(masks, target)
+        comp, occlusion = self._composite(masks, target)
+        return Rendering(
+            blend(comp, layers, background),
+            comp,
+            layers,
+            masks,
+            A,
+            rgb,
+            mask,
+            occlusion_reasoning=occlusion,
+            ungated_masks=ungated,
+        )
+
+    def _decode(self, source: Windows, rotation: Tensor) -> tuple[Tensor, Tensor]:
+        """Crop colours (B, N, 3, c, c) and normalised masks (B, N, 1, c, c) of the source's
+        windows, their latent rotated into the target view; switched-off windows are empty."""
         B, N = source.app.shape[:2]
         latent = rotate_latent(source.latent, rotation.to(source.latent.dtype))
         if source.on is None:
@@ -273,46 +307,26 @@ class BiNVS(nn.Module):
             mask, self.cfg.mask_normalisation, self.cfg.focal, self.cfg.mask_floor,
             self.cfg.mask_pool,
         )
-        associate = self.cfg.association if associate is None else associate
-        if associate:
-            M = exclude_absent(
-                self.association_score(target.app, source.app, geometry_cost),
-                self.present(source),
-            )
-            A = hard_association(M) if hard else association_softmax(M, self.cfg.association_beta)
-            rgb, mask = apply_association(A, rgb), apply_association(A, mask)
-        else:
-            A = torch.eye(N, dtype=rgb.dtype, device=rgb.device).expand(B, N, N)
-        H, W = background.shape[-2:]
-        boxes = target.det.boxes
-        layers = paste(rgb, boxes, (H, W), focal=self.cfg.focal, padding_mode="border")
-        masks = paste(mask, boxes, (H, W), focal=self.cfg.focal, padding_mode="zeros")[:, :, 0]
-        ungated = masks = masks.clamp(0.0, 1.0)
+        return rgb, mask
+
+    def _gate(self, masks: Tensor, target: Windows) -> Tensor:
+        """Pasted masks (B, N, H, W) gated by presence (``presence_gate``) and, at inference,
+        by which windows are on."""
         if self.cfg.presence_gate == "soft":
             masks = masks * target.det.presence[..., None, None]
         elif self.cfg.presence_gate == "hard":  # no image gradient into the presence
             masks = masks * (target.det.presence.detach() >= 0.5)[..., None, None].to(masks.dtype)
         if target.on is not None:  # inference: skip occlusion reasoning without overlaps
             masks = masks * target.on[..., None, None]
-        occlusion = True
+        return masks
+
+    def _composite(self, masks: Tensor, target: Windows) -> tuple[Composite, bool]:
+        """The compositor's weights, and whether occlusion reasoning was needed."""
         if not self.cfg.depth:
-            comp = additive_composite(masks, target.det.depths)
-        elif target.on is not None and not masks_overlap(masks).any():
-            comp = separate_composite(masks, target.det.depths)
-            occlusion = False
-        else:
-            comp = erf_transmittance_composite(masks, target.det.depths)
-        return Rendering(
-            blend(comp, layers, background),
-            comp,
-            layers,
-            masks,
-            A,
-            rgb,
-            mask,
-            occlusion_reasoning=occlusion,
-            ungated_masks=ungated,
-        )
+            return additive_composite(masks, target.det.depths), True
+        if target.on is not None and not masks_overlap(masks).any():
+            return separate_composite(masks, target.det.depths), False
+        return erf_transmittance_composite(masks, target.det.depths), True
 
     def forward(
         self,
