@@ -234,8 +234,8 @@ def _to_container(node):
 
 def netepu_query() -> list[dict]:
     """NeTePu renderer query (attention + head) on a training step's points, fwd and fwd+bwd."""
-    from netepu.cli.train import build_geometry_stage
     from netepu.geometry.data import sample_batch
+    from netepu.geometry.stage import build_geometry_stage
 
     cfg = _compose("netepu_train", [])
     torch.manual_seed(0)

@@ -287,8 +287,8 @@ def netepu_speed_child(name: str, steps: int) -> dict:
     import torch
     from omegaconf import OmegaConf
 
-    from netepu.cli.train import build_geometry_stage
     from netepu.geometry.maps import MapSettings, render_maps
+    from netepu.geometry.stage import build_geometry_stage
     from tools.benchlib import median_time, peak_rss_mb
 
     torch.set_num_threads(2)

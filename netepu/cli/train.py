@@ -26,41 +26,14 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from netepu.geometry.data import build_geometry_data
-from netepu.geometry.losses import GeometryLossWeights
-from netepu.geometry.maps import MapSettings
-from netepu.geometry.model import build_geometry_model
-from netepu.geometry.stage import GeometryStageConfig, GeometryTask
-from netepu.texture.stage import build_texture_stage as build
+from netepu.geometry.stage import build_geometry_stage
+from netepu.texture.stage import build_texture_stage
 from nsd.core.errors import ConfigError
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 
-__all__ = ["STAGES", "build_geometry_stage", "build_texture_stage", "main", "run"]
+__all__ = ["STAGES", "main", "run"]
 
 log = logging.getLogger(__name__)
-
-
-def build_geometry_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
-    """The geometry task of ``cfg``; returns it and config values found at build time."""
-
-    net = OmegaConf.to_container(cfg.netepu, resolve=True)
-    data = build_geometry_data(net["data"], progress=log.info)
-    model = build_geometry_model(net["model"], data.config.n_keypoints, data.config.radius)
-    stage = GeometryStageConfig.from_mapping(net["optim"], net["points"], net["eval"])
-    try:
-        weights = GeometryLossWeights.from_config(net["loss"])
-        render = MapSettings.from_config(net["render"])
-        render.validate()
-    except (TypeError, ValueError) as e:
-        raise ConfigError(f"netepu.loss / netepu.render: {e}") from e
-    task = GeometryTask(model, data, stage, weights, render)
-    return task, {"n_keypoints": data.config.n_keypoints}
-
-
-def build_texture_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
-    """The texture task (:mod:`netepu.texture.stage`; geometry from ``init_from``)."""
-
-    return build(cfg)
 
 
 STAGES: dict[str, Callable[[DictConfig], tuple[Any, dict[str, Any]]]] = {

@@ -15,15 +15,17 @@ renders full maps of the held-out views (:mod:`netepu.geometry.evaluation`).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
-from netepu.geometry.data import GeometryData, sample_batch
+from netepu.geometry.data import GeometryData, build_geometry_data, sample_batch
 from netepu.geometry.evaluation import comparison_grid, evaluate_views, render_view_set
 from netepu.geometry.losses import (
     GeometryLossWeights,
@@ -35,10 +37,12 @@ from netepu.geometry.losses import (
     silhouette_loss,
 )
 from netepu.geometry.maps import MapSettings
-from netepu.geometry.model import GeometryModel
+from netepu.geometry.model import GeometryModel, build_geometry_model
 from nsd.core.errors import ConfigError
 
-__all__ = ["GeometryStageConfig", "GeometryTask"]
+__all__ = ["GeometryStageConfig", "GeometryTask", "build_geometry_stage"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -172,3 +176,20 @@ class GeometryTask:
                 render_view_set(self.model, sub, self.render), sub)
         self.model.train()
         return grids
+
+
+def build_geometry_stage(cfg: DictConfig) -> tuple[Any, dict[str, Any]]:
+    """The geometry task of ``cfg``; returns it and config values found at build time."""
+
+    net = OmegaConf.to_container(cfg.netepu, resolve=True)
+    data = build_geometry_data(net["data"], progress=log.info)
+    model = build_geometry_model(net["model"], data.config.n_keypoints, data.config.radius)
+    stage = GeometryStageConfig.from_mapping(net["optim"], net["points"], net["eval"])
+    try:
+        weights = GeometryLossWeights.from_config(net["loss"])
+        render = MapSettings.from_config(net["render"])
+        render.validate()
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"netepu.loss / netepu.render: {e}") from e
+    task = GeometryTask(model, data, stage, weights, render)
+    return task, {"n_keypoints": data.config.n_keypoints}

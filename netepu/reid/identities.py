@@ -171,35 +171,17 @@ def assign_identities(
         identity[coded] = 0
         return identity, summary | {"identities": 1, "association": "skipped: one subject"}
     unit = unit_vectors(codes[valid], eps=1e-12)
-    desc = np.stack([unit_vectors(unit[sid[valid] == s].mean(0), eps=1e-12) for s in tracks])
-    dist = np.clip(1 - desc @ desc.T, 0, 2)
-    index = {s: i for i, s in enumerate(tracks)}
-    apart = np.zeros(dist.shape, bool)
-    for members in per_frame.values():
-        m = [index[s] for s in members if s in index]
-        apart[np.ix_(m, m)] = True
-    np.fill_diagonal(apart, False)
-    track_label = constrained_average_linkage(dist, apart, k)
-    of_track = {s: int(track_label[i]) for s, i in index.items()}
+    of_track, n_clusters = _cluster_tracks(unit, sid[valid], tracks, per_frame, k)
     if method == "tracks":
         identity[coded] = [of_track[int(s)] for s in sid[coded]]
         return identity, summary | {
-            "identities": len(set(track_label.tolist())),
+            "identities": n_clusters,
             "association": f"tracks clustered by {column}",
         }
-    # rows: the k largest track clusters start a k-means over the coded rows
     row_track = np.array([of_track[int(s)] for s in sid[valid]])
-    sizes = np.bincount(row_track)
-    start = np.argsort(-sizes, kind="stable")[:k]
-    proto = np.stack([unit_vectors(unit[row_track == j].mean(0), eps=1e-12) for j in start])
     cams = np.unique(np.asarray(table["camera"])[valid], return_inverse=True)[1]
     groups = frame[valid] * (cams.max() + 1) + cams
-    rng = np.random.default_rng(0)
-    starts = [proto] + [
-        unit[rng.choice(len(unit), k, replace=False)] for _ in range(restarts) if len(unit) >= k
-    ]
-    runs = [constrained_kmeans(unit, groups, p) for p in starts]
-    identity[valid] = min(runs, key=lambda r: r[1])[0]
+    identity[valid] = _cluster_rows(unit, row_track, groups, k, restarts)
     for s in tracks:  # uncoded rows of a coded track: the track's most frequent identity
         rows = sid == s
         fill = rows & ~valid
@@ -209,5 +191,38 @@ def assign_identities(
         "identities": len(set(identity[valid].tolist())),
         "association": f"rows clustered by {column}",
     }
+
+
+def _cluster_tracks(
+    unit: np.ndarray, row_sid: np.ndarray, tracks: list[int], per_frame: dict, k: int
+) -> tuple[dict[int, int], int]:
+    """Step 1: tracks grouped into ``k`` clusters by their mean unit code, never joining
+    two tracks seen in one frame; returns track -> cluster and the number of clusters."""
+    desc = np.stack([unit_vectors(unit[row_sid == s].mean(0), eps=1e-12) for s in tracks])
+    dist = np.clip(1 - desc @ desc.T, 0, 2)
+    index = {s: i for i, s in enumerate(tracks)}
+    apart = np.zeros(dist.shape, bool)
+    for members in per_frame.values():
+        m = [index[s] for s in members if s in index]
+        apart[np.ix_(m, m)] = True
+    np.fill_diagonal(apart, False)
+    track_label = constrained_average_linkage(dist, apart, k)
+    return {s: int(track_label[i]) for s, i in index.items()}, len(set(track_label.tolist()))
+
+
+def _cluster_rows(
+    unit: np.ndarray, row_track: np.ndarray, groups: np.ndarray, k: int, restarts: int
+) -> np.ndarray:
+    """Step 2: constrained k-means over the coded rows from the ``k`` largest track
+    clusters and from ``restarts`` random starts (seed 0); the run of least cost."""
+    sizes = np.bincount(row_track)
+    start = np.argsort(-sizes, kind="stable")[:k]
+    proto = np.stack([unit_vectors(unit[row_track == j].mean(0), eps=1e-12) for j in start])
+    rng = np.random.default_rng(0)
+    starts = [proto] + [
+        unit[rng.choice(len(unit), k, replace=False)] for _ in range(restarts) if len(unit) >= k
+    ]
+    runs = [constrained_kmeans(unit, groups, p) for p in starts]
+    return min(runs, key=lambda r: r[1])[0]
 
 

@@ -421,11 +421,22 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
     data = build_texture_data(
         data_cfg, geo_data, texture.cfg.crop_size, texture.cfg.crop_margin, progress=log.info
     )
-    cache = Path(data.config.cache_dir or "") if data.config.cache_dir else None
+    nn_train, nn_held = _surface_crops(geometry, texture, data, path)
+    task = TextureTask(
+        texture, geometry, data, TextureStageConfig.from_config(optim), nn_train, nn_held
+    )
+    # the run's netepu.model / netepu.data become the geometry checkpoint's (netepu.cli.train.run)
+    found = {"model": geo_config["netepu"]["model"], **geo_data}
+    return task, found
 
+
+def _surface_crops(geometry, texture, data, weights: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The frozen geometry's NNOPCS (and normal) crops of the training and held-out views,
+    cached next to the data under a key of the geometry weights and the crops."""
+    cache = Path(data.config.cache_dir or "") if data.config.cache_dir else None
     root = cache or _cache_root(data.config)
     key = hashlib.sha1(  # the crops' size is part of the key: windows alone do not fix it
-        f"{_weights_key(path)}:{data.train['window'].sum():.6f}:"
+        f"{_weights_key(weights)}:{data.train['window'].sum():.6f}:"
         f"{len(data.train['window'])}:{len(data.heldout['window'])}:"
         f"{data.train['inside'].shape[1:]}".encode()
     ).hexdigest()[:12]
@@ -434,34 +445,28 @@ def build_texture_stage(cfg: DictConfig) -> tuple[TextureTask, dict[str, Any]]:
     nn_path = root / f"texture-nnopcs-{key}.npz"
     if nn_path.is_file():
         with np.load(nn_path) as z:
-            nn_train, nn_held = z["train"], z["heldout"]
-    else:
-        tr, h = data.train, data.heldout
-        cams = data.train_camera[torch.from_numpy(tr["camera"])]
-        nn_train = predicted_nnopcs_crops(
-            geometry,
-            tr["keypoints"],
-            cams,
-            tr["window"],
-            tr["inside"],
-            progress=log.info,
-            normals=normals,
-        )
-        nn_held = predicted_nnopcs_crops(
-            geometry,
-            h["keypoints"],
-            data.heldout_camera_tensors(np.arange(len(h["pose"]))),
-            h["window"],
-            h["inside"],
-            normals=normals,
-        )
-        atomic_save_npz(nn_path, train=nn_train, heldout=nn_held)
-    task = TextureTask(
-        texture, geometry, data, TextureStageConfig.from_config(optim), nn_train, nn_held
+            return z["train"], z["heldout"]
+    tr, h = data.train, data.heldout
+    cams = data.train_camera[torch.from_numpy(tr["camera"])]
+    nn_train = predicted_nnopcs_crops(
+        geometry,
+        tr["keypoints"],
+        cams,
+        tr["window"],
+        tr["inside"],
+        progress=log.info,
+        normals=normals,
     )
-    # the run's netepu.model / netepu.data become the geometry checkpoint's (netepu.cli.train.run)
-    found = {"model": geo_config["netepu"]["model"], **geo_data}
-    return task, found
+    nn_held = predicted_nnopcs_crops(
+        geometry,
+        h["keypoints"],
+        data.heldout_camera_tensors(np.arange(len(h["pose"]))),
+        h["window"],
+        h["inside"],
+        normals=normals,
+    )
+    atomic_save_npz(nn_path, train=nn_train, heldout=nn_held)
+    return nn_train, nn_held
 
 
 def add_reid_whitening(
