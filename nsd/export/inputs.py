@@ -61,7 +61,7 @@ class ImageEntries:
                     f"{gt_file}: no COCO image for camera-frames {sorted(missing)[:5]}; "
                     "the ground truth does not match the footage"
                 )
-        names = read_calibration(scene).names
+        names = footage.calibration_names
         self.index = {c: names.index(c) for c in footage.camera_names}
         self.num_cameras = len(names)
 
@@ -93,9 +93,10 @@ def prepare_inputs(cfg: DictConfig) -> ExportInputs:
     scene = Path(scene).expanduser()
     H, W = trained.frame_hw
     cameras = list(cfg.cameras) if cfg.cameras is not None else None
-    if cameras is None and scene.is_dir():
-        trained.check_cameras(read_calibration(scene).names, scene)
-    footage = MultiViewFootage(scene, cameras=cameras, image_size=(W, H))
+    calibration = read_calibration(scene) if scene.is_dir() else None  # read once
+    if cameras is None and calibration is not None:
+        trained.check_cameras(calibration.names, scene)
+    footage = MultiViewFootage(scene, cameras=cameras, image_size=(W, H), calibration=calibration)
     trained.check_cameras(footage.camera_names, scene)
     frames = select_frames(
         OmegaConf.to_object(cfg.frames) if OmegaConf.is_config(cfg.frames) else cfg.frames,

@@ -216,6 +216,12 @@ class MultiViewFootage:
         image_size: (width, height) to resize every frame to; the rig's
             intrinsics are rescaled to match. Default: native size.
         cache_dir: where median backgrounds are cached (default ``<scene>/.cache``).
+        calibration: the scene's calibration when the caller has read it already
+            (default: read from the scene folder).
+
+    Attributes:
+        calibration_names: every camera of the calibration file, in its order (the
+            footage may use fewer).
 
     Raises:
         FootageError: a camera's footage is missing, unreadable or empty, or the
@@ -230,11 +236,13 @@ class MultiViewFootage:
         cameras: Sequence[str] | None = None,
         image_size: tuple[int, int] | None = None,
         cache_dir: str | os.PathLike | None = None,
+        calibration: CameraRig | None = None,
     ) -> None:
         self.scene = Path(scene)
         if not self.scene.is_dir():
             raise FootageError(f"scene folder {self.scene} does not exist")
-        rig = read_calibration(self.scene)
+        rig = calibration if calibration is not None else read_calibration(self.scene)
+        self.calibration_names = list(rig.names)
         if cameras is not None:
             missing = [c for c in cameras if c not in rig.names]
             if missing:
