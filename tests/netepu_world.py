@@ -135,7 +135,7 @@ def toy_data(
     rng = np.random.default_rng(seed)
     rig = rig or ring()
     poses = [toy_pose(rng) for _ in range(n_poses)]
-    cfg = DataConfig(
+    cfg = DataConfig.defaults(
         species="toy",
         radius=RADIUS,
         image_size=rig[0].size,
@@ -193,7 +193,7 @@ def trained_toy(steps: int = 300):
     seed_everything(0)
     data = toy_data(n_poses=1)
     model = build_geometry_model(TINY_MODEL, K_TOY, RADIUS)
-    task = GeometryTask(model, data, GeometryStageConfig(
+    task = GeometryTask(model, data, GeometryStageConfig.defaults(
         batch_size=4, near=150, far=150, foreground=100, lr=3e-3, keypoint_noise=0.0,
         eval_views=6), GeometryLossWeights.defaults(), MapSettings.defaults())
     out = Path(tempfile.mkdtemp(prefix="netepu-toy-"))

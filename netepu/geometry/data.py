@@ -29,9 +29,9 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -43,6 +43,7 @@ from netepu.geometry.sampling import sample_foreground_points, sample_silhouette
 from nsd.cameras.batch import CameraBatch
 from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_save_npz
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 from nsd.synth import make_individual, make_rig, render_views, sample_pose
 from nsd.synth.raycast import camera_rays
@@ -63,42 +64,40 @@ DATA_FORMAT = "netepu-geometry-data-v1"  # bump when the cached arrays change me
 
 
 @dataclass
-class DataConfig:
+class DataConfig(ConfigSection):
     """The ``netepu/data`` config group (every field documented in the YAML files)."""
 
-    species: str = "quadruped"
-    identity: int = 0
-    proportion_variation: float = 0.0
-    radius: float = 1.1
-    image_size: tuple[int, int] = (256, 192)
-    train_poses: int = 640
-    eval_poses: int = 24
-    eval_views_per_pose: int = 8
-    pose_variation: float = 1.0
-    position_jitter: float = 0.5
-    rig: dict = field(default_factory=lambda: {"kind": "nepumoo"})
-    heldout_rig: dict = field(default_factory=lambda: {"kind": "ring", "rings": [
-        {"count": 4, "radius": 5.8, "height": 1.2, "start_deg": 22.5},
-        {"count": 4, "radius": 4.4, "height": 2.6, "start_deg": 67.5}]})
-    pool_near: int = 1500
-    pool_far: int = 1500
-    pool_foreground: int = 1000
-    sigma_near: float = 1.0
-    margin: float = 0.35
-    seed: int = 0
-    cache_dir: str | None = None
-    n_keypoints: int | None = None  # filled in from the species
+    APP: ClassVar[str] = "netepu_train"  # defaults: conf/netepu_train.yaml, section `netepu.data`
+    KEY: ClassVar[str] = "netepu.data"
+
+    species: str
+    identity: int
+    proportion_variation: float
+    radius: float
+    image_size: tuple[int, int]
+    train_poses: int
+    eval_poses: int
+    eval_views_per_pose: int
+    pose_variation: float
+    position_jitter: float
+    rig: dict
+    heldout_rig: dict
+    pool_near: int
+    pool_far: int
+    pool_foreground: int
+    sigma_near: float
+    margin: float
+    seed: int
+    cache_dir: str | None
+    n_keypoints: int | None  # filled in from the species
+
+    def __post_init__(self) -> None:
+        self.image_size = tuple(int(v) for v in self.image_size)
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> DataConfig:
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(cfg) - names)
-        if unknown:
-            raise ConfigError(f"netepu.data: unknown keys {unknown}; known: {sorted(names)}")
-        values = dict(cfg)
-        if "image_size" in values:
-            values["image_size"] = tuple(int(v) for v in values["image_size"])
-        return cls(**values)
+        """From a ``netepu.data`` mapping; keys it lacks take the shipped defaults."""
+        return cls.defaults(**dict(cfg))
 
     def key(self) -> str:
         """Hash of everything that changes the data (not the cache folder)."""

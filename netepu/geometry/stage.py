@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, fields, replace
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -38,6 +38,7 @@ from netepu.geometry.losses import (
 )
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import GeometryModel, build_geometry_model
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 
 __all__ = ["GeometryStageConfig", "GeometryTask", "build_geometry_stage"]
@@ -46,35 +47,41 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
-class GeometryStageConfig:
+class GeometryStageConfig(ConfigSection):
     """Settings of the geometry stage (``netepu.optim``, ``netepu.points``, ``netepu.eval``)."""
 
-    batch_size: int = 16
-    lr: float = 2e-3
-    weight_decay: float = 0.005
-    lr_decay: float = 0.2
-    lr_decay_every: int = 2000
-    near: int = 750
-    far: int = 750
-    foreground: int = 500
-    keypoint_noise: float = 0.01
-    render_grad_to_encoder: bool = False
-    eval_views: int = 16
+    APP: ClassVar[str] = "netepu_train"  # defaults: conf/netepu_train.yaml, section `netepu`
+    KEY: ClassVar[str] = "netepu"
+
+    batch_size: int
+    lr: float
+    weight_decay: float
+    lr_decay: float
+    lr_decay_every: int
+    near: int
+    far: int
+    foreground: int
+    keypoint_noise: float
+    render_grad_to_encoder: bool
+    eval_views: int
+
+    @classmethod
+    def default_mapping(cls) -> dict[str, Any]:
+        """The shipped ``netepu.optim``, ``netepu.points`` and ``netepu.eval`` sections."""
+        net = super().default_mapping()
+        return {**net["optim"], **net["points"], **net["eval"]}
 
     @classmethod
     def from_mapping(cls, *sections: Mapping[str, Any]) -> GeometryStageConfig:
-        names = {f.name for f in fields(cls)}
+        """From the stage's sections; keys they lack take the shipped defaults."""
         values: dict[str, Any] = {}
         for sec in sections:
-            unknown = sorted(set(sec) - names)
-            if unknown:
-                raise ConfigError(
-                    f"netepu: unknown stage settings {unknown}; known {sorted(names)}")
             values.update(sec)
-        cfg = cls(**values)
-        if cfg.batch_size < 1 or min(cfg.near + cfg.far, cfg.foreground) < 1:
+        return cls.defaults(**values)
+
+    def validate(self) -> None:
+        if self.batch_size < 1 or min(self.near + self.far, self.foreground) < 1:
             raise ConfigError("netepu: batch_size and point counts must be >= 1")
-        return cfg
 
 
 class GeometryTask:

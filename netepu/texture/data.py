@@ -34,9 +34,9 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -49,6 +49,7 @@ from netepu.texture.encoding import predicted_surface
 from nsd.cameras.batch import CameraBatch
 from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_save_npz
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 from nsd.synth import get_texture, make_individual, make_rig, render_views, sample_pose
 from nsd.synth.raycast import camera_rays
@@ -68,31 +69,32 @@ TEXTURE_DATA_FORMAT = "netepu-texture-data-v1"
 
 
 @dataclass
-class TextureDataConfig:
+class TextureDataConfig(ConfigSection):
     """The ``netepu.texture.data`` config (every field commented in the YAML file)."""
 
-    textures: list[int] = field(default_factory=lambda: list(range(16)))
-    train_poses: int = 120
-    textures_per_view: int = 4
-    eval_poses: int = 8
-    psnr_cameras: int = 4
-    pool: int = 1000
-    seed: int = 1
-    cache_dir: str | None = None
+    APP: ClassVar[str] = "netepu_train"  # defaults: conf/netepu_train.yaml (netepu/texture)
+    KEY: ClassVar[str] = "netepu.texture.data"
+
+    textures: list[int]
+    train_poses: int
+    textures_per_view: int
+    eval_poses: int
+    psnr_cameras: int
+    pool: int
+    seed: int
+    cache_dir: str | None
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> TextureDataConfig:
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(cfg) - names)
-        if unknown:
-            raise ConfigError(f"netepu.texture.data: unknown keys {unknown}; known {sorted(names)}")
-        c = cls(**dict(cfg))
-        c.textures = [int(t) for t in c.textures]
-        if not c.textures or not 1 <= c.textures_per_view <= len(c.textures):
+        """From a ``netepu.texture.data`` mapping; keys it lacks take the shipped defaults."""
+        return cls.defaults(**dict(cfg))
+
+    def validate(self) -> None:
+        self.textures = [int(t) for t in self.textures]
+        if not self.textures or not 1 <= self.textures_per_view <= len(self.textures):
             raise ConfigError(
                 "netepu.texture.data: need >= 1 texture and 1 <= textures_per_view <= len(textures)"
             )
-        return c
 
 
 @dataclass

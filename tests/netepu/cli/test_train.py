@@ -71,7 +71,7 @@ def _task(seed=0, lr=5e-4):
     seed_everything(seed)
     data = toy_data(n_poses=2, pool=100)
     model = build_geometry_model(TINY_MODEL, K_TOY, RADIUS)
-    return GeometryTask(model, data, GeometryStageConfig(batch_size=2, near=40, far=40,
+    return GeometryTask(model, data, GeometryStageConfig.defaults(batch_size=2, near=40, far=40,
                                                          foreground=30, eval_views=2, lr=lr),
                         GeometryLossWeights.defaults(), MapSettings.defaults())
 

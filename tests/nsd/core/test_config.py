@@ -12,9 +12,12 @@ import torch
 import yaml
 from omegaconf import OmegaConf
 
+from netepu.geometry.data import DataConfig
 from netepu.geometry.losses import GeometryLossWeights
 from netepu.geometry.maps import MapSettings
+from netepu.geometry.stage import GeometryStageConfig
 from netepu.texture.config import TextureConfig
+from netepu.texture.data import TextureDataConfig
 from netepu.texture.stage import TextureStageConfig
 from nsd.core.config import APPS, ConfigSection, compose_app
 from nsd.core.errors import ConfigError
@@ -43,6 +46,8 @@ SECTIONS = [
     TextureStageConfig,
     MapSettings,
     GeometryLossWeights,
+    DataConfig,
+    TextureDataConfig,
 ]
 
 
@@ -74,7 +79,7 @@ def test_python_composes_what_the_command_line_runs(app, cli_configs):
     assert py == cli_configs[app]
 
 
-@pytest.mark.parametrize("section", SECTIONS, ids=lambda c: c.__name__)
+@pytest.mark.parametrize("section", [*SECTIONS, GeometryStageConfig], ids=lambda c: c.__name__)
 def test_settings_have_no_defaults_of_their_own(section):
     """Every field's default comes from the YAML: the dataclass has none to disagree with."""
     own = [
@@ -91,6 +96,14 @@ def test_python_defaults_are_the_command_lines(section, cli_configs):
     assert node is not None, f"{section.APP} has no {section.KEY}"
     from_cli = section.from_config(OmegaConf.to_container(node, resolve=True))
     assert section.defaults() == from_cli
+
+
+def test_geometry_stage_defaults_are_its_three_sections(cli_configs):
+    net = cli_configs["netepu_train"]["netepu"]
+    assert GeometryStageConfig.defaults() == GeometryStageConfig.from_mapping(
+        net["optim"], net["points"], net["eval"]
+    )
+    assert GeometryStageConfig.from_mapping({"batch_size": 3}).near == net["points"]["near"]
 
 
 def test_python_and_cli_build_the_same_model(cli_configs):
