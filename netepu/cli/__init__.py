@@ -1,0 +1,1 @@
+"""Thin command line: netepu-train (geometry and texture stages)."""

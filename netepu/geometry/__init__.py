@@ -1,0 +1,4 @@
+"""NeTePu's keypoint-driven geometry renderer.
+
+Silhouette, depth and NNOPCS maps, inverse rendering.
+"""

@@ -1,0 +1,1 @@
+"""Re-identification: identities across cameras and time, figures, a CNN baseline."""

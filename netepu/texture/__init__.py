@@ -1,0 +1,1 @@
+"""NeTePu's texture VAE: codes that render an individual in any pose or view and re-identify it."""

@@ -1,0 +1,1 @@
+"""Thin command lines: nsd-train, nsd-eval, nsd-export."""

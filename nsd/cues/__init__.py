@@ -1,0 +1,4 @@
+"""Label-free cues from the median background.
+
+Foreground evidence, the visual hull, proposals, triangulation.
+"""

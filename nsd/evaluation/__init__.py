@@ -1,0 +1,4 @@
+"""The one metrics package.
+
+Decomposition, rendered maps, keypoints, identities, re-identification.
+"""

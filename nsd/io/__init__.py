@@ -1,0 +1,4 @@
+"""Reading and writing.
+
+Footage, scene data, ground truth, crops, embeddings, COCO, MOT, keypoints.
+"""

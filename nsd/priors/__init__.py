@@ -1,0 +1,4 @@
+"""The weak priors of NSD training.
+
+Window position, scale and aspect, presence, proposals, depth.
+"""
