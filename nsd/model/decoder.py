@@ -27,9 +27,8 @@ class Decoder(nn.Module):
         convs: 3x3 convolutions per stage (NSD: 3).
     """
 
-    def __init__(self, crop_size: int = 64, widths: tuple[int, ...] = (128, 64, 32),
-                 app_dims: int = 128, points: int = 200, dropout: float = 0.3,
-                 convs: int = 2) -> None:
+    def __init__(self, crop_size: int, widths: tuple[int, ...], app_dims: int, points: int,
+                 dropout: float, convs: int) -> None:
         super().__init__()
         self.grid = crop_size // 2 ** len(widths)
         self.c0 = widths[0]

@@ -71,6 +71,9 @@ class Detections:
 class Detector(nn.Module):
     """NSD's detector B.
 
+    Every argument is a ``model.detector`` value of the config (defaults in
+    ``conf/model/nsd.yaml`` only; :func:`nsd.model.build.build_model` passes them all).
+
     Args:
         num_windows: N, the number (or upper bound) of subjects.
         input_size: frames are resampled to (input_size, input_size).
@@ -87,18 +90,18 @@ class Detector(nn.Module):
 
     def __init__(
         self,
-        num_windows: int = 2,
-        input_size: int = 64,
-        widths: tuple[int, ...] = (16, 32, 64, 64),
-        hidden: int = 256,
-        residual_input: bool = True,
-        min_scale: float = 0.2,
-        max_scale: float = 1.0,
-        border: float = 0.8,
-        init_spread: float = 0.1,
-        presence: bool = False,
-        presence_init: float = 0.95,
-        head: str = "mlp",
+        num_windows: int,
+        input_size: int,
+        widths: tuple[int, ...],
+        hidden: int,
+        residual_input: bool,
+        min_scale: float,
+        max_scale: float,
+        border: float,
+        init_spread: float,
+        presence: bool,
+        presence_init: float,
+        head: str,
     ) -> None:
         super().__init__()
         self.num_windows, self.input_size = num_windows, input_size

@@ -20,8 +20,7 @@ class Encoder(nn.Module):
         points: size of the 3D latent point cloud (NSD: 200).
     """
 
-    def __init__(self, crop_size: int = 64, widths: tuple[int, ...] = (32, 64, 96, 128),
-                 app_dims: int = 128, points: int = 200) -> None:
+    def __init__(self, crop_size: int, widths: tuple[int, ...], app_dims: int, points: int) -> None:
         super().__init__()
         self.app_dims, self.points = app_dims, points
         self.backbone = conv_stack(3, widths)

@@ -325,7 +325,11 @@ class TestSpatialTransformerExtremes(BaseTester):
 
     @DTYPES
     def test_detector_bounds_at_saturated_logits(self, dtype):
-        det = Detector(num_windows=3, input_size=16, widths=(4, 4), hidden=8).to(dtype)
+        det = Detector(
+            num_windows=3, input_size=16, widths=(4, 4), hidden=8, residual_input=True,
+            min_scale=0.2, max_scale=1.0, border=0.8, init_spread=0.1, presence=False,
+            presence_init=0.95, head="mlp",
+        ).to(dtype)
         with torch.no_grad():
             det.head.bias.copy_(torch.tensor([1e4, -1e4, 1e4, -1e4, 1e4, 0.0] * 3, dtype=dtype))
         images = torch.rand(2, 3, 12, 16, dtype=dtype)
