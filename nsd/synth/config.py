@@ -8,12 +8,17 @@ version) is hashed into :meth:`SceneConfig.hash`, which names cached scenes.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 import hashlib
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from importlib.resources import files
 from typing import Any
+
+from omegaconf import OmegaConf
 
 from nsd.core.errors import ConfigError
 from nsd.synth.backdrop import Backdrop
@@ -22,7 +27,14 @@ from nsd.synth.rigs import RIG_KINDS
 from nsd.synth.shading import Light
 from nsd.synth.skeleton import get_species
 
-__all__ = ["GENERATOR_VERSION", "MAX_INDIVIDUALS", "PreviewConfig", "SceneConfig"]
+__all__ = [
+    "CLI_KEYS",
+    "GENERATOR_VERSION",
+    "MAX_INDIVIDUALS",
+    "PreviewConfig",
+    "SceneConfig",
+    "shipped_scene_values",
+]
 
 GENERATOR_VERSION = 1  # bump when the same config would render different pixels
 MAX_INDIVIDUALS = 8
@@ -41,6 +53,21 @@ class PreviewConfig:
     cameras: int = 4
     frames: int = 4
     zoom: int = 2
+
+
+CLI_KEYS = ("out", "overwrite", "defaults", "hydra")  # synth.yaml keys that are not scene settings
+
+
+@functools.cache
+def _shipped() -> dict[str, Any]:
+    with (files("nsd.conf") / "synth.yaml").open() as f:
+        values = OmegaConf.to_container(OmegaConf.load(f), resolve=True)
+    return {k: v for k, v in values.items() if k not in CLI_KEYS}
+
+
+def shipped_scene_values() -> dict[str, Any]:
+    """``conf/synth.yaml``'s scene settings (a fresh copy): the default scene."""
+    return copy.deepcopy(_shipped())
 
 
 def _sub(cls, value: Any, key: str):
@@ -84,22 +111,22 @@ class SceneConfig:
         preview: :class:`PreviewConfig`.
     """
 
-    seed: int = 0
-    num_frames: int = 300
-    fps: float = 25.0
-    image_size: tuple[int, int] = (128, 128)
-    num_individuals: int = 2
-    species: tuple[str, ...] = ("biped",)
-    texture_ids: tuple[int, ...] | None = None
-    proportion_variation: float = 1.0
-    rig: dict = field(default_factory=lambda: {"kind": "corners"})
-    motion: MotionConfig = field(default_factory=MotionConfig)
-    backdrop: Backdrop = field(default_factory=Backdrop)
-    light: Light = field(default_factory=Light)
-    supersample: int = 1
-    video: bool = False
-    dense: bool = True
-    preview: PreviewConfig = field(default_factory=PreviewConfig)
+    seed: int
+    num_frames: int
+    fps: float
+    image_size: tuple[int, int]
+    num_individuals: int
+    species: tuple[str, ...]
+    texture_ids: tuple[int, ...] | None
+    proportion_variation: float
+    rig: dict
+    motion: MotionConfig
+    backdrop: Backdrop
+    light: Light
+    supersample: int
+    video: bool
+    dense: bool
+    preview: PreviewConfig
 
     def __post_init__(self) -> None:
         self.validate()
@@ -172,12 +199,22 @@ class SceneConfig:
     # ------------------------------------------------------------------ conversions
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> SceneConfig:
-        """Build from a plain (e.g. Hydra) mapping; unknown keys raise :class:`ConfigError`."""
+        """Build from a plain (e.g. Hydra) mapping; unknown keys raise :class:`ConfigError`.
+
+        Keys the mapping lacks take ``conf/synth.yaml``'s values (the only source of
+        defaults), also inside ``motion``, ``backdrop``, ``light`` and ``preview``; a
+        given ``rig`` replaces the shipped one whole (its keys depend on its kind).
+        """
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - names)
         if unknown:
             raise ConfigError(f"unknown scene config keys {unknown}; known: {sorted(names)}")
-        kw: dict[str, Any] = dict(values)
+        shipped = shipped_scene_values()
+        kw: dict[str, Any] = {**shipped, **dict(values)}
+        for key in ("motion", "backdrop", "light", "preview"):
+            given = values.get(key)
+            if isinstance(given, Mapping):
+                kw[key] = {**shipped[key], **given}
         for key in ("image_size", "species", "texture_ids"):
             if key in kw and kw[key] is not None and not isinstance(kw[key], str):
                 try:

@@ -37,10 +37,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
 
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 from nsd.synth.body import Individual, Pose
 from nsd.synth.skeleton import Species
@@ -92,7 +94,7 @@ GESTURES: dict[str, tuple[tuple[str, int, float, float], ...]] = {
 
 
 @dataclass(frozen=True)
-class MotionConfig:
+class MotionConfig(ConfigSection):
     """Settings of :func:`simulate_motion` (see the module docstring).
 
     Attributes:
@@ -108,14 +110,17 @@ class MotionConfig:
             from every other's walks after the nearest, metres.
     """
 
-    interaction: str = "free"
-    area_radius: float = 1.8
-    walk_seconds: float = 4.0
-    stand_seconds: float = 2.5
-    speed_scale: float = 1.0
-    turn_noise: float = 0.8
-    pose_variation: float = 1.0
-    follow_gap: float = 0.3
+    APP: ClassVar[str] = "synth"  # defaults: conf/synth.yaml, section `motion`
+    KEY: ClassVar[str] = "motion"
+
+    interaction: str
+    area_radius: float
+    walk_seconds: float
+    stand_seconds: float
+    speed_scale: float
+    turn_noise: float
+    pose_variation: float
+    follow_gap: float
 
     def validate(self) -> None:
         if self.interaction not in INTERACTIONS:

@@ -49,7 +49,7 @@ from nsd.core.atomic import atomic_directory
 from nsd.core.errors import ConfigError
 from nsd.synth.body import Individual, Pose, make_individual
 from nsd.synth.coco import CocoBuilder
-from nsd.synth.config import GENERATOR_VERSION, SceneConfig
+from nsd.synth.config import CLI_KEYS, GENERATOR_VERSION, SceneConfig
 from nsd.synth.groundtruth import save_dense
 from nsd.synth.motion import Trajectory, simulate_motion
 from nsd.synth.nnopcs import nnopcs_bounds
@@ -71,7 +71,6 @@ __all__ = [
     "write_scene",
 ]
 
-CLI_KEYS = ("out", "overwrite", "defaults", "hydra")  # synth.yaml keys that are not scene settings
 RENDER_THREADS = 1  # torch threads while writing a scene (see write_scene)
 
 

@@ -148,3 +148,26 @@ def test_a_subclass_without_yaml_is_a_clear_error():
 
     with pytest.raises(ConfigError, match="no section 'no_such_section'"):
         Nowhere.defaults()
+
+
+def test_synthetic_world_defaults_are_the_yaml():
+    """A scene config takes conf/synth.yaml's values for every key it lacks; the default
+    scene (``default_config``) is the YAML as shipped, and the nested settings' own
+    defaults (used where no scene is involved, e.g. the renderer's default light) agree."""
+    from nsd.synth.backdrop import Backdrop
+    from nsd.synth.config import PreviewConfig, SceneConfig, shipped_scene_values
+    from nsd.synth.motion import MotionConfig
+    from nsd.synth.scene import default_config
+    from nsd.synth.shading import Light
+
+    own = [f.name for f in dataclasses.fields(SceneConfig) if f.default is not dataclasses.MISSING
+           or f.default_factory is not dataclasses.MISSING]  # fmt: skip
+    assert own == []
+    assert SceneConfig.from_dict({}) == default_config()
+    shipped = shipped_scene_values()
+    partial = SceneConfig.from_dict({"motion": {"area_radius": 0.9}})
+    assert partial.motion.area_radius == 0.9
+    assert partial.motion.interaction == shipped["motion"]["interaction"]
+    assert default_config().motion == MotionConfig.defaults()
+    for key, cls in (("backdrop", Backdrop), ("light", Light), ("preview", PreviewConfig)):
+        assert getattr(default_config(), key) == cls(), key

@@ -25,7 +25,7 @@ def herd():
 
 
 def _simulate(herd, interaction="free", seed=0, T=250):
-    cfg = MotionConfig(interaction=interaction, area_radius=2.0)
+    cfg = MotionConfig.defaults(interaction=interaction, area_radius=2.0)
     return simulate_motion(herd, T, 25.0, cfg, np.random.default_rng(seed)), cfg
 
 
@@ -107,10 +107,10 @@ def test_sample_pose_is_plausible():
 )  # fmt: skip
 def test_bad_motion_config(changes, key):
     with pytest.raises(ConfigError, match=key):
-        MotionConfig(**changes).validate()
+        MotionConfig.defaults(**changes)
 
 
 def test_area_too_small(herd):
-    cfg = MotionConfig(area_radius=0.3)
+    cfg = MotionConfig.defaults(interaction="free", area_radius=0.3)
     with pytest.raises(ConfigError, match="area_radius"):
         simulate_motion(herd, 5, 25.0, cfg, np.random.default_rng(0))
