@@ -1,4 +1,4 @@
-"""TODO docstring."""
+"""Image grids of an export: a row per camera with input, boxes, visible masks, depth order."""
 
 from __future__ import annotations
 

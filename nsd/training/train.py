@@ -1,4 +1,4 @@
-"""TODO docstring."""
+"""The NSD training driver: scene data, the task (decomposition or pose), the trainer."""
 
 from __future__ import annotations
 
