@@ -135,13 +135,7 @@ def regress_export(
         fitted.add(t, sid, anns, kp, spread)
     fitted.save(Path(out) / "keypoints3d.npz", pose.keypoints)
     log.info("keypoints: %d subject-frames regressed, %d frames", len(fitted), n_frames)
-    spreads = fitted.subjects["loss"]
-    return {
-        "subject_frames": len(fitted),
-        "rows": len(fitted.row_ids),
-        "frames": n_frames,
-        "mean_view_disagreement": float(np.mean(spreads)) if spreads else None,
-    }
+    return fitted.summary(n_frames, "mean_view_disagreement")
 
 
 def _as_exported(export, scene, d) -> tuple[SceneData, InferenceSettings, dict[str, Any]]:

@@ -108,29 +108,17 @@ def invert_export(
         if max_subject_frames and len(fitted) >= max_subject_frames:
             break
         cam_idx = [rig.index(images[a["image_id"]]["camera"]) for a in anns]
-        masks = torch.from_numpy(
-            np.stack([mask_utils.decode(a["segmentation"]) for a in anns]).astype(bool)
-        )
+        masks = np.stack([mask_utils.decode(a["segmentation"]) for a in anns]).astype(bool)
+        rng = np.random.default_rng(t)
         res = invert_silhouettes(
-            model,
-            masks,
-            cams[cam_idx],
-            starts,
-            settings,
-            np.random.default_rng(t),
+            model, torch.from_numpy(masks), cams[cam_idx], starts, settings, rng
         )
         fitted.add(t, sid, anns, res.keypoints.float().numpy(), res.loss)
         log.info(
             "keypoints: frame %d subject %d from %d views, loss %.3f", t, sid, len(anns), res.loss
         )
     fitted.save(Path(out) / "keypoints3d.npz", starts.shape[1])
-    losses = fitted.subjects["loss"]
-    return {
-        "subject_frames": len(fitted),
-        "rows": len(fitted.row_ids),
-        "frames": n_frames,
-        "mean_loss": float(np.mean(losses)) if losses else None,
-    }
+    return fitted.summary(n_frames, "mean_loss")
 
 
 def _views_of_one_size(anns: list[dict], images: dict[int, dict]) -> list[dict]:

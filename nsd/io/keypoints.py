@@ -20,6 +20,7 @@ import os
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -73,6 +74,22 @@ class SubjectKeypoints:
         for key, value in (("frame", frame), ("id", subject), ("keypoints", kp),
                            ("loss", loss), ("views", len(rows))):  # fmt: skip
             self.subjects[key].append(value)
+
+    def summary(self, frames: int, loss_name: str) -> dict[str, Any]:
+        """Counts of what was fitted, and the mean of the per-subject ``loss`` as ``loss_name``.
+
+        Example:
+            >>> s = SubjectKeypoints()
+            >>> s.summary(3, "mean_loss")
+            {'subject_frames': 0, 'rows': 0, 'frames': 3, 'mean_loss': None}
+        """
+        losses = self.subjects["loss"]
+        return {
+            "subject_frames": len(self),
+            "rows": len(self.row_ids),
+            "frames": frames,
+            loss_name: float(np.mean(losses)) if losses else None,
+        }
 
     def save(self, path: str | os.PathLike, k: int) -> None:
         """Write the file atomically (``k``: keypoints per pose, for empty files too)."""
