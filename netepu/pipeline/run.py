@@ -39,8 +39,6 @@ from pathlib import Path
 
 import hydra
 import torch
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
 from netepu.pipeline.stages import (
@@ -56,6 +54,7 @@ from netepu.pipeline.stages import (
 )
 from netepu.reid.identities import IDENTITY_METHODS
 from nsd.core.atomic import atomic_write_text
+from nsd.core.config import compose_app
 from nsd.core.errors import ConfigError, NSDError
 from nsd.core.stages import Stage, StageResult, StageRunner
 
@@ -73,11 +72,7 @@ def load_run_config(*overrides: str) -> DictConfig:
         >>> cfg.grids.frames, cfg.train.trainer.max_steps
         (2, 0)
     """
-
-    if GlobalHydra.instance().is_initialized():
-        return compose("run", overrides=list(overrides))
-    with initialize_config_module("nsd.conf", version_base="1.3"):
-        return compose("run", overrides=list(overrides))
+    return compose_app("run", overrides)
 
 
 def _out_folder(cfg: DictConfig) -> Path:
