@@ -18,6 +18,7 @@ import copy
 import dataclasses
 import functools
 from collections.abc import Mapping, Sequence
+from importlib.resources import files
 from typing import Any, ClassVar, Self
 
 from hydra import compose, initialize_config_module
@@ -26,10 +27,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsd.core.errors import ConfigError
 
-__all__ = ["APPS", "ConfigSection", "compose_app"]
+__all__ = ["ConfigSection", "compose_app"]
 
-# the apps and their config files (conf/<app>.yaml)
-APPS = ("train", "eval", "export", "run", "synth", "netepu_train", "netepu_embed")
 
 
 def compose_app(app: str, overrides: Sequence[str] = ()) -> DictConfig:
@@ -37,8 +36,8 @@ def compose_app(app: str, overrides: Sequence[str] = ()) -> DictConfig:
 
     Works inside a running Hydra app too (then its config search path is used).
     """
-    if app not in APPS:
-        raise ConfigError(f"no app config {app!r}; apps: {list(APPS)}")
+    if not (files("nsd.conf") / f"{app}.yaml").is_file():
+        raise ConfigError(f"no app config {app!r} (conf/{app}.yaml)")
     if GlobalHydra.instance().is_initialized():
         return compose(app, overrides=list(overrides))
     with initialize_config_module("nsd.conf", version_base="1.3"):

@@ -48,6 +48,7 @@ from nsd.core.config import ConfigSection
 from nsd.core.errors import CheckpointError, ConfigError
 
 __all__ = [
+    "CHECKPOINT_FORMAT",
     "TrainTask",
     "Trainer",
     "TrainerConfig",
@@ -55,6 +56,8 @@ __all__ = [
     "load_checkpoint",
     "seed_everything",
 ]
+
+CHECKPOINT_FORMAT = "nsd-netepu-checkpoint-v1"  # the tag every checkpoint of the toolkit carries
 
 
 def seed_everything(seed: int) -> np.random.Generator:
@@ -237,7 +240,7 @@ class Trainer:
         task_extra = getattr(self.task, "extra_state", None)
         schedulers = getattr(self.task, "schedulers", lambda: {})()
         return {
-            "format": "nsd-netepu-checkpoint-v1",
+            "format": CHECKPOINT_FORMAT,
             "step": self.step,
             "train_seconds": self.train_seconds,
             "evals_done": sorted(self._evals_done),
@@ -260,7 +263,7 @@ class Trainer:
 
     def load(self, path: str | os.PathLike) -> None:
         state = load_checkpoint(path)
-        if state.get("format") != "nsd-netepu-checkpoint-v1":
+        if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"{path} is not a checkpoint of this toolkit")
         modules = self.task.modules()
         missing = sorted(set(modules) - set(state["modules"]))

@@ -1,6 +1,7 @@
 """Identity accuracy of an export's rows against a synthetic scene's ground truth.
 
-The identities themselves come from :mod:`netepu.reid.identities` (or any other source).
+The identities themselves come from the re-identification step of the pipeline, or from any
+other source.
 
 Accuracy (:func:`identity_accuracy`, synthetic scenes with ``gt/``): every
 exported row is matched to a ground-truth visible mask of its camera-frame

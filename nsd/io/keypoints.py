@@ -1,10 +1,9 @@
 """Per-subject 3D keypoints of an export: which rows to fit, and the ``keypoints3d.npz`` file.
 
-Both ways the pipeline gets 3D keypoints (NeTePu inverse rendering,
-:mod:`netepu.pipeline.subject_keypoints`; NSD's pose regressor,
-:mod:`netepu.pipeline.pose_keypoints`)
-fit one pose per subject (cross-view ``subject_id``) and selected frame from that
-subject's rows, and write the same file, which ``netepu-embed`` reads::
+Both ways the end-to-end pipeline gets 3D keypoints (NeTePu inverse rendering of the
+visible masks; NSD's pose regressor from a few labelled frames) fit one pose per subject
+(cross-view ``subject_id``) and selected frame from that subject's rows, and write the
+same file, which the texture-code step reads::
 
     keypoints3d.npz
       id          (n,)       annotation ids of the export (COCO ``id``, embeddings ``id``)

@@ -19,7 +19,7 @@ from netepu.geometry.stage import GeometryStageConfig
 from netepu.texture.config import TextureConfig
 from netepu.texture.data import TextureDataConfig
 from netepu.texture.stage import TextureStageConfig
-from nsd.core.config import APPS, ConfigSection, compose_app
+from nsd.core.config import ConfigSection, compose_app
 from nsd.core.errors import ConfigError
 from nsd.core.trainer import TrainerConfig
 from nsd.inference.multiview import InferenceSettings
@@ -68,8 +68,13 @@ def cli_configs() -> dict[str, dict]:
     return out
 
 
+APPS = sorted(p.stem for p in (ROOT / "conf").glob("*.yaml"))
+
+
 def test_every_app_has_a_command_line():
     assert set(CLI) == set(APPS)
+    with pytest.raises(ConfigError, match="no app config 'nope'"):
+        compose_app("nope")
 
 
 @pytest.mark.parametrize("app", APPS)
