@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections.abc import Mapping
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -34,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from nsd.core import distributed
+from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.proposals import match_proposals
@@ -58,6 +61,29 @@ from nsd.training.losses import total_image_loss
 __all__ = ["NSDTask"]
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class AdamConfig(ConfigSection):
+    """NSD's Adam with a learning rate per network (the ``optim`` group, ``conf/optim/``)."""
+
+    APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `optim`
+    KEY: ClassVar[str] = "optim"
+
+    lr_detector: float
+    lr_encoder: float
+    lr_decoder: float
+    weight_decay: float
+
+    def validate(self) -> None:
+        """Finite, positive rates (a NaN rate turns every weight NaN within a step)."""
+        for key in ("lr_detector", "lr_encoder", "lr_decoder"):
+            value = getattr(self, key)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"optim.{key} must be a finite number > 0, got {value!r}")
+        wd = self.weight_decay
+        if not isinstance(wd, (int, float)) or not math.isfinite(wd) or wd < 0:
+            raise ConfigError(f"optim.weight_decay must be a finite number >= 0, got {wd!r}")
 
 
 def _reset(module: nn.Module) -> None:
@@ -163,7 +189,7 @@ class NSDTask:
             raise ConfigError(f"prior_presence.count_window: {e}") from None
 
     def _make_optimizer(self) -> None:
-        o = self.cfg.optim
+        o = AdamConfig.from_config(OmegaConf.to_container(self.cfg.optim, resolve=True))
         m = self.model
         self.opt = torch.optim.Adam(
             [

@@ -25,6 +25,7 @@ from nsd.core.trainer import TrainerConfig
 from nsd.inference.multiview import InferenceSettings
 from nsd.model.bi_nvs import BiNVSConfig
 from nsd.model.build import build_model
+from nsd.training.task import AdamConfig
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -48,6 +49,7 @@ SECTIONS = [
     GeometryLossWeights,
     DataConfig,
     TextureDataConfig,
+    AdamConfig,
 ]
 
 

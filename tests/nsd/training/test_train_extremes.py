@@ -144,3 +144,20 @@ def test_anomaly_detection_names_the_operation(tmp_path):
     ):
         t.fit()
     assert not torch.is_anomaly_enabled()
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("lr_detector", "nan"), ("lr_encoder", "-1e-3"), ("lr_decoder", "0"), ("weight_decay", "inf")],
+)
+def test_non_finite_or_negative_learning_rates_are_refused_before_training(
+    key, value, tiny_scene
+):
+    """``optim.lr_detector=nan`` made every weight NaN in the first step and crashed inside
+    backward(); it is now refused when the task is built, naming the key."""
+    from nsd.core.errors import ConfigError
+
+    cfg = tiny_cfg(f"optim.{key}={value}")
+    data = SceneData(tiny_scene, cfg.data.image_size, None, cfg.data.val_fraction)
+    with pytest.raises(ConfigError, match=rf"optim\.{key} must be a finite number"):
+        NSDTask(cfg, data)
