@@ -28,12 +28,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from netepu.geometry.stage import build_geometry_stage
 from netepu.texture.stage import build_texture_stage
+from nsd.core.app import check_command_line, reported
 from nsd.core.errors import ConfigError
+from nsd.core.run_folder import RunFolder
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 
 __all__ = ["STAGES", "main", "run"]
 
 log = logging.getLogger(__name__)
+PROG = "netepu-train"
 
 
 STAGES: dict[str, Callable[[DictConfig], tuple[Any, dict[str, Any]]]] = {
@@ -67,14 +70,22 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
 
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="netepu_train", version_base="1.3")
-def main(cfg: DictConfig) -> float:
+def _hydra_main(cfg: DictConfig) -> float:
     """Train; returns the validation objective (``cfg.objective``) for sweepers."""
+    with reported(PROG) as report:
+        out_dir = Path(HydraConfig.get().runtime.output_dir)
+        with RunFolder(out_dir, PROG, key="hydra.run.dir") as folder:
+            report.attach(folder)
+            metrics = run(cfg, out_dir)
+            log.info("final metrics: %s", metrics)
+            value = metrics.get(cfg.objective, float("nan"))
+            return float(value) if value is not None and math.isfinite(value) else float("nan")
 
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
-    metrics = run(cfg, out_dir)
-    log.info("final metrics: %s", metrics)
-    value = metrics.get(cfg.objective, float("nan"))
-    return float(value) if value is not None and math.isfinite(value) else float("nan")
+
+def main() -> None:
+    """Entry point of ``netepu-train``: the command line is checked before any work."""
+    check_command_line(PROG, "netepu_train")
+    _hydra_main()
 
 
 if __name__ == "__main__":

@@ -31,7 +31,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +43,7 @@ from omegaconf import DictConfig
 from netepu.texture.encoding import texture_codes
 from netepu.texture.model import load_texture_model
 from nsd.cameras.calibration_io import read_calibration
+from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_save_npz, atomic_write_bytes
 from nsd.core.errors import ConfigError, NSDError
 from nsd.io.crops import read_crop_index, read_crops
@@ -52,6 +52,7 @@ from nsd.io.embeddings import add_columns, embeddings_path, read_embeddings
 __all__ = ["embed_export", "embed_into_copy", "main", "write_surface_maps"]
 
 log = logging.getLogger(__name__)
+PROG = "netepu-embed"
 
 
 def _keypoints(path: str | os.PathLike) -> dict[int, np.ndarray]:
@@ -261,26 +262,26 @@ def embed_into_copy(
 
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="netepu_embed", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    """Entry point of ``netepu-embed``; bad input exits with status 2 and a message."""
+def _hydra_main(cfg: DictConfig) -> None:
     torch.set_num_threads(int(cfg.threads))
-    try:
-        out = embed_export(
-            cfg.export,
-            cfg.checkpoint,
-            cfg.keypoints,
-            cfg.calibration,
-            cfg.column,
-            int(cfg.batch_size),
-            cfg.get("maps"),
+    with reported(PROG):
+        try:
+            out = embed_export(cfg.export, cfg.checkpoint, cfg.keypoints, cfg.calibration,
+                               cfg.column, int(cfg.batch_size), cfg.get("maps"))
+        except (KeyError, ValueError) as e:  # a table or keypoint file of another layout
+            if isinstance(e, NSDError):
+                raise
+            raise NSDError(f"export {cfg.export}: {e}") from e
+        print(
+            f"netepu-embed: {out['encoded']} of {out['rows']} rows encoded -> {out['path']} "
+            f"(column '{cfg.column}')"
         )
-    except (NSDError, FileNotFoundError, ValueError, KeyError) as e:
-        print(f"netepu-embed: error: {e}", file=sys.stderr)
-        sys.exit(2)
-    print(
-        f"netepu-embed: {out['encoded']} of {out['rows']} rows encoded -> {out['path']} "
-        f"(column '{cfg.column}')"
-    )
+
+
+def main() -> None:
+    """Entry point of ``netepu-embed``; bad input exits with status 2 and one line."""
+    check_command_line(PROG, "netepu_embed")
+    _hydra_main()
 
 
 if __name__ == "__main__":

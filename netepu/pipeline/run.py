@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -53,14 +52,17 @@ from netepu.pipeline.stages import (
     train_stage,
 )
 from netepu.reid.identities import IDENTITY_METHODS
+from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_write_text
 from nsd.core.config import compose_app
-from nsd.core.errors import ConfigError, NSDError
+from nsd.core.errors import ConfigError
+from nsd.core.run_folder import RunFolder
 from nsd.core.stages import Stage, StageResult, StageRunner
 
 __all__ = ["build_stages", "load_run_config", "main", "run_pipeline"]
 
 log = logging.getLogger(__name__)
+PROG = "nsd-run"
 
 
 
@@ -151,28 +153,23 @@ def _report(out: Path, results: dict[str, StageResult]) -> str:
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="run", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    out = _out_folder(cfg)
-    out.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(
-        level=logging.INFO,
-        format="%(asctime)s %(name)s: %(message)s",
-        handlers=[logging.StreamHandler(), logging.FileHandler(out / "run.log")],
-        force=True,
-    )
-    for logger in logging.Logger.manager.loggerDict.values():  # hydra's logging config
-        if isinstance(logger, logging.Logger):  # disabled the loggers that existed before it
-            logger.disabled = False
-    torch.set_num_threads(max(1, min(torch.get_num_threads(), int(cfg.threads))))
-    try:
+    with reported(PROG) as report, RunFolder(_out_folder(cfg), PROG) as folder:
+        report.attach(folder)
+        logging.basicConfig(  # stderr is the run folder's tee: run.log receives it too
+            level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+            handlers=[logging.StreamHandler()], force=True,
+        )
+        for logger in logging.Logger.manager.loggerDict.values():  # hydra's logging config
+            if isinstance(logger, logging.Logger):  # disabled the loggers that existed before it
+                logger.disabled = False
+        torch.set_num_threads(max(1, min(torch.get_num_threads(), int(cfg.threads))))
         results = run_pipeline(cfg)
-    except (NSDError, FileExistsError) as e:
-        print(f"nsd-run: error: {e}", file=sys.stderr)
-        sys.exit(2)
-    print(_report(out, results))
+        print(_report(folder.folder, results))
 
 
 def main() -> None:
-    """Entry point of ``nsd-run``."""
+    """Entry point of ``nsd-run``: the command line is checked before any work."""
+    check_command_line(PROG, "run")
     _hydra_main()
 
 

@@ -19,7 +19,6 @@ from netepu.pipeline.embed import embed_into_copy
 from netepu.pipeline.pose_keypoints import regress_export
 from netepu.pipeline.subject_keypoints import invert_export
 from netepu.reid.identities import assign_identities
-from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.stages import Stage, StageResult, config_hash
@@ -32,8 +31,8 @@ from nsd.export.grids import write_grids
 from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embeddings import read_embeddings
-from nsd.io.footage import MultiViewFootage
 from nsd.io.ground_truth import GroundTruth
+from nsd.io.scene_check import check_scene, scene_fingerprint
 from nsd.io.scenes import resolve_scene
 from nsd.training.train import train
 
@@ -61,24 +60,25 @@ def _container(node: Any) -> Any:
 
 # ------------------------------------------------------------------ stages
 def scene_stage(cfg: DictConfig) -> Stage:
+    """The scene folder, checked before any long work (:func:`nsd.io.scene_check.check_scene`:
+    errors stop the run, warnings are logged and kept in ``scene.json``); keyed by the
+    folder's content, so replacing a video or the calibration re-runs every stage."""
     spec = str(Path(cfg.scene).expanduser().resolve()) if cfg.scene else DEFAULT_SCENE
+    path = resolve_scene(None if spec == DEFAULT_SCENE else spec)
+    if not path.is_dir():
+        raise ConfigError(f"scene: {path} is not a folder (give scene=<scene folder>)")
+    cameras = cfg.train.data.cameras
+    cameras = list(cameras) if cameras else None
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        path = resolve_scene(None if spec == DEFAULT_SCENE else spec)
-        if not path.is_dir():
-            raise ConfigError(f"scene: {path} is not a folder (give scene=<scene folder>)")
-        rig = read_calibration(path)
-        footage = MultiViewFootage(path)
-        summary = {
-            "path": str(path.resolve()),
-            "cameras": list(rig.names),
-            "frames": int(footage.num_frames),
-            "ground_truth": GroundTruth.exists(path),
-        }
+        check = check_scene(path, cameras)
+        summary = {"path": str(path.resolve()), **check.summary(),
+                   "ground_truth": GroundTruth.exists(path)}
         atomic_write_text(out / "scene.json", json.dumps(summary, indent=2))
         return summary
 
-    return Stage("scene", run, {"scene": spec})
+    return Stage("scene", run, {"scene": spec, "cameras": cameras,
+                                "content": scene_fingerprint(path)})
 
 
 def _train_config(cfg: DictConfig) -> DictConfig:
@@ -122,6 +122,12 @@ def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
         c.data.scene = up["scene"].summary["path"]
         # trained in a work folder that survives an interruption (exact resume), moved at the end
         work = out.parent / f".train-work-{config_hash(_container(c))}"
+        for stale in out.parent.glob(".train-work-*"):  # of other settings: never resumed
+            if stale != work:
+                shutil.rmtree(stale, ignore_errors=True)
+                log.info("removed %s, the work folder of a training with other settings", stale)
+        if (work / "checkpoint.pt").is_file():
+            log.info("train: resuming the interrupted training in %s", work)
         metrics = train(c, work)
         for item in work.iterdir():
             shutil.move(str(item), out / item.name)
@@ -168,7 +174,8 @@ def evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     why = (
         ""
         if e.enabled and ground_truth
-        else ("evaluate.enabled=false" if not e.enabled else "the scene has no ground truth (gt/)")
+        else "evaluate.enabled=false" if not e.enabled
+        else "the scene has no ground-truth masks (gt/dense/)"
     )
     return Stage(
         "evaluate",

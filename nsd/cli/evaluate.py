@@ -9,27 +9,37 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
+from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_write_text
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
 from nsd.inference.multiview import InferenceSettings
 
 __all__ = ["main"]
 
+PROG = "nsd-eval"
+
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="eval", version_base="1.3")
-def main(cfg: DictConfig) -> float:
-    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
-    frames = cfg.frames if isinstance(cfg.frames, str) else list(cfg.frames)
-    settings = InferenceSettings.from_config(cfg.inference)
-    metrics = evaluate_checkpoint(
-        cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings
-    )
-    ckpt = Path(cfg.checkpoint)
-    out = Path(cfg.out) if cfg.out else (ckpt if ckpt.is_dir() else ckpt.parent)
-    atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
-    atomic_write_text(out / "eval.md", markdown_table(metrics))
-    print(markdown_table(metrics))
-    return float(metrics.get("mask_miou", float("nan")))
+def _hydra_main(cfg: DictConfig) -> float:
+    with reported(PROG):
+        torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
+        frames = cfg.frames if isinstance(cfg.frames, str) else list(cfg.frames)
+        settings = InferenceSettings.from_config(cfg.inference)
+        metrics = evaluate_checkpoint(
+            cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings
+        )
+        ckpt = Path(cfg.checkpoint)
+        out = Path(cfg.out) if cfg.out else (ckpt if ckpt.is_dir() else ckpt.parent)
+        atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
+        atomic_write_text(out / "eval.md", markdown_table(metrics))
+        print(markdown_table(metrics))
+        return float(metrics.get("mask_miou", float("nan")))
+
+
+def main() -> None:
+    """Entry point of ``nsd-eval``: the command line is checked before any work."""
+    check_command_line(PROG, "eval")
+    _hydra_main()
 
 
 if __name__ == "__main__":

@@ -6,15 +6,16 @@ SIGTERM unwinds like Ctrl-C, so an interrupted export leaves no half-written fol
 from __future__ import annotations
 
 import signal
-import sys
 
 import hydra
 from omegaconf import DictConfig
 
-from nsd.core.errors import NSDError
+from nsd.core.app import check_command_line, reported
 from nsd.export.subjects import run
 
 __all__ = ["main"]
+
+PROG = "nsd-export"
 
 
 def _terminate(signum, frame) -> None:
@@ -22,14 +23,16 @@ def _terminate(signum, frame) -> None:
 
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="export", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    """Entry point of ``nsd-export``; bad input exits with status 2 and a message."""
+def _hydra_main(cfg: DictConfig) -> None:
     signal.signal(signal.SIGTERM, _terminate)
-    try:
+    with reported(PROG):
         run(cfg)
-    except (NSDError, FileExistsError) as e:
-        print(f"nsd-export: error: {e}", file=sys.stderr)
-        sys.exit(2)
+
+
+def main() -> None:
+    """Entry point of ``nsd-export``; bad input exits with status 2 and one line."""
+    check_command_line(PROG, "export")
+    _hydra_main()
 
 
 if __name__ == "__main__":

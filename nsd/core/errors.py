@@ -8,11 +8,15 @@ that only know the standard library can still catch them.
 from __future__ import annotations
 
 __all__ = [
+    "BAD_INPUT_ERRORS",
     "CalibrationError",
     "CheckpointError",
     "ConfigError",
     "FootageError",
     "NSDError",
+    "NonFiniteError",
+    "RunFolderBusyError",
+    "SceneError",
 ]
 
 
@@ -34,3 +38,21 @@ class ConfigError(NSDError):
 
 class CheckpointError(NSDError):
     """A checkpoint is missing, corrupt or incompatible with the scene."""
+
+
+class SceneError(FootageError):
+    """A scene folder whose footage and calibration disagree (sizes, frame names, cameras)."""
+
+
+class RunFolderBusyError(NSDError):
+    """Another live run holds the run folder."""
+
+
+class NonFiniteError(NSDError, FloatingPointError):
+    """Training produced a NaN or infinity (a loss term, a gradient or a parameter)."""
+
+
+# What a command reports as bad input (one line, exit status 2) rather than as a bug.
+BAD_INPUT_ERRORS: tuple[type[Exception], ...] = (
+    NSDError, FileExistsError, FileNotFoundError, NotADirectoryError, IsADirectoryError,
+    PermissionError)

@@ -26,10 +26,13 @@ next collective. With one process nothing of this runs.
 from __future__ import annotations
 
 import csv
+import logging
 import math
 import os
+import pickle
 import random
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +48,7 @@ from tqdm import tqdm
 from nsd.core import distributed
 from nsd.core.atomic import atomic_save_torch
 from nsd.core.config import ConfigSection
-from nsd.core.errors import CheckpointError, ConfigError
+from nsd.core.errors import CheckpointError, ConfigError, NonFiniteError
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -59,6 +62,8 @@ __all__ = [
 
 CHECKPOINT_FORMAT = "nsd-netepu-checkpoint-v1"  # the tag every checkpoint of the toolkit carries
 
+
+log = logging.getLogger(__name__)
 
 def seed_everything(seed: int) -> np.random.Generator:
     """Seed python, numpy and torch; return the data generator for the task."""
@@ -158,14 +163,35 @@ def _set_rng_state(rng: np.random.Generator, state: Mapping[str, Any]) -> None:
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """Load a checkpoint with ``weights_only=True``; clear errors when it is unusable."""
+    """Load a checkpoint with ``weights_only=True``; clear errors when it is unusable.
+
+    Raises:
+        CheckpointError: missing, not a torch file, a pickle that would run code (refused,
+            never retried without ``weights_only``), or not a mapping.
+    """
     path = Path(path)
+    if path.is_dir() and (path / "checkpoint.pt").is_file():
+        path = path / "checkpoint.pt"
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # corrupt or not a torch file
-        raise CheckpointError(f"checkpoint {path} cannot be loaded: {e}") from e
+        with warnings.catch_warnings():  # torch's note on pickle protocols is not for users
+            warnings.simplefilter("ignore", UserWarning)
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        if "Weights only load failed" in str(e):
+            raise CheckpointError(
+                f"checkpoint {path} holds objects other than tensors and plain data; it was "
+                "refused because loading it could run code. Use a checkpoint written by "
+                "nsd-train or netepu-train") from None
+        raise CheckpointError(f"checkpoint {path} is not a torch checkpoint file") from None
+    except Exception:  # a text file, a truncated download, another format
+        raise CheckpointError(f"checkpoint {path} is not a torch checkpoint file (corrupt, "
+                              "truncated or another format)") from None
+    if not isinstance(state, dict):
+        raise CheckpointError(f"checkpoint {path} holds a {type(state).__name__}, not a "
+                              "checkpoint of this toolkit (nsd-train or netepu-train)")
+    return state
 
 
 class CsvLog:
@@ -230,6 +256,7 @@ class Trainer:
         self._csv: CsvLog | None = None
         self._evals_done: set[float] = set()
         self.history: list[dict[str, float]] = []
+        self._names: dict[int, str] | None = None
 
     # ------------------------------------------------------------------ state
     @property
@@ -346,22 +373,35 @@ class Trainer:
             c.max_minutes > 0 and self.train_seconds >= 60 * c.max_minutes
         )
 
-    def _check_finite(self, losses: Mapping[str, torch.Tensor]) -> None:
+    def _check_losses(self, losses: Mapping[str, torch.Tensor]) -> None:
+        """Stop before ``backward()`` on a non-finite loss, naming the terms."""
         bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]
         if bad:
             where = f" (averaged over {self.world} ranks)" if self.world > 1 else ""
-            raise FloatingPointError(
+            raise NonFiniteError(
                 f"step {self.step}: non-finite loss terms {bad}{where}; lower the learning rate or "
                 "the prior weights, or enable trainer.detect_anomaly to find the operation"
             )
+
+    def _named_parameters(self) -> dict[int, str]:
+        if self._names is None:
+            self._names = {id(p): f"{m}.{n}" for m, mod in self.task.modules().items()
+                           for n, p in mod.named_parameters()}
+        return self._names
+
+    def _check_tensors(self, what: str, advice: str) -> None:
+        """Stop on a non-finite gradient (``what='gradient'``) or parameter, naming the
+        optimiser, its parameter group and the parameter."""
         for name, opt in self.task.optimizers().items():
-            for g in opt.param_groups:
+            for i, g in enumerate(opt.param_groups):
                 for p in g["params"]:
-                    if p.grad is not None and not torch.isfinite(p.grad).all():
-                        raise FloatingPointError(
-                            f"step {self.step}: non-finite gradient in optimiser '{name}'; "
-                            "enable trainer.grad_clip or lower the learning rate"
-                        )
+                    t = p.grad if what == "gradient" else p
+                    if t is not None and not torch.isfinite(t).all():
+                        param = self._named_parameters().get(id(p), "?")
+                        raise NonFiniteError(
+                            f"step {self.step}: non-finite {what} of parameter '{param}' "
+                            f"(optimiser '{name}', parameter group {i}, learning rate "
+                            f"{g.get('lr')}); {advice}")
 
     def _synchronise(self, losses: Mapping[str, torch.Tensor], t0: float) -> dict[str, Any]:
         """Average gradients and loss terms over the ranks; share rank 0's clock."""
@@ -385,6 +425,11 @@ class Trainer:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         if self._should_resume():
             self.load(self.checkpoint_path)
+            log.info("resumed from %s at step %d (%.1f training minutes)",
+                     self.checkpoint_path, self.step, self.train_seconds / 60)
+        if self.cfg.stop_on_nonfinite:  # e.g. a checkpoint that holds NaN weights
+            self._check_tensors("value", "the run starts from non-finite weights: "
+                                         "give another checkpoint or init_from")
         distributed.broadcast_parameters(self.task.modules().values())
         for m in self.task.modules().values():
             m.train()
@@ -440,17 +485,24 @@ class Trainer:
         for o in opts.values():
             o.zero_grad(set_to_none=True)
         losses = self.task.training_step(self.step, self.rng)
+        guard = self.cfg.stop_on_nonfinite
+        if guard and self.world == 1:
+            self._check_losses(losses)  # before any backward pass on non-finite values
         losses["loss"].backward()
         if self.world > 1:
             losses = self._synchronise(losses, t0)
-        if self.cfg.stop_on_nonfinite:
-            self._check_finite(losses)
+            if guard:  # every rank sees the same averages and stops together
+                self._check_losses(losses)
+        if guard:
+            self._check_tensors("gradient", "enable trainer.grad_clip or lower the learning rate")
         if self.cfg.grad_clip > 0:
             for o in opts.values():
                 params = [p for g in o.param_groups for p in g["params"]]
                 torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
         for o in opts.values():
             o.step()
+        if guard:
+            self._check_tensors("value", "lower the learning rate or enable trainer.grad_clip")
         for s in getattr(self.task, "schedulers", lambda: {})().values():
             s.step()
         self.step += 1

@@ -53,13 +53,15 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
     if not scene or str(scene) in ("", "."):
         scene = resolve_scene(None)
     if not GroundTruth.exists(scene):
-        raise FootageError(f"{scene} has no gt/ folder: nsd-eval needs a synthetic scene")
+        raise FootageError(
+            f"{scene} has no ground-truth masks (gt/scene.json and gt/dense/): nsd-eval needs a "
+            "synthetic scene written with dense=true")
     H, W = trained.frame_hw
     cfg = trained.config
     data = SceneData(scene, (W, H), cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames)
     trained.check_cameras(data.rig.names, scene)
     if frames == "val":
-        idx = np.asarray(data.val_frames)
+        idx = np.asarray(data.heldout_frames)
     elif frames == "all":
         idx = np.arange(len(data.frames))
     elif isinstance(frames, (list, tuple)) or hasattr(frames, "__iter__"):

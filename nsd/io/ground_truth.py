@@ -71,7 +71,11 @@ class GroundTruth:
 
     @staticmethod
     def exists(scene: str | os.PathLike) -> bool:
-        return (Path(scene) / "gt" / "scene.json").is_file()
+        """The scene has ground truth that masks can be scored against: ``gt/scene.json`` and
+        the per camera-frame maps ``gt/dense/`` (a scene written with ``dense=false`` has
+        keypoints and boxes but no masks)."""
+        gt = Path(scene) / "gt"
+        return (gt / "scene.json").is_file() and any((gt / "dense").glob("*/000000.npz"))
 
     @classmethod
     def load(cls, scene: str | os.PathLike) -> GroundTruth:

@@ -172,6 +172,12 @@ class SceneData:
         return self.frames.shape[1]
 
     @property
+    def heldout_frames(self) -> np.ndarray:
+        """Frames to evaluate on: the held-out tail, or every training frame when nothing is
+        held out (``data.val_fraction=0``, e.g. a short real clip)."""
+        return self.val_frames if len(self.val_frames) else self.train_frames
+
+    @property
     def frame_hw(self) -> tuple[int, int]:
         """(H, W) of the training frames (the constructor's ``image_size`` is (W, H))."""
         return tuple(self.frames.shape[-2:])

@@ -19,11 +19,13 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from nsd.core.errors import NSDError
+from nsd.core.app import check_command_line, reported
 from nsd.synth.config import SceneConfig
 from nsd.synth.scene import CLI_KEYS, write_scene
 
 __all__ = ["main", "run"]
+
+PROG = "nsd-synth"
 
 
 def run(cfg: DictConfig | dict) -> Path:
@@ -47,13 +49,15 @@ def run(cfg: DictConfig | dict) -> Path:
 
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="synth", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    """Entry point of ``nsd-synth``."""
-    try:
+def _hydra_main(cfg: DictConfig) -> None:
+    with reported(PROG):
         run(cfg)
-    except (NSDError, FileExistsError) as e:
-        print(f"nsd-synth: error: {e}", file=sys.stderr)
-        sys.exit(2)
+
+
+def main() -> None:
+    """Entry point of ``nsd-synth``; bad input exits with status 2 and one line."""
+    check_command_line(PROG, "synth")
+    _hydra_main()
 
 
 if __name__ == "__main__":

@@ -138,7 +138,7 @@ class PoseTask:
 
     @torch.no_grad()
     def evaluate(self, step: int) -> dict[str, float]:
-        lat, tgt = self._cached("val", self.data.val_frames)
+        lat, tgt = self._cached("val", self.data.heldout_frames)
         self.regressor.eval()
         err = mpjpe(self.regressor(lat), tgt).item() * 1000
         self.regressor.train()

@@ -468,7 +468,7 @@ class NSDTask:
         runs = [("", settings)]
         if settings.multiview and self.gt is not None:
             runs.append(("single_", dataclasses.replace(settings, views="single")))
-        sets = [("", _spread(self.data.val_frames, self.cfg.eval_frames))]
+        sets = [("", _spread(self.data.heldout_frames, self.cfg.eval_frames))]
         if self.cfg.eval_train_frames > 0:
             sets.append(("train_", _spread(self.data.train_frames, self.cfg.eval_train_frames)))
         metrics = {}
@@ -479,7 +479,7 @@ class NSDTask:
         return metrics
 
     def image_grids(self, step: int) -> dict[str, np.ndarray]:
-        frames = _spread(self.data.val_frames, 3)
+        frames = _spread(self.data.heldout_frames, 3)
         return {"nsd": training_grid(self.model, self.data, frames)}
 
 

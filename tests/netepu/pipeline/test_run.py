@@ -47,7 +47,8 @@ def tiny_run(tmp_path_factory):
 def test_tiny_run_then_rerun_does_no_work(tiny_run, monkeypatch):
     tiny_scene, out, res = tiny_run
     assert [n for n, r in res.items() if r.skipped] == ["evaluate", "keypoints", "texture"]
-    assert res["evaluate"].summary == {"disabled": "the scene has no ground truth (gt/)"}
+    no_masks = "the scene has no ground-truth masks (gt/dense/)"
+    assert res["evaluate"].summary == {"disabled": no_masks}
     assert (out / "train" / "checkpoint.pt").is_file()
     assert not list(out.glob(".train-work-*"))  # the work folder was moved into place
     coco = COCO(str(out / "export" / "subjects.coco.json"))

@@ -38,6 +38,7 @@ CLI = {
     "synth": "nsd.synth.cli",
     "netepu_train": "netepu.cli.train",
     "netepu_embed": "netepu.pipeline.embed",
+    "check": "nsd.cli.check",
 }
 SECTIONS = [
     BiNVSConfig,

@@ -18,6 +18,7 @@ import pytest
 import torch
 from torch import nn
 
+from nsd.core.errors import NonFiniteError
 from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
 from nsd.io.scene_data import SceneData
 from nsd.training.task import NSDTask
@@ -131,9 +132,30 @@ def test_non_finite_loss_stops_with_a_clear_message(tmp_path):
 
 def test_non_finite_gradient_stops_with_a_clear_message(tmp_path):
     t = _toy_trainer(_ToyTask("inf_grad"), tmp_path)
-    with pytest.raises(FloatingPointError, match="non-finite gradient in optimiser 'sgd'"):
+    with pytest.raises(
+        FloatingPointError,
+        match=r"non-finite gradient of parameter 'toy.0' \(optimiser 'sgd', parameter group 0",
+    ):
         t.fit()
     assert t.step == 0 and torch.equal(t.task.w.detach(), torch.zeros(3))  # no step taken
+
+
+def test_weights_made_non_finite_by_a_step_stop_the_run_naming_the_parameter(tmp_path):
+    """A NaN learning rate (here SGD's, unchecked by the toy task) keeps the loss and the
+    gradient finite but turns the weights NaN: the guard names the parameter and its rate."""
+    t = _toy_trainer(_ToyTask("overflow", lr=float("nan")), tmp_path)
+    with pytest.raises(NonFiniteError, match=r"non-finite value of parameter 'toy.0'.*rate nan"):
+        t.fit()
+    assert t.step == 0  # stopped in the step that produced them, before the next forward
+
+
+def test_a_non_finite_loss_stops_before_backward(tmp_path):
+    """The loss check runs before backward(): no gradient is ever computed."""
+    task = _ToyTask("overflow", lr=1e10)
+    t = _toy_trainer(task, tmp_path)
+    with pytest.raises(NonFiniteError):
+        t.fit()
+    assert task.w.grad is None
 
 
 def test_anomaly_detection_names_the_operation(tmp_path):

@@ -1,0 +1,267 @@
+"""A scene folder checked before any long work (``nsd-check``, and the first step of
+``nsd-run`` and ``nsd-train``).
+
+Errors (:class:`~nsd.core.errors.NSDError`, naming the file, camera or frame) for what
+cannot give a meaningful result:
+
+* the calibration (unreadable, singular, non-finite: :mod:`nsd.cameras.calibration_io`),
+  or camera positions that are implausible in metres (a calibration in millimetres);
+* fewer than two cameras; a camera without footage; cameras of different frame counts;
+* image folders whose frame names disagree across cameras (a dropped frame would pair
+  every later frame with the wrong instant), images of another size within a camera,
+  files that are not images.
+
+Warnings (what to do included) for what runs but may mislead:
+
+* frames that are blank or saturated (uniform: phantom subjects otherwise);
+* footage in which nothing moves (the median background is every frame: no subject);
+* footage folders that the calibration does not name (ignored).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import re
+from dataclasses import dataclass, field
+from itertools import combinations
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from nsd.cameras.calibration import CameraRig
+from nsd.cameras.calibration_io import read_calibration
+from nsd.core.errors import CalibrationError, FootageError, SceneError
+from nsd.io.footage import (
+    IMAGE_EXTENSIONS,
+    VIDEO_EXTENSIONS,
+    ImageFolderSource,
+    MultiViewFootage,
+)
+
+__all__ = ["MAX_CAMERA_SPACING", "SceneCheck", "check_scene", "scene_fingerprint"]
+
+log = logging.getLogger(__name__)
+
+MAX_CAMERA_SPACING = 100.0  # metres: median distance between cameras above this is not metres
+SAMPLE_FRAMES = 60  # frames per camera decoded for the content checks
+UNIFORM_STD = 2.0  # grey levels: a frame this flat is blank, saturated or a lens cap
+MOTION_LEVEL = 12.0  # grey levels from the median that count as a change
+MOTION_SHARE = 1e-3  # share of pixels that must change in some frame for footage to "move"
+RESERVED = {"gt", "calibration", "background", "videos", "images", ".cache"}
+
+
+@dataclass
+class SceneCheck:
+    """What :func:`check_scene` found.
+
+    Attributes:
+        scene: the scene folder.
+        cameras: camera names (calibration order).
+        frames: frames per camera.
+        sizes: (width, height) per camera.
+        camera_spacing: median distance between camera centres, calibration units.
+        warnings: one line each, camera and frames named, what to do included.
+    """
+
+    scene: Path
+    cameras: list[str]
+    frames: int
+    sizes: dict[str, tuple[int, int]]
+    camera_spacing: float
+    warnings: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-serialisable figures (``scene.json`` of nsd-run's scene stage)."""
+        return {"cameras": self.cameras, "frames": self.frames,
+                "sizes": {k: list(v) for k, v in self.sizes.items()},
+                "camera_spacing": round(self.camera_spacing, 6), "warnings": self.warnings}
+
+
+def _ranges(frames: list[int]) -> str:
+    """``[1, 2, 3, 7]`` -> ``1-3, 7``."""
+    out, start = [], None
+    for i, f in enumerate(frames):
+        if start is None:
+            start = f
+        if i + 1 == len(frames) or frames[i + 1] != f + 1:
+            out.append(str(start) if start == f else f"{start}-{f}")
+            start = None
+    return ", ".join(out)
+
+
+def _check_units(rig: CameraRig) -> float:
+    """Median distance between camera centres; an error when it cannot be metres."""
+    centres = [c.center for c in rig]
+    if len(centres) < 2:
+        return 0.0
+    spacing = float(np.median([np.linalg.norm(a - b) for a, b in combinations(centres, 2)]))
+    if spacing > MAX_CAMERA_SPACING:
+        raise CalibrationError(
+            f"calibration {rig.source}: the cameras are a median {spacing:.0f} units apart, "
+            "which is not metres (the toolkit's distances, model.association_unit, "
+            "prior_depth.unit and the visual hull's volume, are in metres); it looks like "
+            "millimetres: divide every translation by 1000 (by 100 for centimetres)"
+        )
+    return spacing
+
+
+def _frame_number(p: Path) -> str:
+    """The last number in a file name (``cam0_000123.png`` -> ``123``), else the stem."""
+    numbers = re.findall(r"\d+", p.stem)
+    return str(int(numbers[-1])) if numbers else p.stem
+
+
+def _check_names(sources: list[ImageFolderSource]) -> None:
+    """Frame ``t`` of every image folder must name the same instant."""
+    if len(sources) < 2:
+        return
+    ref = sources[0]
+    ref_keys = [_frame_number(p) for p in ref.files]
+    for src in sources[1:]:
+        keys = [_frame_number(p) for p in src.files]
+        for t, (a, b) in enumerate(zip(ref_keys, keys, strict=False)):
+            if a != b:
+                raise SceneError(
+                    f"camera '{src.camera}': frame {t} is {src.files[t].name} where camera "
+                    f"'{ref.camera}' has {ref.files[t].name}: the frame names disagree (a "
+                    "dropped frame?), so later frames would pair different instants; make "
+                    "the names match (the same number is the same instant)"
+                )
+
+
+def _check_sizes(src: ImageFolderSource) -> tuple[int, int]:
+    """Every image of a folder has the first one's size; read from the file headers."""
+    size = None
+    for t, p in enumerate(src.files):
+        try:
+            with Image.open(p) as im:
+                this = im.size
+        except (UnidentifiedImageError, OSError) as e:
+            raise FootageError(f"camera '{src.camera}' ({p}, frame {t}): not a readable image "
+                               f"({type(e).__name__})") from None
+        if size is None:
+            size = this
+        elif this != size:
+            raise SceneError(
+                f"camera '{src.camera}' ({p}, frame {t}): image is {this[0]}x{this[1]} but the "
+                f"camera's first frame is {size[0]}x{size[1]}; every frame of a camera must "
+                "have one size"
+            )
+    assert size is not None
+    return size
+
+
+def _unnamed_footage(scene: Path, names: list[str]) -> list[str]:
+    """Footage folders or videos next to the calibration's cameras that it does not name."""
+    found = []
+    for folder in (scene, scene / "videos", scene / "images"):
+        if not folder.is_dir():
+            continue
+        for p in sorted(folder.iterdir()):
+            stem = p.stem if p.is_file() else p.name
+            if stem in names or p.name in RESERVED or p.name.startswith("."):
+                continue
+            if (p.is_file() and p.suffix.lower() in VIDEO_EXTENSIONS) or (
+                p.is_dir() and any(q.suffix.lower() in IMAGE_EXTENSIONS for q in p.iterdir())
+            ):
+                found.append(str(p))
+    return [f"footage {p} is not a camera of the calibration (it has {names}): ignored; add "
+            "the camera to the calibration to use it" for p in found]
+
+
+def _content(footage: MultiViewFootage, sample: int) -> list[str]:
+    """Warnings about what the frames show: blank or saturated frames, no motion."""
+    n = footage.num_frames
+    frames = np.unique(np.linspace(0, n - 1, min(n, sample)).round().astype(int))
+    warnings, still = [], []
+    for src in footage.sources:
+        small = []
+        flat: dict[str, list[int]] = {"blank (dark)": [], "saturated (white)": [],
+                                      "uniform": []}
+        for t in frames:
+            grey = cv2.cvtColor(src.read(int(t)), cv2.COLOR_RGB2GRAY)
+            scale = 160 / max(grey.shape)
+            if scale < 1:
+                grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            g = grey.astype(np.float32)
+            if g.std() < UNIFORM_STD:
+                kind = ("blank (dark)" if g.mean() < 64 else "saturated (white)"
+                        if g.mean() > 192 else "uniform")
+                flat[kind].append(int(t))
+            else:
+                small.append(g)
+        for kind, ts in flat.items():
+            if ts:
+                warnings.append(
+                    f"camera '{src.camera}': frames {_ranges(ts)} are {kind}; they would be "
+                    "decomposed into phantom subjects: remove them from the footage or leave "
+                    "them out (frames= in nsd-export)")
+        if len(small) >= 2:
+            stack = np.stack(small)
+            median = np.median(stack, axis=0)
+            moving = (np.abs(stack - median) > MOTION_LEVEL).mean(axis=(1, 2))
+            if moving.max() < MOTION_SHARE:
+                still.append(src.camera)
+    if still and len(still) == len(footage.sources):
+        warnings.append(
+            f"nothing moves in any camera ({len(frames)} frames sampled): the median "
+            "background is every frame, so no subject can be found; check that this is the "
+            "right footage, or give a background plate")
+    elif still:
+        warnings.append(f"cameras {still}: nothing moves in their footage; check that they "
+                        "film the subjects")
+    return warnings
+
+
+def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
+                sample: int = SAMPLE_FRAMES) -> SceneCheck:
+    """Check a scene folder; warnings are logged and returned.
+
+    Args:
+        scene: the scene folder.
+        cameras: the cameras to use (default: every camera of the calibration).
+        sample: frames per camera decoded for the content checks.
+
+    Raises:
+        NSDError: what cannot give a meaningful result (see the module docstring).
+    """
+    scene = Path(scene)
+    if not scene.is_dir():
+        raise FootageError(f"scene: {scene} is not a folder (give scene=<scene folder>)")
+    rig = read_calibration(scene)
+    footage = MultiViewFootage(scene, cameras, calibration=rig)
+    if footage.num_views < 2:
+        raise SceneError(
+            f"scene {scene}: {footage.num_views} camera ({footage.camera_names}); the "
+            "decomposition re-synthesises one camera from another and needs at least 2")
+    spacing = _check_units(footage.rig)
+    folders = [s for s in footage.sources if isinstance(s, ImageFolderSource)]
+    sizes = {s.camera: _check_sizes(s) for s in folders}
+    sizes.update({s.camera: tuple(s.size) for s in footage.sources if s.camera not in sizes})
+    _check_names(folders)
+    warnings = _unnamed_footage(scene, rig.names) + _content(footage, sample)
+    for w in warnings:
+        log.warning("scene %s: %s", scene.name, w)
+    return SceneCheck(scene, footage.camera_names, footage.num_frames, sizes, spacing,
+                      warnings)
+
+
+def scene_fingerprint(scene: str | os.PathLike) -> str:
+    """Changes when any file of the scene folder changes (name, size or modification time);
+    caches and the ground truth excluded. A cache key: replacing a video or the calibration
+    re-runs what depends on the scene."""
+    scene = Path(scene)
+    h = hashlib.sha256()
+    for root, dirs, files in os.walk(scene):
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and not (
+            Path(root) == scene and d == "gt"))
+        for name in sorted(files):
+            p = Path(root) / name
+            st = p.stat()
+            h.update(f"{p.relative_to(scene)}:{st.st_size}:{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()[:16]

@@ -1,0 +1,101 @@
+"""The scene check before any long work (nsd/io/scene_check.py), on the tiny scene."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from nsd.core.errors import CalibrationError, FootageError, SceneError
+from nsd.io.scene_check import check_scene, scene_fingerprint
+
+
+def _frames(scene, cam):
+    return sorted((scene / cam).glob("*.png"))
+
+
+def test_a_good_scene_passes_with_its_figures(tiny_scene):
+    c = check_scene(tiny_scene)
+    assert c.cameras == ["left", "right"] and c.frames == 4
+    assert c.sizes == {"left": (32, 24), "right": (32, 24)}
+    # both cameras stand 4 m from the origin, 90 degrees apart: 4 * sqrt(2) m
+    assert c.camera_spacing == pytest.approx(4 * np.sqrt(2), rel=1e-6)
+
+
+def test_frame_names_that_disagree_across_cameras_are_an_error(tiny_scene):
+    """'right' dropped frame 1 and numbered on: as many files, shifted names."""
+    for f in reversed(_frames(tiny_scene, "right")[1:]):
+        f.rename(f.with_name(f"{int(f.stem) + 1:06d}.png"))
+    with pytest.raises(SceneError, match=r"camera 'right': frame 1 is 000002.png where camera "
+                                         r"'left' has 000001.png"):
+        check_scene(tiny_scene)
+
+
+def test_an_image_of_another_size_is_named(tiny_scene):
+    f = _frames(tiny_scene, "left")[2]
+    cv2.imwrite(str(f), np.zeros((10, 12, 3), np.uint8))
+    with pytest.raises(SceneError, match=r"camera 'left' \(.*000002.png, frame 2\): image is "
+                                         r"12x10 but the camera's first frame is 32x24"):
+        check_scene(tiny_scene)
+
+
+def test_a_file_that_is_not_an_image_is_named(tiny_scene):
+    _frames(tiny_scene, "right")[3].write_bytes(b"not an image")
+    with pytest.raises(FootageError, match=r"camera 'right' \(.*000003.png, frame 3\)"):
+        check_scene(tiny_scene)
+
+
+def test_a_calibration_in_millimetres_is_refused_with_what_to_do(tiny_scene):
+    p = tiny_scene / "calibration.toml"
+    p.write_text(p.read_text().replace("translation = [0.0, 0.0, 4.0]",
+                                       "translation = [0.0, 0.0, 4000.0]"))
+    with pytest.raises(CalibrationError, match=r"5657 units apart.*millimetres.*divide"):
+        check_scene(tiny_scene)
+
+
+def test_one_camera_is_refused_before_training(tiny_scene):
+    with pytest.raises(SceneError, match="needs at least 2"):
+        check_scene(tiny_scene, cameras=["left"])
+
+
+def test_blank_and_saturated_frames_are_warned_by_camera_and_frame(tiny_scene):
+    f0, f2 = _frames(tiny_scene, "left")[0], _frames(tiny_scene, "right")[2]
+    cv2.imwrite(str(f0), np.zeros((24, 32, 3), np.uint8))
+    cv2.imwrite(str(f2), np.full((24, 32, 3), 255, np.uint8))
+    w = check_scene(tiny_scene).warnings
+    assert any(re.match(r"camera 'left': frames 0 are blank \(dark\)", x) for x in w)
+    assert any(re.match(r"camera 'right': frames 2 are saturated \(white\)", x) for x in w)
+
+
+def test_footage_in_which_nothing_moves_is_warned(tiny_scene):
+    for cam in ("left", "right"):
+        fs = _frames(tiny_scene, cam)
+        for f in fs[1:]:
+            shutil.copy(fs[0], f)
+    assert any(x.startswith("nothing moves in any camera") for x in check_scene(
+        tiny_scene).warnings)
+
+
+def test_the_tiny_scene_moves(tiny_scene):
+    assert not any("nothing moves" in x for x in check_scene(tiny_scene).warnings)
+
+
+def test_footage_the_calibration_does_not_name_is_warned(tiny_scene):
+    shutil.copytree(tiny_scene / "left", tiny_scene / "extra_cam")
+    w = check_scene(tiny_scene).warnings
+    assert any("extra_cam is not a camera of the calibration" in x for x in w)
+
+
+def test_fingerprint_follows_the_footage_not_the_caches(tiny_scene):
+    before = scene_fingerprint(tiny_scene)
+    (tiny_scene / ".cache").mkdir()
+    (tiny_scene / ".cache" / "bg.npz").write_bytes(b"x")
+    assert scene_fingerprint(tiny_scene) == before
+    f = _frames(tiny_scene, "left")[1]
+    st = f.stat()
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert scene_fingerprint(tiny_scene) != before
