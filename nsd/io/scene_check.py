@@ -180,7 +180,7 @@ def _content(footage: MultiViewFootage, sample: int) -> list[str]:
     frames = np.unique(np.linspace(0, n - 1, min(n, sample)).round().astype(int))
     warnings, still = [], []
     for src in footage.sources:
-        small = []
+        small, kept = [], []
         flat: dict[str, list[int]] = {"blank (dark)": [], "saturated (white)": [],
                                       "uniform": []}
         for t in frames:
@@ -195,6 +195,7 @@ def _content(footage: MultiViewFootage, sample: int) -> list[str]:
                 flat[kind].append(int(t))
             else:
                 small.append(g)
+                kept.append(int(t))
         for kind, ts in flat.items():
             if ts:
                 warnings.append(
@@ -207,6 +208,11 @@ def _content(footage: MultiViewFootage, sample: int) -> list[str]:
             moving = (np.abs(stack - median) > MOTION_LEVEL).mean(axis=(1, 2))
             if moving.max() < MOTION_SHARE:
                 still.append(src.camera)
+            elif (empty := [t for t, m in zip(kept, moving, strict=True) if m == 0]):
+                warnings.append(
+                    f"camera '{src.camera}': frames {_ranges(empty)} (of {len(frames)} sampled) "
+                    "are identical to the median background: no subject in view, or a frozen "
+                    "camera; nothing is exported for them")
     if still and len(still) == len(footage.sources):
         warnings.append(
             f"nothing moves in any camera ({len(frames)} frames sampled): the median "

@@ -99,3 +99,15 @@ def test_fingerprint_follows_the_footage_not_the_caches(tiny_scene):
     st = f.stat()
     os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
     assert scene_fingerprint(tiny_scene) != before
+
+
+def test_frames_identical_to_the_background_are_listed(tiny_scene):
+    """Frames 0-2 equal (the median is them), frame 3 differs: 0-2 show only background."""
+    for cam in ("left", "right"):
+        fs = _frames(tiny_scene, cam)
+        for f in fs[1:3]:
+            shutil.copy(fs[0], f)
+    w = check_scene(tiny_scene).warnings
+    assert any(x.startswith("camera 'left': frames 0-2 (of 4 sampled) are identical to the "
+                            "median background") for x in w), w
+    assert not any("nothing moves" in x for x in w)
