@@ -1,3 +1,3 @@
 """NSD: self-supervised multi-view scene decomposition (Bi-NVS)."""
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

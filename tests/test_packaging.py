@@ -47,6 +47,7 @@ def test_top_level_layout():
         ".ci",
         "docs",
         "LICENSE",
+        "CITATION.cff",
         ".gitignore",
         ".git",
         ".venv",
@@ -132,3 +133,23 @@ def test_wheel_install_finds_hydra_configs(tmp_path):
     out = subprocess.run([py, "-c", script], cwd=tmp_path, capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip()
+
+
+def test_citation_names_both_papers_and_the_version():
+    import nsd
+
+    text = (ROOT / "CITATION.cff").read_text()
+    assert f"version: {nsd.__version__}\n" in text
+    assert "Neural Scene Decomposition for Multi-Person Motion Capture" in text
+    assert "Neural Texture Puppeteer" in text
+    assert (ROOT / "LICENSE").read_text().startswith("BSD 3-Clause License")
+
+
+def test_every_command_prints_its_version():
+    import nsd
+
+    for script in ("nsd-run", "nsd-train", "nsd-check"):
+        res = subprocess.run([str(Path(sys.executable).parent / script), "--version"],
+                             capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0 and res.stdout.strip() == (
+            f"{script} (nsd-netepu) {nsd.__version__}"), res

@@ -1,15 +1,22 @@
 #!/usr/bin/env bash
-# Set up the toolkit in ./.venv on a fresh machine.
+# Set up the toolkit in ./.venv (any Linux machine with Python >= 3.11).
 #
 #   bash tools/setup.sh          # runtime install
-#   bash tools/setup.sh --dev    # plus test/lint tools (hypothesis, ruff, pytest-timeout)
+#   bash tools/setup.sh --dev    # plus the test and lint tools (pytest, hypothesis, ruff)
 #
-# The CPU build of torch is installed FIRST and pinned (torch==2.13.0), so that no
-# later requirement can pull a CUDA build of torch (several GB) from the registry.
+# torch is installed FIRST, as torch==$NSD_TORCH_VERSION (default 2.13.0, the tested release),
+# unless the venv already holds a torch that the toolkit's range accepts (then it is kept).
+# Where that release comes from is pip's business: its default index serves a CUDA build on
+# Linux (several GB; it runs on the CPU too, and uses an NVIDIA GPU where there is one). For
+# the small CPU-only build, point NSD_TORCH_INDEX at PyTorch's CPU wheel index (the address
+# is on PyTorch's installation page):
+#
+#   NSD_TORCH_INDEX=<PyTorch's CPU wheel index> bash tools/setup.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
+TORCH_VERSION=${NSD_TORCH_VERSION:-2.13.0}
 extra=""
 [ "${1:-}" = "--dev" ] && extra="[dev]"
 
@@ -19,11 +26,21 @@ if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
 fi
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 pip=".venv/bin/python -m pip"
-$pip install --quiet --disable-pip-version-check "torch==2.13.0"
-$pip install --quiet --disable-pip-version-check -e ".$extra"
+quiet="--quiet --disable-pip-version-check"
+if .venv/bin/python -c 'import sys, torch; v = tuple(int(x) for x in torch.__version__.split("+")[0].split(".")[:2]); sys.exit(not (2, 6) <= v < (3, 0))' 2>/dev/null; then
+    echo "keeping the venv's torch ($(.venv/bin/python -c 'import torch; print(torch.__version__)'))"
+elif [ -n "${NSD_TORCH_INDEX:-}" ]; then
+    $pip install $quiet --index-url "$NSD_TORCH_INDEX" "torch==$TORCH_VERSION"
+else
+    $pip install $quiet "torch==$TORCH_VERSION"
+fi
+$pip install $quiet -e ".$extra"
 .venv/bin/python - <<'PY'
 import torch
-assert torch.__version__.startswith("2.13.0"), torch.__version__
-assert not torch.version.cuda, f"a CUDA build of torch was installed ({torch.version.cuda})"
-print(f"set-up done: torch {torch.__version__} (CPU), {torch.get_num_threads()} threads")
+
+import nsd
+
+build = f"CUDA {torch.version.cuda} build" if torch.version.cuda else "CPU build"
+gpu = "an NVIDIA GPU is available" if torch.cuda.is_available() else "runs on the CPU"
+print(f"set-up done: nsd-netepu {nsd.__version__}, torch {torch.__version__} ({build}; {gpu})")
 PY

@@ -6,7 +6,7 @@ Formats
     One table per camera, ``[cam_N]`` with ``name``, ``size = [width, height]``,
     ``matrix`` (3x3 K), ``distortions`` (OpenCV order), ``rotation`` (Rodrigues
     vector, world-to-camera) and ``translation`` (world-to-camera). Other tables
-    (``[metadata]``) and keys (``fisheye``) are ignored on reading.
+    (``[metadata]``) are ignored; ``fisheye = true`` (Kannala-Brandt) is refused.
 ``intri.yml`` + ``extri.yml`` (OpenCV FileStorage, EasyMocap)
     ``names`` (sequence of camera names); ``K_<name>``, ``dist_<name>`` and
     optionally ``H_<name>``/``W_<name>`` in ``intri.yml``; ``Rot_<name>`` (3x3)
@@ -20,12 +20,17 @@ Formats
     is OpenCV's rotated by pi about x. We convert to OpenCV world-to-camera,
     metres.
 
+caliscope / FreeMoCap ``camera_array.toml``, CMU Panoptic JSON and COLMAP models
+    :mod:`nsd.cameras.calibration_formats`.
+
+Distortion: OpenCV's 4, 5, 8, 12 (thin prism) and 14 (tilted sensor) coefficient models.
 All readers return a validated :class:`~nsd.cameras.calibration.CameraRig`; bad values
 raise :class:`~nsd.core.errors.CalibrationError` naming the file and camera.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 import tomllib
@@ -37,6 +42,7 @@ import numpy as np
 import tomli_w
 
 from nsd.cameras.calibration import Camera, CameraRig
+from nsd.cameras.calibration_formats import read_caliscope, read_colmap, read_panoptic
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CalibrationError
 
@@ -87,6 +93,12 @@ def read_toml(path: str | os.PathLike) -> CameraRig:
         if key == "metadata" or not isinstance(table, dict):
             continue
         name = str(table.get("name", key))
+        if table.get("fisheye", False):
+            raise CalibrationError(
+                f"camera '{name}' ([{key}]) in {path}: fisheye = true (the Kannala-Brandt lens "
+                "model) is not supported yet; its four coefficients would be misread as OpenCV's "
+                "k1, k2, p1, p2. Calibrate with the standard (pinhole) model, or undistort the "
+                "footage with cv2.fisheye first")
         missing = [k for k in ("matrix", "rotation", "translation") if k not in table]
         if missing:
             raise CalibrationError(f"camera '{name}' ([{key}]) in {path}: missing {missing}")
@@ -286,34 +298,76 @@ def read_qca(path: str | os.PathLike) -> CameraRig:
 
 
 # --------------------------------------------------------------------------- dispatch
+def _calibration_toml(path: Path) -> str | None:
+    """``anipose`` or ``caliscope`` when the TOML file holds cameras, else None (e.g. a
+    Pose2Sim ``Config.toml`` beside its ``calibration/`` folder)."""
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError):
+        return None
+    if isinstance(data.get("cameras"), dict):
+        return "caliscope"
+    if any(isinstance(t, dict) and "matrix" in t for t in data.values()):
+        return "anipose"
+    return None
+
+
+def _panoptic_json(path: Path) -> bool:
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("cameras"), list)
+
+
 def find_calibration(scene: str | os.PathLike) -> Path:
     """The calibration file of a scene folder.
 
-    Looks for ``calibration.toml``, then any ``*.toml``, ``intri.yml``, ``*.qca.txt``,
-    in the folder and its ``calibration/`` subfolder.
+    Looks in the folder, then in its ``calibration/`` subfolder (Pose2Sim's layout) and
+    ``sparse/0/`` (COLMAP's), for, in this order: ``calibration.toml``, a caliscope
+    ``camera_array.toml``, any other TOML file that holds cameras (so a Pose2Sim
+    ``Config.toml`` is passed over), ``intri.yml``, ``*.qca.txt``, a CMU Panoptic
+    ``calibration*.json`` and a COLMAP ``cameras.txt`` / ``cameras.bin``.
     """
     scene = Path(scene)
-    for folder in (scene, scene / "calibration"):
-        for pattern in ("calibration.toml", "*.toml", "intri.yml", "*.qca.txt"):
-            hits = sorted(folder.glob(pattern))
+    for folder in (scene, scene / "calibration", scene / "sparse" / "0"):
+        if not folder.is_dir():
+            continue
+        tomls = sorted(folder.glob("*.toml"), key=lambda p: (
+            p.name != "calibration.toml", p.name != "camera_array.toml", p.name))
+        for p in tomls:
+            if _calibration_toml(p):
+                return p
+        for pattern in ("intri.yml", "*.qca.txt", "calibration*.json", "cameras.txt",
+                        "cameras.bin"):
+            hits = [p for p in sorted(folder.glob(pattern))
+                    if not p.name.endswith(".json") or _panoptic_json(p)]
             if hits:
                 return hits[0]
     raise CalibrationError(
-        f"no calibration file in {scene} (expected calibration.toml, intri.yml + extri.yml "
-        "or *.qca.txt, in the scene folder or its calibration/ subfolder)"
+        f"no calibration file in {scene} (expected calibration.toml, camera_array.toml, "
+        "intri.yml + extri.yml, *.qca.txt, a Panoptic calibration*.json or a COLMAP "
+        "cameras.txt/.bin, in the scene folder or its calibration/ subfolder)"
     )
 
 
 def read_calibration(path: str | os.PathLike) -> CameraRig:
-    """Read any supported calibration file (by name), or find one in a folder."""
+    """Read any supported calibration file (by name and content), or find one in a folder."""
     path = Path(path)
     if path.is_dir():
         path = find_calibration(path)
+    if not path.is_file():
+        raise CalibrationError(f"calibration file {path} does not exist")
     name = path.name.lower()
     if name.endswith(".toml"):
-        return read_toml(path)
+        return read_caliscope(path) if _calibration_toml(path) == "caliscope" else read_toml(path)
     if name.endswith(".qca.txt"):
         return read_qca(path)
     if name.endswith((".yml", ".yaml")):
         return read_opencv_yaml(path)
-    raise CalibrationError(f"{path}: unknown calibration format (.toml, .yml or .qca.txt)")
+    if name.endswith(".json"):
+        return read_panoptic(path)
+    if name in ("cameras.txt", "cameras.bin", "images.txt", "images.bin"):
+        return read_colmap(path.parent)
+    raise CalibrationError(
+        f"{path}: unknown calibration format (.toml, .yml, .qca.txt, .json, COLMAP cameras.txt)")

@@ -35,20 +35,29 @@ __all__ = [
     "undistort_normalized",
 ]
 
-SUPPORTED_DISTORTION_SIZES = (0, 4, 5, 8)
+SUPPORTED_DISTORTION_SIZES = (0, 4, 5, 8, 12, 14)
+_FULL = 14  # k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y
 
 
 def _coefficients(dist: Tensor) -> tuple[Tensor, ...]:
-    """Split ``dist`` (..., n) into (k1, k2, p1, p2, k3, k4, k5, k6), zero-padded."""
+    """Split ``dist`` (..., n) into OpenCV's 14 coefficients (k1, k2, p1, p2, k3, k4, k5, k6,
+    s1, s2, s3, s4, tau_x, tau_y), zero-padded, each (..., 1)."""
     n = dist.shape[-1]
     if n not in SUPPORTED_DISTORTION_SIZES:
         raise ValueError(
             f"distortion has {n} coefficients; supported: {SUPPORTED_DISTORTION_SIZES} "
-            "(OpenCV order k1, k2, p1, p2[, k3[, k4, k5, k6]])"
+            "(OpenCV order k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, tau_x, tau_y]]]])"
         )
-    pad = torch.zeros(*dist.shape[:-1], 8 - n, dtype=dist.dtype, device=dist.device)
+    pad = torch.zeros(*dist.shape[:-1], _FULL - n, dtype=dist.dtype, device=dist.device)
     full = torch.cat([dist, pad], dim=-1)
-    return tuple(full[..., i : i + 1] for i in range(8))
+    return tuple(full[..., i : i + 1] for i in range(_FULL))
+
+
+def _tilt(tau_x: Tensor, tau_y: Tensor) -> tuple[Tensor, ...]:
+    """The non-zero entries of OpenCV's tilted-sensor matrix (``computeTiltProjectionMatrix``),
+    lower triangular: ``[[cx, 0, 0], [-sx sy, cy, 0], [sy, -cy sx, cy cx]]``."""
+    cx, sx, cy, sy = torch.cos(tau_x), torch.sin(tau_x), torch.cos(tau_y), torch.sin(tau_y)
+    return cx, -sx * sy, cy, sy, -cy * sx, cy * cx
 
 
 def distort_normalized(xy: Tensor, dist: Tensor) -> Tensor:
@@ -56,24 +65,29 @@ def distort_normalized(xy: Tensor, dist: Tensor) -> Tensor:
 
     Args:
         xy: undistorted normalised coordinates, shape (..., N, 2).
-        dist: coefficients, shape (..., n) with n in {0, 4, 5, 8}; broadcast over N.
+        dist: coefficients, shape (..., n) with n in {0, 4, 5, 8, 12, 14}; broadcast over N.
 
     Returns:
         Distorted normalised coordinates, shape (..., N, 2).
     """
     if dist.shape[-1] == 0:
         return xy
-    k1, k2, p1, p2, k3, k4, k5, k6 = _coefficients(dist)
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tx, ty = _coefficients(dist)
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
     radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + r2 * (s1 + r2 * s2)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + r2 * (s3 + r2 * s4)
+    if dist.shape[-1] == _FULL:  # tilted sensor: the projective map of the tilt matrix
+        m00, m10, m11, m20, m21, m22 = _tilt(tx, ty)
+        w = m20 * xd + m21 * yd + m22
+        xd, yd = m00 * xd / w, (m10 * xd + m11 * yd) / w
     return torch.stack([xd, yd], dim=-1)
 
 
 def undistort_normalized(xy_d: Tensor, dist: Tensor, iterations: int = 20) -> Tensor:
-    """Invert :func:`distort_normalized` by fixed-point iteration (as OpenCV does).
+    """Invert :func:`distort_normalized`: the tilt exactly, the rest by fixed-point
+    iteration (as OpenCV's ``undistortPoints``).
 
     Args:
         xy_d: distorted normalised coordinates, shape (..., N, 2).
@@ -85,14 +99,20 @@ def undistort_normalized(xy_d: Tensor, dist: Tensor, iterations: int = 20) -> Te
     """
     if dist.shape[-1] == 0:
         return xy_d
-    k1, k2, p1, p2, k3, k4, k5, k6 = _coefficients(dist)
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tx, ty = _coefficients(dist)
     x0, y0 = xy_d[..., 0], xy_d[..., 1]
+    if dist.shape[-1] == _FULL:  # undo the tilt: solve the lower-triangular system
+        m00, m10, m11, m20, m21, m22 = _tilt(tx, ty)
+        a = x0 / m00
+        b = (y0 - m10 * a) / m11
+        c = (1 - m20 * a - m21 * b) / m22
+        x0, y0 = a / c, b / c
     x, y = x0, y0
     for _ in range(iterations):
         r2 = x * x + y * y
         icdist = (1 + r2 * (k4 + r2 * (k5 + r2 * k6))) / (1 + r2 * (k1 + r2 * (k2 + r2 * k3)))
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + r2 * (s1 + r2 * s2)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + r2 * (s3 + r2 * s4)
         x = (x0 - dx) * icdist
         y = (y0 - dy) * icdist
     return torch.stack([x, y], dim=-1)

@@ -25,6 +25,7 @@ from typing import NoReturn
 from hydra.errors import HydraException
 from omegaconf.errors import OmegaConfBaseException
 
+import nsd
 from nsd.core.config import compose_app
 from nsd.core.errors import BAD_INPUT_ERRORS, NSDError
 from nsd.core.run_folder import RunFolder
@@ -59,12 +60,15 @@ def _hydra_message(e: BaseException) -> str:
 def check_command_line(prog: str, app: str, argv: Sequence[str] | None = None) -> None:
     """Compose ``app``'s config from the command line and check every value.
 
-    Hydra's own modes (``--help``, ``--cfg``, ``-m`` sweeps, any argument starting with
-    ``-``) are left to Hydra; their jobs are checked by :func:`reported`'s callers.
+    ``--version`` prints the toolkit's version. Hydra's own modes (``--help``, ``--cfg``,
+    ``-m`` sweeps, any other argument starting with ``-``) are left to Hydra.
 
     Exits with status 2 and one line naming the argument or key on bad input.
     """
     args = list(sys.argv[1:] if argv is None else argv)
+    if args in (["--version"], ["-V"]):
+        print(f"{prog} (nsd-netepu) {nsd.__version__}")
+        sys.exit(0)
     if any(a.startswith("-") for a in args):
         return
     for a in args:

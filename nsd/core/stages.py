@@ -4,8 +4,9 @@ A stage writes its outputs into ``<run>/<name>/`` atomically (built under a
 temporary name and renamed on success, see :mod:`nsd.core.atomic`) together with a
 ``stage.json`` marker that records the stage's inputs (its config, the hashes of
 the stages it depends on) and its outputs' summary. A stage is *done* when its
-folder holds a marker whose input hash equals the current one; then it is
-skipped and its recorded result is returned. Changing a stage's config (or an
+folder holds a marker whose input hash (its config, its upstream stages' results and the
+toolkit's version) equals the current one; then it is skipped and its recorded result is
+returned. Changing a stage's config (or an
 upstream stage's result) re-runs it and everything downstream.
 """
 
@@ -20,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import nsd
 from nsd.core.atomic import atomic_directory
 
 __all__ = ["Stage", "StageResult", "StageRunner", "config_hash"]
@@ -86,7 +88,9 @@ class StageRunner:
     def _input_hash(self, stage: Stage) -> str:
         upstream = {n: self.results[n].input_hash + config_hash(self.results[n].summary)
                     for n in stage.needs}
-        return config_hash({"config": stage.config, "upstream": upstream})
+        # a new toolkit version re-runs every stage: its code may compute them differently
+        return config_hash({"config": stage.config, "upstream": upstream,
+                            "toolkit": nsd.__version__})
 
     def done(self, stage: Stage) -> StageResult | None:
         """The recorded result if the stage is finished with the current inputs."""
