@@ -26,12 +26,14 @@ from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
 from nsd.evaluation.identity import identity_accuracy
 from nsd.evaluation.pose import keypoint_error
+from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
 from nsd.export.grids import write_grids
 from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embeddings import read_embeddings
 from nsd.io.ground_truth import GroundTruth
+from nsd.io.mot import write_identity_tracks
 from nsd.io.scene_check import check_scene, scene_fingerprint
 from nsd.io.scenes import resolve_scene
 from nsd.training.train import train
@@ -331,14 +333,17 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
             for row in zip(*(table[c].tolist() for c in keys), identity.tolist(), strict=True)
         ]
         atomic_write_text(out / "identities.csv", "\n".join(lines) + "\n")
+        by_row = dict(zip(table["id"].tolist(), identity.tolist(), strict=True))
+        write_identity_tracks(up["export"].folder, by_row, out / "tracks")
         summary["column"] = column
         if ground_truth:
-            summary["accuracy"] = identity_accuracy(
-                up["export"].folder,
-                up["scene"].summary["path"],
-                table["id"],
-                identity,
-            )
+            export, scene = up["export"].folder, up["scene"].summary["path"]
+            summary["accuracy"] = identity_accuracy(export, scene, table["id"], identity)
+            summary["tracking"] = {  # MOT metrics of the per-camera tracks, then of identities
+                "tracks": tracking_metrics(export, scene),
+                "identities": tracking_metrics(
+                    export, scene, {a: i for a, i in by_row.items() if i >= 0}),
+            }
         return summary
 
     return Stage(

@@ -12,7 +12,10 @@ from omegaconf import DictConfig
 from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_write_text
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
+from nsd.evaluation.tracking import tracking_metrics
 from nsd.inference.multiview import InferenceSettings
+from nsd.io.scenes import resolve_scene
+from nsd.model.checkpoint import load_decomposition
 
 __all__ = ["main"]
 
@@ -28,6 +31,10 @@ def _hydra_main(cfg: DictConfig) -> float:
         metrics = evaluate_checkpoint(
             cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings
         )
+        if cfg.export:
+            scene = cfg.scene or load_decomposition(cfg.checkpoint).config.data.scene
+            tracks = tracking_metrics(cfg.export, resolve_scene(scene))
+            metrics.update({f"tracking_{k}": v for k, v in tracks.items()})
         ckpt = Path(cfg.checkpoint)
         out = Path(cfg.out) if cfg.out else (ckpt if ckpt.is_dir() else ckpt.parent)
         atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))

@@ -199,6 +199,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.identities.restarts": POS, "grids.size": _r("int", low=16),
     },
     "eval": {"checkpoint": _r("str"), "scene": NULL_TEXT, "frames": ALWAYS, "out": NULL_TEXT,
+             "export": NULL_TEXT,
              "refine": _r("str", choices=("residual", "none"))},
     "export": {
         "checkpoint": _r("str"), "scene": NULL_TEXT, "out": NULL_TEXT, "cameras": ALWAYS,

@@ -29,6 +29,9 @@ METRICS = [
     ("coco_bbox_ap", "COCO bbox AP"),
     ("coco_segm_ap", "COCO segm AP"),
     ("coco_segm_ap50", "COCO segm AP50"),
+    ("tracking_mota", "MOTA, per-camera tracks (with export=)"),
+    ("tracking_idf1", "IDF1, per-camera tracks (with export=)"),
+    ("tracking_id_switches", "ID switches, per-camera tracks (with export=)"),
 ]
 
 

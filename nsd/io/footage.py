@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import re
 from abc import ABC, abstractmethod
@@ -41,9 +42,14 @@ __all__ = [
     "find_source",
 ]
 
+log = logging.getLogger(__name__)
+
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 BACKGROUND_SAMPLES = 50  # frames in the per-camera median background (NSD: 50)
+# cameras whose frame counts differ by at most this many are trimmed to the shortest (with a
+# warning: camera software often drops the last frame); a larger difference is an error
+MAX_FRAME_TRIM = 10
 
 
 def _natural_key(p: Path) -> list:
@@ -97,10 +103,28 @@ class VideoSource(FrameSource):
             n = 1
             while cap.grab():
                 n += 1
+        if ok and n > 1 and not self._readable(cap, n - 1):  # the container over-claims
+            claimed, n = n, self._decodable(cap, n)
+            log.warning("camera '%s' (%s): the container claims %d frames but only %d decode; "
+                        "using those %d", camera, self.path, claimed, n, n)
         cap.release()
         if not ok or n <= 0:
             raise self._error("video has zero readable frames")
         self._n, self._size = n, (first.shape[1], first.shape[0])
+
+    @staticmethod
+    def _readable(cap: cv2.VideoCapture, t: int) -> bool:
+        cap.set(cv2.CAP_PROP_POS_FRAMES, t)
+        return bool(cap.read()[0])
+
+    def _decodable(self, cap: cv2.VideoCapture, claimed: int) -> int:
+        """Frames that decode when frame ``claimed - 1`` does not: a binary search for the
+        last decodable frame (frame 0 decodes)."""
+        lo, hi = 0, claimed - 1
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if self._readable(cap, mid) else (lo, mid)
+        return lo + 1
 
     def _open(self) -> cv2.VideoCapture:
         cap = cv2.VideoCapture(str(self.path))
@@ -145,13 +169,14 @@ class VideoSource(FrameSource):
 
 
 class ImageFolderSource(FrameSource):
-    """A folder of images, one per frame, sorted in natural order."""
+    """A folder of images, one per frame, sorted in natural order (or the given ``files``)."""
 
-    def __init__(self, camera: str, path: str | os.PathLike) -> None:
+    def __init__(self, camera: str, path: str | os.PathLike,
+                 files: Sequence[Path] | None = None) -> None:
         self.camera, self.path = camera, Path(path)
         if not self.path.is_dir():
             raise self._error("image folder does not exist")
-        self.files = sorted(
+        self.files = list(files) if files is not None else sorted(
             (p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS),
             key=_natural_key,
         )
@@ -252,10 +277,16 @@ class MultiViewFootage:
                 )
             rig = rig.select(list(cameras))
         self.sources = [find_source(self.scene, c.name) for c in rig]
-        counts = {s.camera: s.num_frames for s in self.sources}
-        if len(set(counts.values())) > 1:
+        counts = [s.num_frames for s in self.sources]
+        self._num_frames = min(counts)
+        if max(counts) != min(counts):
             detail = ", ".join(f"'{s.camera}' ({s.path}): {s.num_frames}" for s in self.sources)
-            raise FootageError(f"cameras hold different numbers of frames: {detail}")
+            if max(counts) - min(counts) > MAX_FRAME_TRIM:
+                raise FootageError(f"cameras hold different numbers of frames: {detail}; "
+                                   "they must show the same instants")
+            log.warning("cameras hold different numbers of frames (%s): the last frames of the "
+                        "longer ones are left out (%d frames used); camera software often "
+                        "drops a frame at the end", detail, self._num_frames)
         fixed = []
         for cam, src in zip(rig, self.sources, strict=True):
             if cam.size is None:
@@ -274,7 +305,8 @@ class MultiViewFootage:
     # ------------------------------------------------------------------ basics
     @property
     def num_frames(self) -> int:
-        return self.sources[0].num_frames
+        """Frames every camera holds (the shortest camera's count)."""
+        return self._num_frames
 
     @property
     def num_views(self) -> int:
@@ -340,7 +372,9 @@ class MultiViewFootage:
     def background(self, num_samples: int = BACKGROUND_SAMPLES) -> np.ndarray:
         """Per-camera median background: uint8 (V, H, W, 3), cached on disk.
 
-        The median of ``num_samples`` frames spread evenly over the sequence,
+        A background plate (:meth:`plate`) replaces the footage where the scene has one:
+        then the median of the plate's frames. Otherwise the median of ``num_samples``
+        frames spread evenly over the sequence,
         computed at the native resolution and then resized. The cache is keyed by
         the footage's signature, so changed footage is recomputed.
         """
@@ -351,8 +385,32 @@ class MultiViewFootage:
             ]
         )
 
+    def plate(self, v: int) -> FrameSource | None:
+        """Camera ``v``'s background plate, if the scene has one: ``background/<camera>.<image>``
+        (one picture of the empty arena), ``background/<camera>/`` (images) or
+        ``background/<camera>.<video>`` (a short empty-arena clip)."""
+        folder, camera = self.scene / "background", self.sources[v].camera
+        if not folder.is_dir():
+            return None
+        if (folder / camera).is_dir():
+            return ImageFolderSource(camera, folder / camera)
+        for p in sorted(folder.glob(f"{camera}.*")):
+            if p.suffix.lower() in IMAGE_EXTENSIONS:
+                return ImageFolderSource(camera, folder, files=[p])
+            if p.suffix.lower() in VIDEO_EXTENSIONS:
+                return VideoSource(camera, p)
+        return None
+
     def _native_background(self, v: int, num_samples: int) -> np.ndarray:
-        src = self.sources[v]
+        plate = self.plate(v)
+        src = self.sources[v] if plate is None else plate
+        if plate is not None and tuple(plate.size) != tuple(self.sources[v].size):
+            where = plate.files[0] if isinstance(plate, ImageFolderSource) and len(
+                plate.files) == 1 else plate.path
+            raise FootageError(
+                f"camera '{plate.camera}': background plate {where} is "
+                f"{plate.size[0]}x{plate.size[1]} but the footage is "
+                f"{self.sources[v].size[0]}x{self.sources[v].size[1]}")
         key = hashlib.sha1(f"{src.signature()}:{num_samples}".encode()).hexdigest()[:16]
         path = self.cache_dir / "background" / f"{src.camera}.{key}.png"
         if path.is_file():

@@ -13,6 +13,7 @@ positive track id, the box in pixels with the image's top-left pixel at (1, 1)
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -20,7 +21,7 @@ from typing import TextIO
 
 import numpy as np
 
-__all__ = ["MOT_COLUMNS", "MotWriter", "format_mot_line", "read_mot"]
+__all__ = ["MOT_COLUMNS", "MotWriter", "format_mot_line", "read_mot", "write_identity_tracks"]
 
 MOT_COLUMNS = ("frame", "id", "bb_left", "bb_top", "bb_width", "bb_height", "conf", "x", "y", "z")
 
@@ -100,3 +101,31 @@ def read_mot(path: str | os.PathLike) -> np.ndarray:
             seen.add((frame, track))
             rows.append(vals)
     return np.asarray(rows, np.float64).reshape(-1, len(MOT_COLUMNS))
+
+
+def write_identity_tracks(export: str | os.PathLike, row_ids: dict[int, int],
+                          folder: str | os.PathLike) -> dict[str, int]:
+    """The export's boxes as MOTChallenge files under other ids: track id = ``row_ids[row] + 1``
+    (e.g. the final identities, the same id in every camera). Rows without an id, or with a
+    negative one, are left out, and so is a second box of one id in one frame.
+
+    Args:
+        export: nsd-export folder (``subjects.coco.json``).
+        row_ids: annotation id -> id (>= 0).
+        folder: where ``<camera>.txt`` go.
+
+    Returns:
+        Lines written per camera.
+    """
+    coco = json.loads((Path(export) / "subjects.coco.json").read_text())
+    images = {int(im["id"]): (im["camera"], int(im["frame"])) for im in coco["images"]}
+    rows = sorted(
+        (images[int(a["image_id"])], row_ids[int(a["id"])], a["bbox"], float(a.get("score", 1)))
+        for a in coco["annotations"] if row_ids.get(int(a["id"]), -1) >= 0)
+    seen: set[tuple[str, int, int]] = set()
+    with MotWriter(folder, sorted({c for c, _ in images.values()})) as w:
+        for (camera, frame), ident, box, conf in rows:
+            if (camera, frame, ident) not in seen:
+                seen.add((camera, frame, ident))
+                w.write(camera, frame, ident + 1, box, conf)
+        return dict(w.counts)

@@ -66,6 +66,7 @@ class SceneCheck:
         sizes: (width, height) per camera.
         camera_spacing: median distance between camera centres, calibration units.
         warnings: one line each, camera and frames named, what to do included.
+        plates: camera -> its background plate (``background/``), which replaces the median.
     """
 
     scene: Path
@@ -74,12 +75,14 @@ class SceneCheck:
     sizes: dict[str, tuple[int, int]]
     camera_spacing: float
     warnings: list[str] = field(default_factory=list)
+    plates: dict[str, str] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
         """JSON-serialisable figures (``scene.json`` of nsd-run's scene stage)."""
         return {"cameras": self.cameras, "frames": self.frames,
                 "sizes": {k: list(v) for k, v in self.sizes.items()},
-                "camera_spacing": round(self.camera_spacing, 6), "warnings": self.warnings}
+                "camera_spacing": round(self.camera_spacing, 6), "warnings": self.warnings,
+                "background_plates": self.plates}
 
 
 def _ranges(frames: list[int]) -> str:
@@ -217,7 +220,8 @@ def _content(footage: MultiViewFootage, sample: int) -> list[str]:
         warnings.append(
             f"nothing moves in any camera ({len(frames)} frames sampled): the median "
             "background is every frame, so no subject can be found; check that this is the "
-            "right footage, or give a background plate")
+            "right footage, or give a background plate (background/<camera>.png: a picture "
+            "of the empty arena)")
     elif still:
         warnings.append(f"cameras {still}: nothing moves in their footage; check that they "
                         "film the subjects")
@@ -250,11 +254,20 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
     sizes = {s.camera: _check_sizes(s) for s in folders}
     sizes.update({s.camera: tuple(s.size) for s in footage.sources if s.camera not in sizes})
     _check_names(folders)
+    plates = {}
+    for v, src in enumerate(footage.sources):
+        plate = footage.plate(v)
+        if plate is not None:
+            if tuple(plate.size) != tuple(src.size):
+                raise FootageError(f"camera '{src.camera}': background plate {plate.path} is "
+                                   f"{plate.size[0]}x{plate.size[1]} but the footage is "
+                                   f"{src.size[0]}x{src.size[1]}")
+            plates[src.camera] = str(plate.path)
     warnings = _unnamed_footage(scene, rig.names) + _content(footage, sample)
     for w in warnings:
         log.warning("scene %s: %s", scene.name, w)
     return SceneCheck(scene, footage.camera_names, footage.num_frames, sizes, spacing,
-                      warnings)
+                      warnings, plates)
 
 
 def scene_fingerprint(scene: str | os.PathLike) -> str:

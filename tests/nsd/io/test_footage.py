@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import re
 import shutil
 from pathlib import Path
 
@@ -11,7 +13,7 @@ import pytest
 
 from nsd.cameras.calibration_io import read_toml, write_toml
 from nsd.core.errors import CalibrationError, FootageError
-from nsd.io.footage import MultiViewFootage
+from nsd.io.footage import MAX_FRAME_TRIM, MultiViewFootage, VideoSource
 from tests.conftest import write_video
 
 
@@ -129,13 +131,39 @@ class TestBadInput:
         with pytest.raises(FootageError, match=r"camera 'right': no video .*right.mp4"):
             MultiViewFootage(tiny_scene)
 
-    def test_frame_count_mismatch(self, tiny_scene):
+    def test_a_camera_one_frame_short_is_trimmed_with_a_warning(self, tiny_scene, caplog):
         (tiny_scene / "right" / "000003.png").unlink()
+        with caplog.at_level(logging.WARNING):
+            footage = MultiViewFootage(tiny_scene)
+        assert footage.num_frames == 3 and footage.frame(2).shape[0] == 2
+        assert re.search(r"different numbers of frames \('left' .*: 4, 'right' .*: 3\)",
+                         caplog.text)
+
+    def test_frame_counts_far_apart_are_an_error(self, tiny_scene):
+        for t in range(4, 4 + MAX_FRAME_TRIM + 1):  # left: 4 + 11 frames, right: 4
+            shutil.copy(tiny_scene / "left" / "000000.png", tiny_scene / "left" / f"{t:06d}.png")
         with pytest.raises(
             FootageError,
-            match=r"different numbers of frames.*'left' \(.*left\): 4.*'right' \(.*right\): 3",
+            match=r"different numbers of frames.*'left' \(.*left\): 15.*'right' \(.*right\): 4",
         ):
             MultiViewFootage(tiny_scene)
+
+    def test_a_video_that_decodes_fewer_frames_than_claimed_uses_those(self, tiny_scene,
+                                                                       caplog):
+        """A truncated AVI still claims its 40 frames in its header; 24 decode."""
+        shutil.rmtree(tiny_scene / "left")
+        frames, _ = _moving_object_frames(40, seed=3)
+        path = write_video(tiny_scene / "left.avi", frames)
+        data = path.read_bytes()
+        path.write_bytes(data[: int(len(data) * 0.6)])
+        with caplog.at_level(logging.WARNING):
+            src = VideoSource("left", path)
+        assert re.search(r"camera 'left' \(.*left.avi\): the container claims 40 frames but "
+                         r"only \d+ decode", caplog.text)
+        n = src.num_frames
+        assert 0 < n < 40
+        assert src.read(n - 1).shape == frames.shape[1:]  # the last frame used decodes
+        assert len(list(src.iter_range(0, n))) == n
 
     def test_unreadable_video(self, tiny_scene):
         shutil.rmtree(tiny_scene / "left")
@@ -151,13 +179,13 @@ class TestBadInput:
         ):
             MultiViewFootage(tiny_scene)
 
-    def test_truncated_video_names_frame(self, tiny_scene):
+    def test_truncated_video_is_caught_when_the_footage_is_opened(self, tiny_scene):
+        """Half of left.avi decodes: far fewer frames than right's 40, before any work."""
         _as_video_scene(tiny_scene, n=40)
         data = (tiny_scene / "left.avi").read_bytes()
         (tiny_scene / "left.avi").write_bytes(data[: len(data) // 2])
-        f = MultiViewFootage(tiny_scene)
-        with pytest.raises(FootageError, match=r"camera 'left' \(.*left.avi, frame \d+\)"):
-            f.load()
+        with pytest.raises(FootageError, match=r"'left' \(.*left.avi\): \d+, 'right' .*: 40"):
+            MultiViewFootage(tiny_scene)
 
     def test_unreadable_image_names_file_and_frame(self, tiny_scene):
         (tiny_scene / "left" / "000002.png").write_bytes(b"garbage")
@@ -186,3 +214,29 @@ class TestBadInput:
     def test_frame_out_of_range(self, tiny_scene):
         with pytest.raises(FootageError, match="frame 9 out of range"):
             MultiViewFootage(tiny_scene).frame(9)
+
+
+class TestBackgroundPlates:
+    def test_a_plate_replaces_the_median(self, tiny_scene):
+        plate = np.full((24, 32, 3), (10, 200, 30), np.uint8)  # RGB
+        (tiny_scene / "background").mkdir()
+        cv2.imwrite(str(tiny_scene / "background" / "left.png"), plate[..., ::-1])
+        footage = MultiViewFootage(tiny_scene)
+        bg = footage.background()
+        np.testing.assert_array_equal(bg[0], plate)
+        median = np.median(np.stack([footage.frame(t)[1] for t in range(4)]), axis=0)
+        np.testing.assert_array_equal(bg[1], median.round().astype(np.uint8))  # no plate
+
+    def test_a_plate_folder_gives_the_median_of_its_images(self, tiny_scene):
+        (tiny_scene / "background" / "right").mkdir(parents=True)
+        for i, v in enumerate((10, 50, 90)):
+            cv2.imwrite(str(tiny_scene / "background" / "right" / f"{i}.png"),
+                        np.full((24, 32, 3), v, np.uint8))
+        assert (MultiViewFootage(tiny_scene).background()[1] == 50).all()
+
+    def test_a_plate_of_another_size_is_named(self, tiny_scene):
+        (tiny_scene / "background").mkdir()
+        cv2.imwrite(str(tiny_scene / "background" / "left.jpg"), np.zeros((10, 10, 3), np.uint8))
+        with pytest.raises(FootageError, match=r"camera 'left': background plate .*left.jpg is "
+                                               r"10x10 but the footage is 32x24"):
+            MultiViewFootage(tiny_scene).background()

@@ -111,3 +111,12 @@ def test_frames_identical_to_the_background_are_listed(tiny_scene):
     assert any(x.startswith("camera 'left': frames 0-2 (of 4 sampled) are identical to the "
                             "median background") for x in w), w
     assert not any("nothing moves" in x for x in w)
+
+
+def test_background_plates_are_listed_and_checked(tiny_scene):
+    (tiny_scene / "background").mkdir()
+    cv2.imwrite(str(tiny_scene / "background" / "right.png"), np.zeros((24, 32, 3), np.uint8))
+    assert list(check_scene(tiny_scene).plates) == ["right"]
+    cv2.imwrite(str(tiny_scene / "background" / "right.png"), np.zeros((5, 5, 3), np.uint8))
+    with pytest.raises(FootageError, match=r"camera 'right': background plate .* is 5x5"):
+        check_scene(tiny_scene)
