@@ -42,16 +42,25 @@ import numpy as np
 import tomli_w
 
 from nsd.cameras.calibration import Camera, CameraRig
-from nsd.cameras.calibration_formats import read_caliscope, read_colmap, read_panoptic
+from nsd.cameras.calibration_formats import (
+    read_caliscope,
+    read_colmap,
+    read_panoptic,
+    write_caliscope,
+    write_colmap,
+    write_panoptic,
+)
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CalibrationError
 
 __all__ = [
+    "WRITERS",
     "find_calibration",
     "read_calibration",
     "read_opencv_yaml",
     "read_qca",
     "read_toml",
+    "write_calibration",
     "write_opencv_yaml",
     "write_toml",
 ]
@@ -371,3 +380,35 @@ def read_calibration(path: str | os.PathLike) -> CameraRig:
         return read_colmap(path.parent)
     raise CalibrationError(
         f"{path}: unknown calibration format (.toml, .yml, .qca.txt, .json, COLMAP cameras.txt)")
+
+
+# format -> writer(rig, path); folder formats take a folder
+WRITERS = {
+    "anipose": write_toml,
+    "caliscope": write_caliscope,
+    "opencv": write_opencv_yaml,
+    "panoptic": write_panoptic,
+    "colmap": write_colmap,
+    "colmap_bin": lambda rig, folder: write_colmap(rig, folder, binary=True),
+}
+
+
+def write_calibration(rig: CameraRig, path: str | os.PathLike, format: str = "auto") -> str:
+    """Write ``rig`` in any writable format; ``auto`` picks it by the name (``*.toml``:
+    anipose, ``camera_array.toml``: caliscope, ``*.json``: Panoptic). Returns the format.
+
+    Raises:
+        CalibrationError: an unknown format, or ``auto`` for a name that does not say one.
+    """
+    path = Path(path)
+    if format == "auto":
+        name = path.name.lower()
+        format = ("caliscope" if name == "camera_array.toml" else "anipose"
+                  if name.endswith(".toml") else "panoptic" if name.endswith(".json") else "")
+        if not format:
+            raise CalibrationError(
+                f"{path}: give the format ({', '.join(WRITERS)}); a folder name does not say it")
+    if format not in WRITERS:
+        raise CalibrationError(f"unknown calibration format {format!r}; one of {list(WRITERS)}")
+    WRITERS[format](rig, path)
+    return format

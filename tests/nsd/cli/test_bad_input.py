@@ -31,7 +31,8 @@ from nsd.core.validation import _base_leaves, _rule, leaves
 from tests.conftest import FIXTURES
 
 APPS = {"nsd-train": "train", "nsd-run": "run", "nsd-eval": "eval", "nsd-export": "export",
-        "nsd-synth": "synth", "netepu-train": "netepu_train", "netepu-embed": "netepu_embed"}
+        "nsd-synth": "synth", "netepu-train": "netepu_train", "netepu-embed": "netepu_embed",
+        "nsd-check": "check", "nsd-calib": "calib"}
 BAD_VALUES = ["nan", "inf", "-inf", "-1", "-1e9", "0", "abc", "1.5", "[1,2]", "null", "true",
               "1e30", "''"]
 

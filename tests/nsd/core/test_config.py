@@ -39,6 +39,7 @@ CLI = {
     "netepu_train": "netepu.cli.train",
     "netepu_embed": "netepu.pipeline.embed",
     "check": "nsd.cli.check",
+    "calib": "nsd.cli.calib",
 }
 SECTIONS = [
     BiNVSConfig,

@@ -10,7 +10,8 @@ from nsd.core.config import compose_app
 from nsd.core.errors import ConfigError
 from nsd.core.validation import RULES, Rule, check_config, leaves
 
-APPS = ["train", "run", "eval", "export", "synth", "netepu_train", "netepu_embed", "check"]
+APPS = ["train", "run", "eval", "export", "synth", "netepu_train", "netepu_embed", "check",
+        "calib"]
 
 
 def _group_options() -> list[tuple[str, str]]:
