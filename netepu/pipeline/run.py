@@ -14,7 +14,8 @@ is never recomputed, a changed setting re-runs it and everything downstream)::
     texture   texture codes, their re-id embeddings and NNOPCS maps (netepu.embed;
               netepu.texture)
     identities  an identity for every exported row across cameras and time
-              (netepu.identities)
+              (netepu.identities); MOT metrics and identity tracks (identities/tracks/)
+    overlays  a video per camera: masks, boxes, identities, depth order (nsd.export.overlay)
     grids     image grids a person can look at: per frame, every camera's input,
               boxes, visible masks and depth order (coloured by subject id)
 
@@ -47,6 +48,7 @@ from netepu.pipeline.stages import (
     grids_stage,
     identities_stage,
     keypoints_stage,
+    overlays_stage,
     scene_stage,
     texture_stage,
     train_stage,
@@ -102,6 +104,7 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
         lambda: identities_stage(
             cfg, _ran(runner, "texture"), bool(runner.results["scene"].summary["ground_truth"])
         ),
+        lambda: overlays_stage(cfg, _ran(runner, "identities")),
         lambda: grids_stage(cfg),
     ]
 

@@ -29,6 +29,7 @@ from nsd.evaluation.pose import keypoint_error
 from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
 from nsd.export.grids import write_grids
+from nsd.export.overlay import write_overlay_videos
 from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embeddings import read_embeddings
@@ -354,6 +355,26 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
         enabled=bool(i.enabled),
         why_disabled="netepu.identities.enabled=false",
     )
+
+
+def overlays_stage(cfg: DictConfig, have_identities: bool) -> Stage:
+    """A video per camera with the subjects drawn (nsd.export.overlay), coloured and labelled
+    by their identity (by their track when the identities stage did not run)."""
+    o = cfg.overlays
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        row_ids = None
+        if have_identities:
+            with (up["identities"].folder / "identities.csv").open() as f:
+                next(f)
+                row_ids = {int(r[0]): int(r[-1]) for r in (line.strip().split(",") for line in f)
+                           if r[0]}
+        return write_overlay_videos(up["export"].folder, up["scene"].summary["path"], out,
+                                    row_ids, int(o.size), float(o.fps))
+
+    return Stage("overlays", run, {**_container(o), "identities": have_identities},
+                 needs=("scene", "export", "identities"), enabled=bool(o.enabled),
+                 why_disabled="overlays.enabled=false")
 
 
 def grids_stage(cfg: DictConfig) -> Stage:

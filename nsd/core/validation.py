@@ -197,6 +197,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.keypoints.regressor_steps": POS,
         "netepu.identities.method": _r("str", choices=("rows", "tracks")),
         "netepu.identities.restarts": POS, "grids.size": _r("int", low=16),
+        "overlays.size": _r("int", low=16), "overlays.fps": RATE,
     },
     "eval": {"checkpoint": _r("str"), "scene": NULL_TEXT, "frames": ALWAYS, "out": NULL_TEXT,
              "export": NULL_TEXT,
