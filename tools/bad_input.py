@@ -213,7 +213,7 @@ def _cases(base: Path, nodense: Path) -> list[Case]:
         Case("crop_size 0", run, [*sc, "train.model.crop_size=0"], "crop_size"),
         Case("ssim_weight inf", run, [*sc, "train.loss.ssim_weight=inf"], "ssim_weight"),
         Case("model.mode unknown", run, [*sc, "train.model.mode=foo"], "mode"),
-        Case("threads 0", run, [*sc, "threads=0"], "threads"),
+        Case("threads -1", run, [*sc, "threads=-1"], "threads"),
         Case("grids.frames -1", run, [*sc, "grids.frames=-1"], "grids.frames"),
         Case("identities.method unknown", run, [*sc, "netepu.identities.method=foo"], "method"),
         Case("unknown key", run, [*sc, "train.nonsense=1"], "nonsense"),

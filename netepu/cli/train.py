@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
@@ -31,6 +30,7 @@ from netepu.texture.stage import build_texture_stage
 from nsd.core.app import check_command_line, reported
 from nsd.core.errors import ConfigError
 from nsd.core.run_folder import RunFolder
+from nsd.core.threads import set_threads
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 
 __all__ = ["STAGES", "main", "run"]
@@ -47,7 +47,7 @@ STAGES: dict[str, Callable[[DictConfig], tuple[Any, dict[str, Any]]]] = {
 
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     """Train ``cfg.stage`` into ``out_dir``; returns the final evaluation metrics."""
-    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
+    set_threads(int(cfg.threads))
     if cfg.stage not in STAGES:
         raise ConfigError(f"stage must be one of {sorted(STAGES)}, got {cfg.stage!r}")
     tcfg = TrainerConfig.from_config(OmegaConf.to_container(cfg.trainer, resolve=True))

@@ -46,6 +46,7 @@ from nsd.cameras.calibration_io import read_calibration
 from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_save_npz, atomic_write_bytes
 from nsd.core.errors import ConfigError, NSDError
+from nsd.core.threads import set_threads
 from nsd.io.crops import read_crop_index, read_crops
 from nsd.io.embeddings import add_columns, embeddings_path, read_embeddings
 
@@ -263,7 +264,7 @@ def embed_into_copy(
 
 @hydra.main(config_path="pkg://nsd.conf", config_name="netepu_embed", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    torch.set_num_threads(int(cfg.threads))
+    set_threads(int(cfg.threads))
     with reported(PROG):
         try:
             out = embed_export(cfg.export, cfg.checkpoint, cfg.keypoints, cfg.calibration,

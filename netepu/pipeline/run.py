@@ -38,7 +38,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import hydra
-import torch
 from omegaconf import DictConfig
 
 from netepu.pipeline.stages import (
@@ -60,6 +59,7 @@ from nsd.core.config import compose_app
 from nsd.core.errors import ConfigError
 from nsd.core.run_folder import RunFolder
 from nsd.core.stages import Stage, StageResult, StageRunner
+from nsd.core.threads import set_threads
 
 __all__ = ["build_stages", "load_run_config", "main", "run_pipeline"]
 
@@ -165,7 +165,7 @@ def _hydra_main(cfg: DictConfig) -> None:
         for logger in logging.Logger.manager.loggerDict.values():  # hydra's logging config
             if isinstance(logger, logging.Logger):  # disabled the loggers that existed before it
                 logger.disabled = False
-        torch.set_num_threads(max(1, min(torch.get_num_threads(), int(cfg.threads))))
+        log.info("torch uses %d CPU threads", set_threads(int(cfg.threads)))
         results = run_pipeline(cfg)
         print(_report(folder.folder, results))
 

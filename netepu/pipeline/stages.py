@@ -123,6 +123,7 @@ def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         c = tcfg.copy()
         c.data.scene = up["scene"].summary["path"]
+        c.threads = cfg.threads  # nsd-run's threads: one setting for every stage
         # trained in a work folder that survives an interruption (exact resume), moved at the end
         work = out.parent / f".train-work-{config_hash(_container(c))}"
         for stale in out.parent.glob(".train-work-*"):  # of other settings: never resumed
@@ -142,7 +143,8 @@ def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
             "metrics": {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)},
         }
 
-    return Stage("train", run, _container(tcfg), needs=("scene",))
+    settings = {k: v for k, v in _container(tcfg).items() if k != "threads"}  # not a result
+    return Stage("train", run, settings, needs=("scene",))
 
 
 def _checkpoint(up: dict[str, StageResult]) -> Path:
@@ -199,6 +201,8 @@ def export_stage(cfg: DictConfig) -> Stage:
         ecfg.scene = up["scene"].summary["path"]
         ecfg.out = str(out)  # the export is built atomically and replaces the stage's folder
         ecfg.overwrite = True
+        if "threads" not in cfg.export:  # nsd-run's threads unless +export.threads says else
+            ecfg.threads = cfg.threads
         s = export_subjects(ecfg)
         return {
             "frames": s.frames,

@@ -6,11 +6,11 @@ import json
 from pathlib import Path
 
 import hydra
-import torch
 from omegaconf import DictConfig
 
 from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_write_text
+from nsd.core.threads import set_threads
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
 from nsd.evaluation.tracking import tracking_metrics
 from nsd.inference.multiview import InferenceSettings
@@ -25,7 +25,7 @@ PROG = "nsd-eval"
 @hydra.main(config_path="pkg://nsd.conf", config_name="eval", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> float:
     with reported(PROG):
-        torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
+        set_threads(int(cfg.threads))
         frames = cfg.frames if isinstance(cfg.frames, str) else list(cfg.frames)
         settings = InferenceSettings.from_config(cfg.inference)
         metrics = evaluate_checkpoint(

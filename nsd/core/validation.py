@@ -187,7 +187,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "pose.dropout": _r("number", low=0, high=0.99), "pose.lr": RATE,
     },
     "run": {
-        "scene": NULL_TEXT, "out": NULL_TEXT, "threads": POS, "checkpoint": NULL_TEXT,
+        "scene": NULL_TEXT, "out": NULL_TEXT, "checkpoint": NULL_TEXT,
         "evaluate.frames": ALWAYS, "evaluate.refine": _r("str", choices=("residual", "none")),
         "netepu.geometry": NULL_TEXT, "netepu.texture": NULL_TEXT,
         "netepu.keypoints.frame_step": POS, "netepu.keypoints.min_views": _r("int", low=2),
@@ -205,7 +205,7 @@ RULES: dict[str, dict[str, Rule]] = {
     "export": {
         "checkpoint": _r("str"), "scene": NULL_TEXT, "out": NULL_TEXT, "cameras": ALWAYS,
         "frames": ALWAYS, "batch_size": POS, "threshold": _r("number", above=0, high=0.999),
-        "refine": _r("str", choices=("residual", "none")), "threads": POS,
+        "refine": _r("str", choices=("residual", "none")),
         "crop.size": _r("int", low=8), "crop.chunk": POS,
         "embeddings.format": _r("str", choices=("parquet", "npz")),
         "embeddings.row_group_size": POS, "tracking.appearance_weight": FRACTION,
@@ -246,7 +246,7 @@ RULES: dict[str, dict[str, Rule]] = {
                                            "colmap", "colmap_bin"))},
     "netepu_embed": {"export": _r("str"), "checkpoint": _r("str"), "keypoints": NULL_TEXT,
                      "calibration": NULL_TEXT, "maps": NULL_TEXT, "batch_size": POS,
-                     "threads": POS, "column": _r("str")},
+                     "column": _r("str")},
 }
 
 # Which table checks a top-level key of an app: the app's own table unless the key is a

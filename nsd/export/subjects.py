@@ -47,11 +47,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from nsd.core.atomic import atomic_directory, atomic_write_text
+from nsd.core.threads import set_threads
 from nsd.export.config import check_export_config
 from nsd.export.inputs import ExportInputs, prepare_inputs
 from nsd.export.manifest import Timing, build_manifest, share_folder, toolkit_version
@@ -179,7 +179,7 @@ def _write_views(writer: SubjectWriter, cfg: DictConfig, root: Path) -> dict[str
 
 def run(cfg: DictConfig) -> ExportSummary:
     """:func:`export_subjects` with ``cfg.threads`` torch threads; prints a one-line summary."""
-    torch.set_num_threads(max(1, int(cfg.threads)))
+    set_threads(int(cfg.threads))
     s = export_subjects(cfg)
     print(
         f"exported {s.frames} frames ({s.camera_frames} camera-frames, {s.subjects} subjects, "

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from nsd.core.errors import ConfigError
+from nsd.core.threads import set_threads
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 from nsd.io.ground_truth import GroundTruth
 from nsd.io.scene_data import SceneData
@@ -17,10 +18,12 @@ from nsd.training.task import NSDTask
 
 __all__ = ["train"]
 
+log = logging.getLogger(__name__)
+
 
 def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     """Train according to ``cfg`` into ``out_dir``; returns the final metrics."""
-    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
+    log.info("torch uses %d CPU threads", set_threads(int(cfg.threads)))
     scene = resolve_scene(cfg.data.scene)
     data = SceneData(
         scene, cfg.data.image_size, cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames

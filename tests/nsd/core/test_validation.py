@@ -50,7 +50,7 @@ def test_every_shipped_group_option_passes(group, option):
         ("train", "model.mode=foo", "model.mode = 'foo': must be one of bi_nvs, autoencoder"),
         ("train", "trainer.resume=maybe", "trainer.resume = 'maybe': must be true or false"),
         ("train", "loss.ssim_window=6", "loss.ssim_window = 6: must be an integer >= 3, odd"),
-        ("run", "threads=0", "threads = 0: must be an integer >= 1"),
+        ("run", "threads=-2", "threads = -2: must be an integer >= 0"),
         ("run", "train.model.crop_size=2", "train.model.crop_size = 2"),
         ("run", "+export.batch_size=0", "export.batch_size = 0"),
         ("run", "+export.nonsense=1", "export.nonsense: nsd-export has no such key"),

@@ -1,0 +1,42 @@
+"""How many CPU threads torch uses: by default every core this process may run on.
+
+``threads: 0`` in a command's config means every core of the machine that the process may
+use (its CPU affinity, so ``taskset`` and container limits count), divided among the
+processes of a torchrun job on this node; a positive value is used as given.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import torch
+
+__all__ = ["available_cores", "set_threads"]
+
+log = logging.getLogger(__name__)
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its affinity mask; ``os.cpu_count()`` where there is none)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def set_threads(threads: int) -> int:
+    """Set torch's intra-op threads: ``threads`` > 0 as given, 0 for every available core
+    (shared among a torchrun job's local processes). Returns the number set.
+
+    Example:
+        >>> before = torch.get_num_threads()
+        >>> set_threads(1)
+        1
+        >>> _ = set_threads(before)
+    """
+    if threads < 0:
+        raise ValueError(f"threads must be >= 0 (0: every core), got {threads}")
+    n = threads or max(1, available_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    torch.set_num_threads(n)
+    return n
