@@ -97,6 +97,15 @@ def _blank(value: int) -> Callable[[Path], None]:
     return fn
 
 
+def _one_short(s: Path) -> None:
+    _frames(s, "cam1")[-1].unlink()
+
+
+def _bad_plate(s: Path) -> None:
+    (s / "background").mkdir()
+    cv2.imwrite(str(s / "background" / "cam0.png"), np.zeros((10, 10, 3), np.uint8))
+
+
 def _still(s: Path) -> None:
     for cam in ("cam0", "cam1", "cam2", "cam3"):
         fs = _frames(s, cam)
@@ -260,6 +269,10 @@ def _cases(base: Path, nodense: Path) -> list[Case]:
         Case("NaN in calibration", run, [], "cam0", setup=_edit(base, _calib(_nan_calib))),
         Case("camera without calibration", run, [], "cam3", expect="warning",
              setup=_edit(base, _calib(_drop_camera_calib))),
+        Case("camera one frame short", run, [], "different numbers of frames",
+             expect="warning", setup=_edit(base, _one_short)),
+        Case("background plate of another size", run, [], "background plate",
+             setup=_edit(base, _bad_plate)),
         Case("nsd-check, frame names disagree", "nsd-check", [], "cam2",
              setup=_edit(base, _drop_frame)),
         Case("nsd-check, blank frame", "nsd-check", [], "cam0", expect="warning",
