@@ -7,7 +7,7 @@
 # torch is installed FIRST, as torch==$NSD_TORCH_VERSION (default 2.13.0, the tested release),
 # unless the venv already holds a torch that the toolkit's range accepts (then it is kept).
 # Where that release comes from is pip's business: its default index serves a CUDA build on
-# Linux (several GB; it runs on the CPU too, and uses an NVIDIA GPU where there is one). For
+# Linux (several GB; the toolkit runs on the CPU with it too, and does not use a GPU yet). For
 # the small CPU-only build, point NSD_TORCH_INDEX at PyTorch's CPU wheel index (the address
 # is on PyTorch's installation page):
 #
