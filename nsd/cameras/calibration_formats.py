@@ -35,6 +35,7 @@ from nsd.core.errors import CalibrationError
 
 __all__ = [
     "COLMAP_MODELS",
+    "camera_from_file",
     "read_caliscope",
     "read_colmap",
     "read_panoptic",
@@ -53,7 +54,8 @@ _COLMAP_UNSUPPORTED = {5: "OPENCV_FISHEYE", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE"
                        9: "RADIAL_FISHEYE", 10: "THIN_PRISM_FISHEYE"}
 
 
-def _camera(source: Path, name: str, **kw) -> Camera:
+def camera_from_file(source: Path, name: str, **kw) -> Camera:
+    """A validated :class:`Camera` read from ``source``; bad values name the file and camera."""
     try:
         return Camera(name=name, source=str(source), **kw)
     except CalibrationError:
@@ -81,7 +83,7 @@ def read_caliscope(path: str | os.PathLike) -> CameraRig:
             raise CalibrationError(f"camera '{name}' ([cameras.{key}]) in {path}: missing "
                                    f"{missing} (not yet calibrated?)")
         size = t.get("size")
-        cameras.append(_camera(
+        cameras.append(camera_from_file(
             path, name, K=np.asarray(t["matrix"], np.float64),
             dist=np.asarray(t.get("distortions", []), np.float64),
             R=np.asarray(t["rotation"], np.float64), t=np.asarray(t["translation"], np.float64),
@@ -116,7 +118,7 @@ def read_panoptic(path: str | os.PathLike) -> CameraRig:
         name = str(e.get("name", len(cameras)))
         try:
             res = e.get("resolution")
-            cameras.append(_camera(
+            cameras.append(camera_from_file(
                 path, name, K=np.asarray(e["K"], np.float64),
                 dist=np.asarray(e.get("distCoef", []), np.float64),
                 R=np.asarray(e["R"], np.float64),
@@ -246,14 +248,14 @@ def read_colmap(folder: str | os.PathLike) -> CameraRig:
             raise CalibrationError(f"{source}: camera {cam_id} uses COLMAP's {model} model; "
                                    f"supported: {sorted(COLMAP_MODELS)}")
         K, dist = _intrinsics(model, params)
-        cameras.append(_camera(source, name, K=K, dist=dist, R=_quat_to_matrix(q), t=t,
+        cameras.append(camera_from_file(source, name, K=K, dist=dist, R=_quat_to_matrix(q), t=t,
                                size=(int(w), int(h))))
     if not cameras:
         raise CalibrationError(f"{folder}: the COLMAP model registers no image")
     return CameraRig(cameras, source=str(source))
 
 
-def _colmap_camera(c: Camera) -> tuple[str, list[float]]:
+def _colmapcamera_from_file(c: Camera) -> tuple[str, list[float]]:
     """FULL_OPENCV, OPENCV or PINHOLE parameters of a camera (skew must be 0)."""
     if abs(c.K[0, 1]) > 1e-12:
         raise CalibrationError(f"camera '{c.name}': COLMAP models have no skew")
@@ -278,7 +280,7 @@ def write_colmap(rig: CameraRig, folder: str | os.PathLike, binary: bool = False
     for i, c in enumerate(rig, start=1):
         if c.size is None:
             raise CalibrationError(f"camera '{c.name}': COLMAP needs the image size")
-        model, params = _colmap_camera(c)
+        model, params = _colmapcamera_from_file(c)
         rows.append((i, model, c.size, params, _matrix_to_quat(c.R), c.t, f"{c.name}/000000.png"))
     if binary:
         cams = struct.pack("<Q", len(rows)) + b"".join(

@@ -41,8 +41,9 @@ import cv2
 import numpy as np
 import tomli_w
 
-from nsd.cameras.calibration import Camera, CameraRig
+from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_formats import (
+    camera_from_file,
     read_caliscope,
     read_colmap,
     read_panoptic,
@@ -67,15 +68,6 @@ __all__ = [
 
 QCA_SCALE = 64.0  # Qualisys stores focal, principal point and distortion x64
 QCA_UNITS_TO_METRES = 1e-3
-
-
-def _camera(source: Path, name: str, **kw) -> Camera:
-    try:
-        return Camera(name=name, source=str(source), **kw)
-    except CalibrationError:
-        raise
-    except (TypeError, ValueError) as e:
-        raise CalibrationError(f"camera '{name}' in {source}: {e}") from e
 
 
 def _rodrigues(rvec, source: Path, name: str) -> np.ndarray:
@@ -113,7 +105,7 @@ def read_toml(path: str | os.PathLike) -> CameraRig:
             raise CalibrationError(f"camera '{name}' ([{key}]) in {path}: missing {missing}")
         size = table.get("size")
         cameras.append(
-            _camera(
+            camera_from_file(
                 path,
                 name,
                 K=np.asarray(table["matrix"], dtype=np.float64),
@@ -197,7 +189,7 @@ def read_opencv_yaml(intri: str | os.PathLike, extri: str | os.PathLike | None =
         H, W = fi.getNode(f"H_{n}"), fi.getNode(f"W_{n}")
         size = None if H.empty() or W.empty() else (int(W.real()), int(H.real()))
         cameras.append(
-            _camera(
+            camera_from_file(
                 intri,
                 n,
                 K=K,
@@ -300,7 +292,8 @@ def read_qca(path: str | os.PathLike) -> CameraRig:
         cam_to_world = r.reshape(3, 3).T  # entries are listed column by column
         R = _ROT_PI_X @ cam_to_world.T
         t = -R @ pos
-        cameras.append(_camera(path, name, K=K, dist=np.array(d), R=R, t=t, size=(width, height)))
+        cameras.append(camera_from_file(path, name, K=K, dist=np.array(d), R=R, t=t,
+                                        size=(width, height)))
     if not cameras:
         raise CalibrationError(f"{path}: no <camera> entries")
     return CameraRig(cameras, source=str(path))

@@ -388,29 +388,33 @@ class MultiViewFootage:
     def plate(self, v: int) -> FrameSource | None:
         """Camera ``v``'s background plate, if the scene has one: ``background/<camera>.<image>``
         (one picture of the empty arena), ``background/<camera>/`` (images) or
-        ``background/<camera>.<video>`` (a short empty-arena clip)."""
-        folder, camera = self.scene / "background", self.sources[v].camera
-        if not folder.is_dir():
-            return None
-        if (folder / camera).is_dir():
-            return ImageFolderSource(camera, folder / camera)
-        for p in sorted(folder.glob(f"{camera}.*")):
-            if p.suffix.lower() in IMAGE_EXTENSIONS:
-                return ImageFolderSource(camera, folder, files=[p])
-            if p.suffix.lower() in VIDEO_EXTENSIONS:
-                return VideoSource(camera, p)
-        return None
+        ``background/<camera>.<video>`` (a short empty-arena clip).
+
+        Raises:
+            FootageError: the plate's size is not the footage's (the message names the file).
+        """
+        folder, src = self.scene / "background", self.sources[v]
+        plate: FrameSource | None = None
+        where: Path | None = None
+        if folder.is_dir() and (folder / src.camera).is_dir():
+            plate, where = ImageFolderSource(src.camera, folder / src.camera), folder / src.camera
+        elif folder.is_dir():
+            for p in sorted(folder.glob(f"{src.camera}.*")):
+                if p.suffix.lower() in IMAGE_EXTENSIONS:
+                    plate, where = ImageFolderSource(src.camera, folder, files=[p]), p
+                    break
+                if p.suffix.lower() in VIDEO_EXTENSIONS:
+                    plate, where = VideoSource(src.camera, p), p
+                    break
+        if plate is not None and tuple(plate.size) != tuple(src.size):
+            raise FootageError(
+                f"camera '{src.camera}': background plate {where} is "
+                f"{plate.size[0]}x{plate.size[1]} but the footage is {src.size[0]}x{src.size[1]}")
+        return plate
 
     def _native_background(self, v: int, num_samples: int) -> np.ndarray:
         plate = self.plate(v)
         src = self.sources[v] if plate is None else plate
-        if plate is not None and tuple(plate.size) != tuple(self.sources[v].size):
-            where = plate.files[0] if isinstance(plate, ImageFolderSource) and len(
-                plate.files) == 1 else plate.path
-            raise FootageError(
-                f"camera '{plate.camera}': background plate {where} is "
-                f"{plate.size[0]}x{plate.size[1]} but the footage is "
-                f"{self.sources[v].size[0]}x{self.sources[v].size[1]}")
         key = hashlib.sha1(f"{src.signature()}:{num_samples}".encode()).hexdigest()[:16]
         path = self.cache_dir / "background" / f"{src.camera}.{key}.png"
         if path.is_file():

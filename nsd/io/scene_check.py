@@ -254,15 +254,8 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
     sizes = {s.camera: _check_sizes(s) for s in folders}
     sizes.update({s.camera: tuple(s.size) for s in footage.sources if s.camera not in sizes})
     _check_names(folders)
-    plates = {}
-    for v, src in enumerate(footage.sources):
-        plate = footage.plate(v)
-        if plate is not None:
-            if tuple(plate.size) != tuple(src.size):
-                raise FootageError(f"camera '{src.camera}': background plate {plate.path} is "
-                                   f"{plate.size[0]}x{plate.size[1]} but the footage is "
-                                   f"{src.size[0]}x{src.size[1]}")
-            plates[src.camera] = str(plate.path)
+    plates = {src.camera: str(plate.path) for v, src in enumerate(footage.sources)
+              if (plate := footage.plate(v)) is not None}  # a plate of another size raises
     warnings = _unnamed_footage(scene, rig.names) + _content(footage, sample)
     for w in warnings:
         log.warning("scene %s: %s", scene.name, w)
