@@ -170,6 +170,7 @@ def evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
             int(e.max_frames),
             str(e.refine),
             InferenceSettings.from_config(inference),
+            baseline=bool(e.baseline),
         )
         metrics = {k: float(v) for k, v in metrics.items()}
         atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))

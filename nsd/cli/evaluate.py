@@ -29,7 +29,8 @@ def _hydra_main(cfg: DictConfig) -> float:
         frames = cfg.frames if isinstance(cfg.frames, str) else list(cfg.frames)
         settings = InferenceSettings.from_config(cfg.inference)
         metrics = evaluate_checkpoint(
-            cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings
+            cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings,
+            baseline=bool(cfg.baseline),
         )
         if cfg.export:
             scene = cfg.scene or load_decomposition(cfg.checkpoint).config.data.scene

@@ -219,7 +219,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "rig.kind": _r("str", choices=("corners", "ring", "nepumoo")), "rig.count": POS,
         "rig.half_width": RATE, "rig.fov_deg": _r("number", above=0, high=179),
         "rig.target": VEC3, "rig.distortion": _r("numbers", null=True),
-        "rig.height": SIGNED, "motion.interaction": _r("str", choices=("free", "close")),
+        "rig.height": SIGNED, "motion.interaction": _r("str", choices=("free", "close", "huddle")),
         "motion.area_radius": RATE, "backdrop.wall_radius": RATE, "backdrop.tile": RATE,
         "light.direction": VEC3, "light.ambient": FRACTION, "preview.zoom": POS,
     },

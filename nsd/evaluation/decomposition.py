@@ -28,6 +28,9 @@ matching on visible-mask IoU). Then:
 * **novel-view PSNR / SSIM**: Bi-NVS re-synthesis of view w from view v;
 * **COCO AP** (bbox and segm, class-agnostic) through pycocotools COCOeval on
   the scene's COCO ground truth.
+
+The metrics of :data:`SPLIT_METRICS` are also reported over the instants where the
+individuals are apart and those where they touch (:mod:`nsd.evaluation.contact`).
 """
 
 from __future__ import annotations
@@ -44,15 +47,24 @@ from pycocotools.cocoeval import COCOeval
 from sklearn.metrics import adjusted_rand_score
 from torch import Tensor
 
+from nsd.evaluation.contact import MIN_OVERLAP, PARTS, touching_instants
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.io.coco_results import decomposition_to_coco
 from nsd.ops.boxes import box_iou_xywh, mask_boxes_xywh, mask_iou, match
 
-__all__ = ["FrameScore", "coco_ap", "evaluate_model", "fg_ari", "score_frame"]
-
-MIN_OVERLAP = 4  # pixels of amodal overlap for a pair to count in depth-order accuracy
-
+__all__ = [
+    "SPLIT_METRICS",
+    "Counts",
+    "FrameScore",
+    "Tally",
+    "coco_ap",
+    "count_associations",
+    "evaluate_model",
+    "fg_ari",
+    "score_frame",
+    "score_views",
+]
 
 def fg_ari(gt_labels: np.ndarray, pred_labels: np.ndarray) -> float:
     """Adjusted Rand index over GT foreground pixels (gt label >= 0); nan without foreground."""
@@ -218,9 +230,11 @@ def evaluate_model(
     """All metrics on ``frames`` of ``data`` (an :class:`nsd.io.scene_data.SceneData`).
 
     Without ground truth only the self-supervised novel-view PSNR/SSIM is returned.
-    With it, ``mask_miou_raw`` also scores the compositor's raw masks (no refinement).
-    ``inference``: :class:`nsd.inference.multiview.InferenceSettings` (None: the defaults,
-    multi-view inference).
+    With it, ``mask_miou_raw`` also scores the compositor's raw masks (no refinement),
+    and the metrics of :data:`SPLIT_METRICS` come again as ``<metric>_apart`` and
+    ``<metric>_touching`` (:mod:`nsd.evaluation.contact`), with ``touching_share``, the
+    share of touching instants. ``inference``: :class:`nsd.inference.multiview.InferenceSettings`
+    (None: the defaults, multi-view inference).
     """
     settings = inference or InferenceSettings.defaults()
     was = model.training
@@ -229,8 +243,9 @@ def evaluate_model(
     grid = (
         settings.grid(data.rig, data.frame_hw) if settings.multiview and gt is not None else None
     )
+    touching = touching_instants(gt, data.rig.names, frames, data.frame_hw) if gt else {}
     psnr, ssim = [], []
-    tally = _Tally()
+    tally = Tally()
     try:
         for t in frames:
             views, bgs = data.views(int(t))
@@ -242,8 +257,10 @@ def evaluate_model(
             dec = decompose_views(
                 model, views, bgs, V, settings, grid, mask_threshold=threshold, refine=refine
             )
-            per_view = _score_views(dec, data, gt, int(t), threshold, tally)
-            _count_associations(model, dec, data, settings, per_view, tally)
+            counts = tally.counts(touching[int(t)])
+            per_view = score_views(dec, data, gt, int(t), threshold, counts)
+            tally.add_coco(dec, data, gt, int(t), threshold)
+            _count_associations(model, dec, data, settings, per_view, counts)
     finally:
         model.train(was)
     out = {"nvs_psnr": float(np.mean(psnr)), "nvs_ssim": float(np.mean(ssim))}
@@ -253,37 +270,76 @@ def evaluate_model(
     return {k: float(v) for k, v in out.items()}  # plain floats (numpy scalars break JSON)
 
 
+def _ratio(num: float, den: float) -> float:
+    return num / den if den else float("nan")
+
+
 @dataclass
-class _Tally:
-    """What :func:`evaluate_model` sums over camera-frames."""
+class Counts:
+    """What :func:`evaluate_model` sums over the camera-frames of one part of the instants."""
 
     total: FrameScore = field(default_factory=FrameScore)
     raw_iou: float = 0.0
     assoc_total: int = 0
     assoc_correct: int = 0
-    results: list[dict] = field(default_factory=list)
-    image_ids: list[int] = field(default_factory=list)
+    instants: int = 0
 
     def metrics(self) -> dict[str, float]:
         total = self.total
-        n = max(total.n_gt, 1)
         return {
-            "detection_rate": total.detected / n,
-            "mask_miou": total.iou_sum / n,
-            "mask_miou_raw": self.raw_iou / n,
+            "detection_rate": _ratio(total.detected, total.n_gt),
+            "mask_miou": _ratio(total.iou_sum, total.n_gt),
+            "mask_miou_raw": _ratio(self.raw_iou, total.n_gt),
             "fg_ari": float(np.nanmean(total.ari)) if total.ari else float("nan"),
-            "depth_order_accuracy": (
-                total.order_correct / total.order_total if total.order_total else float("nan")
-            ),
+            "depth_order_accuracy": _ratio(total.order_correct, total.order_total),
             "depth_order_pairs": float(total.order_total),
-            "merge_rate": total.merged / total.multi if total.multi else float("nan"),
-            "overlap_ownership": (
-                total.overlap_owned / total.overlap_pixels if total.overlap_pixels else float("nan")
-            ),
-            "association_accuracy": (
-                self.assoc_correct / self.assoc_total if self.assoc_total else float("nan")
-            ),
+            "merge_rate": _ratio(total.merged, total.multi),
+            "overlap_ownership": _ratio(total.overlap_owned, total.overlap_pixels),
+            "association_accuracy": _ratio(self.assoc_correct, self.assoc_total),
         }
+
+
+SPLIT_METRICS = (
+    "detection_rate",
+    "mask_miou",
+    "mask_miou_raw",
+    "depth_order_accuracy",
+    "association_accuracy",
+    "merge_rate",
+)
+
+
+@dataclass
+class Tally:
+    """:class:`Counts` of all instants and of the apart and touching ones, and COCO results."""
+
+    parts: dict[str, Counts] = field(
+        default_factory=lambda: {p: Counts() for p in ("all", *PARTS)}
+    )
+    results: list[dict] = field(default_factory=list)
+    image_ids: list[int] = field(default_factory=list)
+
+    def counts(self, touching: bool) -> list[Counts]:
+        """The counts an instant adds to: all, and its part (one instant counted)."""
+        counts = [self.parts["all"], self.parts[PARTS[int(bool(touching))]]]
+        for c in counts:
+            c.instants += 1
+        return counts
+
+    def add_coco(self, dec, data, gt, t: int, threshold: float) -> None:
+        """COCO results of every view of instant ``t`` (for :func:`coco_ap`)."""
+        for v, cam in enumerate(data.rig.names):
+            fgt = gt.frame(cam, t, data.frame_hw)
+            self.results += decomposition_to_coco(dec, v, fgt.image_id, fgt.native_size, threshold)
+            self.image_ids.append(fgt.image_id)
+
+    def metrics(self) -> dict[str, float]:
+        out = self.parts["all"].metrics()
+        for part in PARTS:
+            m = self.parts[part].metrics()
+            out.update({f"{k}_{part}": m[k] for k in SPLIT_METRICS})
+        out["touching_share"] = _ratio(self.parts["touching"].instants, self.parts["all"].instants)
+        return out
 
 
 def _novel_view_scores(model, data, views: Tensor, bgs: Tensor) -> tuple[float, float]:
@@ -298,24 +354,28 @@ def _novel_view_scores(model, data, views: Tensor, bgs: Tensor) -> tuple[float, 
     return psnr, ssim
 
 
-def _score_views(dec, data, gt, t: int, threshold: float, tally: _Tally) -> list[dict[int, int]]:
-    """Score every view of instant ``t`` into ``tally``; returns each view's GT matches."""
+def score_views(dec, data, gt, t: int, threshold: float, counts: Sequence[Counts]):
+    """Score every view of instant ``t`` of a decomposition into each of ``counts``.
+
+    ``dec`` holds per view ``masks`` and ``raw_masks`` (V, N, H, W), ``depths`` and
+    ``active`` (V, N) (a :class:`nsd.inference.single.Decomposition`, or the hull-only
+    baseline's). Returns each view's GT matches (identity -> window).
+    """
     per_view = []
     for v, cam in enumerate(data.rig.names):
         fgt = gt.frame(cam, t, data.frame_hw)
         truth = (fgt.visible, fgt.amodal, fgt.boxes, fgt.identity, threshold)
-        depths, active = dec.depths[v].numpy(), dec.active[v].numpy()
-        s = score_frame(dec.masks[v].numpy(), depths, active, *truth)
-        raw = score_frame(dec.raw_masks[v].numpy(), depths, active, *truth)
-        tally.raw_iou += raw.iou_sum
-        tally.total.add(s)
+        depths, active = np.asarray(dec.depths[v]), np.asarray(dec.active[v])
+        s = score_frame(np.asarray(dec.masks[v]), depths, active, *truth)
+        raw = score_frame(np.asarray(dec.raw_masks[v]), depths, active, *truth)
+        for c in counts:
+            c.raw_iou += raw.iou_sum
+            c.total.add(s)
         per_view.append(s.matches)
-        tally.results += decomposition_to_coco(dec, v, fgt.image_id, fgt.native_size, threshold)
-        tally.image_ids.append(fgt.image_id)
     return per_view
 
 
-def _count_associations(model, dec, data, settings, per_view, tally: _Tally) -> None:
+def _count_associations(model, dec, data, settings, per_view, counts: Sequence[Counts]) -> None:
     """Cross-view association: for every GT individual seen in views v and w, is the
     window of w with the highest score for v's window the one matched to it?"""
     V = data.num_views
@@ -326,7 +386,17 @@ def _count_associations(model, dec, data, settings, per_view, tally: _Tally) -> 
             sim = association_scores(
                 model, dec, data.cameras, data.frame_hw, v, w, settings.slot_bonus
             )
-            for ident, iv in per_view[v].items():
-                if ident in per_view[w]:
-                    tally.assoc_total += 1
-                    tally.assoc_correct += int(sim[iv].argmax().item() == per_view[w][ident])
+            picks = sim.argmax(1).tolist()
+            count_associations(per_view[v], per_view[w], picks.__getitem__, counts)
+
+
+def count_associations(
+    matches_v: dict[int, int], matches_w: dict[int, int], pick, counts: Sequence[Counts]
+) -> None:
+    """Cross-view association of one view pair: for every GT identity matched in both views,
+    is ``pick(window in v)`` its window in w?"""
+    for ident, iv in matches_v.items():
+        if ident in matches_w:
+            for c in counts:
+                c.assoc_total += 1
+                c.assoc_correct += int(pick(iv) == matches_w[ident])

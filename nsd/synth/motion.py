@@ -28,7 +28,13 @@ Root paths
     close`` all individuals share one waypoint, an individual left more than
     :attr:`MotionConfig.follow_gap` behind walks after the nearest other, and standing
     individuals turn to face the nearest other: overlaps in the images become
-    frequent. Individuals never interpenetrate: their ground footprints
+    frequent. With ``interaction: huddle`` the group alternates *huddles* and
+    *dispersals* (exponential durations, means ``huddle_seconds`` and
+    ``apart_seconds``): in a huddle every individual walks to one shared spot and
+    stays in contact with the nearest other (a footprint gap of at most
+    :data:`HUDDLE_GAP`; pairs groom, groups of 4-8 cluster), facing it; in a
+    dispersal each wanders to its own waypoints, as with ``free``. Individuals never
+    interpenetrate: their ground footprints
     (capsules, :attr:`~nsd.synth.skeleton.Species.footprint`) are pushed apart
     (limbs may still touch).
 """
@@ -56,13 +62,14 @@ __all__ = [
     "simulate_motion",
 ]
 
-INTERACTIONS = ("free", "close")
+INTERACTIONS = ("free", "close", "huddle")
 TURN_REVERSION = 1.0  # 1/s: mean reversion of the OU turn rate
 SPEED_TAU = 0.5  # s: time constant of speed changes
 GESTURE_TAU = 0.4  # s: time constant of gesture blending
 STEER_GAIN = 2.5  # 1/s: turn rate per radian of heading error
 SEPARATION_MARGIN = 0.05  # m kept between footprints
 WAYPOINT_REACHED = 0.4  # m: a new waypoint is drawn within this distance of the current one
+HUDDLE_GAP = 0.02  # m: in a huddle, an individual farther than this from all others joins them
 
 # (joint, axis, low, high): gestures drawn per standing bout
 GESTURES: dict[str, tuple[tuple[str, int, float, float], ...]] = {
@@ -108,6 +115,8 @@ class MotionConfig(ConfigSection):
         pose_variation: amplitude of the random joint variation (0: none).
         follow_gap: ``close``: an individual whose footprint is farther than this
             from every other's walks after the nearest, metres.
+        huddle_seconds: ``huddle``: mean duration of a huddle (all in contact), s.
+        apart_seconds: ``huddle``: mean duration of a dispersal between huddles, s.
     """
 
     APP: ClassVar[str] = "synth"  # defaults: conf/synth.yaml, section `motion`
@@ -121,6 +130,8 @@ class MotionConfig(ConfigSection):
     turn_noise: float
     pose_variation: float
     follow_gap: float
+    huddle_seconds: float
+    apart_seconds: float
 
     def validate(self) -> None:
         if self.interaction not in INTERACTIONS:
@@ -128,7 +139,8 @@ class MotionConfig(ConfigSection):
                 f"motion.interaction: unknown value {self.interaction!r}; choose one of "
                 f"{list(INTERACTIONS)}"
             )
-        for key in ("area_radius", "walk_seconds", "stand_seconds"):
+        for key in ("area_radius", "walk_seconds", "stand_seconds", "huddle_seconds",
+                    "apart_seconds"):
             if not getattr(self, key) > 0:
                 raise ConfigError(f"motion.{key}: must be > 0, got {getattr(self, key)}")
         for key in ("speed_scale", "turn_noise", "pose_variation", "follow_gap"):
@@ -405,6 +417,9 @@ def simulate_motion(
     goals = np.stack([_waypoint(config, rng) for _ in range(N)])
     group_goal = _waypoint(config, rng)
     sigma = config.turn_noise * np.sqrt(2 * TURN_REVERSION)
+    huddling = config.interaction == "huddle" and rng.random() < config.huddle_seconds / (
+        config.huddle_seconds + config.apart_seconds
+    )
     for t in range(T):
         P[t], H[t], PH[t], WALK[t] = pos, head, phase, walking
         A[t] = np.clip(speed / np.maximum(pref, 1e-6), 0.0, 1.2)
@@ -418,7 +433,14 @@ def simulate_motion(
         target_speed = np.where(walking, pref, 0.0)
         # steering: towards the waypoint while walking; close: face the nearest other
         omega += -TURN_REVERSION * omega * dt + sigma * np.sqrt(dt) * rng.normal(size=N)
-        close = config.interaction == "close" and N > 1
+        if config.interaction == "huddle" and rng.random() < dt / (
+            config.huddle_seconds if huddling else config.apart_seconds
+        ):
+            huddling = not huddling
+            group_goal = _waypoint(config, rng)
+        close = config.interaction == "close" or huddling
+        close = close and N > 1
+        gap_limit = HUDDLE_GAP if huddling else config.follow_gap
         goal = np.repeat(group_goal[None], N, axis=0) if close else goals
         d = goal - pos
         steer = np.where(walking, STEER_GAIN * _wrap(np.arctan2(d[:, 1], d[:, 0]) - head), 0.0)
@@ -429,7 +451,7 @@ def simulate_motion(
                     for m in range(N)
                     if m != n
                 )
-                if gap > config.follow_gap:  # left behind: walk after the others
+                if gap > gap_limit:  # left behind: walk after the others
                     walking[n] = True
                     target_speed[n] = pref[n]
                     dm = pos[m] - pos[n]
@@ -437,7 +459,8 @@ def simulate_motion(
                 elif not walking[n]:  # standing: face the nearest other
                     dm = pos[m] - pos[n]
                     steer[n] = STEER_GAIN * _wrap(np.arctan2(dm[1], dm[0]) - head[n])
-            if np.linalg.norm(pos - group_goal, axis=1).min() < WAYPOINT_REACHED + 0.3:
+            reached = np.linalg.norm(pos - group_goal, axis=1).min() < WAYPOINT_REACHED + 0.3
+            if reached and not huddling:  # a huddle stays where it formed
                 group_goal = _waypoint(config, rng)
         else:
             for n in np.flatnonzero(np.linalg.norm(d, axis=1) < WAYPOINT_REACHED):

@@ -1,0 +1,90 @@
+"""The hull-only baseline: the decomposition that classical multi-view geometry gives alone.
+
+No learning: per instant, the visual hull of the background residuals
+(:func:`nsd.cues.occupancy.multiview_proposals`) gives ``k`` individuals; in each view an
+individual's mask is the foreground pixels it owns, its depth is the hull's, and it is
+the same individual in every view (the slot index), so cross-view association is the
+hull's. Scored with exactly the metrics, frames and apart/touching split of a trained
+decomposition (:func:`nsd.evaluation.decomposition.evaluate_model`), this row shows what
+learning adds, and where.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from nsd.cues.evidence import foreground_evidence
+from nsd.cues.occupancy import VoxelGrid, multiview_proposals
+from nsd.evaluation.contact import touching_instants
+from nsd.evaluation.decomposition import Tally, coco_ap, count_associations, score_views
+
+__all__ = ["HullDecomposition", "evaluate_hull", "hull_decomposition"]
+
+
+@dataclass
+class HullDecomposition:
+    """The hull-only decomposition of one instant of V views, N = ``k`` slots.
+
+    Attributes:
+        masks, raw_masks: (V, N, H, W) float, 1 where the slot owns a foreground pixel.
+        depths: (V, N) camera-space depths; scores: (V, N); active: (V, N) bool.
+    """
+
+    masks: Tensor
+    raw_masks: Tensor
+    depths: Tensor
+    scores: Tensor
+    active: Tensor
+
+
+def hull_decomposition(
+    images: Tensor,
+    backgrounds: Tensor,
+    grid: VoxelGrid,
+    k: int,
+    split: bool = True,
+    evidence_threshold: float = 0.04,
+    evidence_softness: float = 0.08,
+) -> HullDecomposition:
+    """Decompose one instant with the visual hull alone.
+
+    Args:
+        images, backgrounds: (V, 3, H, W) in [0, 1].
+        grid: the hull's voxel grid of these cameras at this size.
+        k: individuals (windows); ``split`` as :func:`nsd.cues.occupancy.cluster_individuals`.
+    """
+    ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
+    hull = multiview_proposals(ev, grid, k, split=split)
+    slots = torch.arange(k)[None, :, None, None]
+    masks = (hull.owners[:, None] == slots).float()
+    return HullDecomposition(masks, masks, hull.depths, hull.valid.float(), hull.valid)
+
+
+@torch.no_grad()
+def evaluate_hull(
+    data, frames: Sequence[int], gt, grid: VoxelGrid, k: int, split: bool = True,
+    threshold: float = 0.5,
+) -> dict[str, float]:
+    """The metrics of :func:`nsd.evaluation.decomposition.evaluate_model` (without the
+    novel-view ones) for the hull-only decomposition of ``frames`` of ``data``."""
+    touching = touching_instants(gt, data.rig.names, frames, data.frame_hw)
+    tally = Tally()
+    V = data.num_views
+    for t in frames:
+        views, bgs = data.views(int(t))
+        dec = hull_decomposition(views, bgs, grid, k, split)
+        counts = tally.counts(touching[int(t)])
+        per_view = score_views(dec, data, gt, int(t), threshold, counts)
+        tally.add_coco(dec, data, gt, int(t), threshold)
+        for v in range(V):
+            for w in range(V):
+                if v != w:
+                    count_associations(per_view[v], per_view[w], lambda i: i, counts)
+    out = tally.metrics()
+    out.update(coco_ap(gt.coco, tally.results, tally.image_ids))
+    return {key: float(np.float64(val)) for key, val in out.items()}
