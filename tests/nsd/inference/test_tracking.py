@@ -38,3 +38,31 @@ def test_dissimilar_subject_opens_a_track_and_gaps_close_tracks():
     assert trk.update(2, {0: _obs(A, 0)}) == {0: 1}  # unseen for 2 frames: still open
     assert trk.update(5, {0: _obs(A, 0)}) == {0: 3}  # unseen for 3 > max_gap: closed
     assert trk.update(6, {}) == {}
+
+
+
+def _episode(swap: bool):
+    """A scripted contact episode: A and B apart, then for 5 frames one merged subject (B
+    hidden behind A, so A's appearance dominates it), then apart again (on swapped sides
+    when ``swap``: only appearance can tell who is who)."""
+    frames = [{0: _obs(A, 0), 1: _obs(B, 40)} for _ in range(5)]
+    merged = (0.6 * A + 0.4 * B) / np.linalg.norm(0.6 * A + 0.4 * B)
+    frames += [{0: _obs(merged, 20)} for _ in range(5)]
+    after = {0: _obs(A, 40), 1: _obs(B, 0)} if swap else {0: _obs(A, 0), 1: _obs(B, 40)}
+    frames += [after for _ in range(5)]
+    return frames
+
+
+@pytest.mark.parametrize("swap", [False, True])
+def test_identity_survives_a_contact_episode(swap):
+    trk = SubjectTracker(appearance_weight=0.5, min_similarity=0.3)
+    ids = [trk.update(t, subjects) for t, subjects in enumerate(_episode(swap))]
+    assert ids[0] == {0: 1, 1: 2}
+    assert all(i == {0: 1} for i in ids[5:10])  # the merged subject continues A's track
+    assert ids[-1] == {0: 1, 1: 2}  # A and B keep their tracks after the contact
+
+
+def test_box_overlap_alone_swaps_identities_that_swap_places_in_contact():
+    trk = SubjectTracker(appearance_weight=0.0, min_similarity=0.0)
+    ids = [trk.update(t, subjects) for t, subjects in enumerate(_episode(True))]
+    assert ids[-1] == {0: 2, 1: 1}  # A took B's old box: the stale box decides, wrongly
