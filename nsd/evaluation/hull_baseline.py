@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nsd.cues.evidence import foreground_evidence
+from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals
 from nsd.evaluation.contact import touching_instants
 from nsd.evaluation.decomposition import Tally, coco_ap, count_associations, score_views
@@ -48,8 +48,8 @@ def hull_decomposition(
     grid: VoxelGrid,
     k: int,
     split: bool = True,
-    evidence_threshold: float = 0.04,
-    evidence_softness: float = 0.08,
+    evidence_threshold: float = EVIDENCE_THRESHOLD,
+    evidence_softness: float = EVIDENCE_SOFTNESS,
 ) -> HullDecomposition:
     """Decompose one instant with the visual hull alone.
 
@@ -68,7 +68,8 @@ def hull_decomposition(
 @torch.no_grad()
 def evaluate_hull(
     data, frames: Sequence[int], gt, grid: VoxelGrid, k: int, split: bool = True,
-    threshold: float = 0.5,
+    threshold: float = 0.5, evidence_threshold: float = EVIDENCE_THRESHOLD,
+    evidence_softness: float = EVIDENCE_SOFTNESS,
 ) -> dict[str, float]:
     """The metrics of :func:`nsd.evaluation.decomposition.evaluate_model` (without the
     novel-view ones) for the hull-only decomposition of ``frames`` of ``data``."""
@@ -77,7 +78,8 @@ def evaluate_hull(
     V = data.num_views
     for t in frames:
         views, bgs = data.views(int(t))
-        dec = hull_decomposition(views, bgs, grid, k, split)
+        dec = hull_decomposition(views, bgs, grid, k, split, evidence_threshold,
+                                 evidence_softness)
         counts = tally.counts(touching[int(t)])
         per_view = score_views(dec, data, gt, int(t), threshold, counts)
         tally.add_coco(dec, data, gt, int(t), threshold)

@@ -37,14 +37,14 @@ from torch import Tensor
 from nsd.cameras.calibration import CameraRig
 from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
-from nsd.cues.evidence import foreground_evidence
+from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals, voxel_grid
 from nsd.cues.proposals import match_proposals
 from nsd.inference.single import Decomposition, decompose
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
 
-__all__ = ["InferenceSettings", "decompose_views", "fuse_detections"]
+__all__ = ["InferenceSettings", "decompose_views", "fuse_detections", "window_owners"]
 
 VIEWS = ("multiview", "single")
 DEPTHS = ("hull", "detector")
@@ -64,6 +64,9 @@ class InferenceSettings(ConfigSection):
         resolution: voxels per side of the hull's grid.
         colour_sigma: colour agreement of the mask ownership
             (:func:`nsd.inference.single.ownership`).
+        hull_ownership: log-score bonus of the window whose hull individual owns a pixel
+            (:func:`nsd.cues.occupancy.owned_pixels`) in the mask ownership (0: the
+            learned ownership alone).
     """
 
     APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `inference`
@@ -75,6 +78,7 @@ class InferenceSettings(ConfigSection):
     slot_bonus: float
     resolution: int
     colour_sigma: float
+    hull_ownership: float
 
     def validate(self) -> None:
         def need(ok: bool, key: str, what: str) -> None:
@@ -87,6 +91,7 @@ class InferenceSettings(ConfigSection):
         need(float(self.slot_bonus) >= 0.0, "slot_bonus", "must be >= 0")
         need(int(self.resolution) >= 8, "resolution", "must be >= 8 voxels")
         need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
+        need(float(self.hull_ownership) >= 0.0, "hull_ownership", "must be >= 0 (0: off)")
 
     @classmethod
     def from_config(cls, node: DictConfig | Mapping[str, Any] | None) -> InferenceSettings:
@@ -151,6 +156,17 @@ def fuse_detections(
     return Detections(boxes, depths, det.presence), slots
 
 
+def window_owners(owners: Tensor, slots: Tensor) -> Tensor:
+    """The hull's pixel owners as windows: (V, H, W) slot ids and each window's slot (V, N)
+    (-1: none) -> (V, H, W) window index, -1 where no window holds the pixel's slot."""
+    out = torch.full_like(owners, -1)
+    for v in range(owners.shape[0]):
+        for n, s in enumerate(slots[v].tolist()):
+            if s >= 0:
+                out[v][owners[v] == s] = n
+    return out
+
+
 @torch.inference_mode()
 def decompose_views(
     model: BiNVS,
@@ -159,8 +175,8 @@ def decompose_views(
     num_views: int,
     settings: InferenceSettings,
     grid: VoxelGrid | None = None,
-    evidence_threshold: float = 0.04,
-    evidence_softness: float = 0.08,
+    evidence_threshold: float = EVIDENCE_THRESHOLD,
+    evidence_softness: float = EVIDENCE_SOFTNESS,
     **kwargs,
 ) -> Decomposition:
     """Decompose T instants of V calibrated views, (T * V, 3, H, W) instant-major.
@@ -190,7 +206,7 @@ def decompose_views(
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
     k = model.cfg.num_windows
     split = not model.detector.use_presence  # as training's prior_proposal.split=auto
-    fused, slots = [], []
+    fused, slots, owners = [], [], []
     for s in range(0, images.shape[0], num_views):
         sl = slice(s, s + num_views)
         hull = multiview_proposals(ev[sl], grid, k, split=split)
@@ -200,9 +216,11 @@ def decompose_views(
         )
         fused.append(f)
         slots.append(slot)
+        owners.append(window_owners(hull.owners, slot))
     cat = Detections(
         *(torch.cat([getattr(f, a) for f in fused]) for a in ("boxes", "depths", "presence"))
     )
-    dec = decompose(model, images, backgrounds, detections=cat, **common)
+    dec = decompose(model, images, backgrounds, detections=cat, owner_prior=torch.cat(owners),
+                    owner_bonus=settings.hull_ownership, **common)
     dec.slots = torch.cat(slots)
     return dec

@@ -19,7 +19,9 @@ decoded colour :math:`L_i(p)` with the image :math:`I(p)`,
 
 so that where two blobby decoded masks overlap, the pixel goes to the subject
 whose rendering looks like it (``colour_sigma`` :math:`\sigma_c`; 0 uses the
-weights alone). NSD still decides which subject a pixel belongs to and who
+weights alone). Multi-view inference adds, in the log domain, ``owner_bonus`` for the
+subject whose visual-hull individual owns the pixel (:mod:`nsd.inference.multiview`).
+NSD still decides which subject a pixel belongs to and who
 occludes whom; the median background, which NSD already needs, only sharpens
 the silhouettes. ``refine="none"`` returns the raw masks.
 
@@ -41,7 +43,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 
-from nsd.cues.evidence import foreground_evidence
+from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.model.association import appearance_similarity
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
@@ -118,10 +120,12 @@ def decompose(
     presence_threshold: float = 0.5,
     refine: str = "residual",
     min_weight: float = 0.05,
-    evidence_threshold: float = 0.04,
-    evidence_softness: float = 0.08,
+    evidence_threshold: float = EVIDENCE_THRESHOLD,
+    evidence_softness: float = EVIDENCE_SOFTNESS,
     colour_sigma: float = 0.2,
     detections: Detections | None = None,
+    owner_prior: Tensor | None = None,
+    owner_bonus: float = 0.0,
 ) -> Decomposition:
     """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
 
@@ -136,6 +140,10 @@ def decompose(
         evidence_threshold, evidence_softness: as in training (``loss`` config).
         colour_sigma: colour agreement of the refinement's ownership (:func:`ownership`).
         detections: windows to use instead of the detector's (:mod:`nsd.inference.multiview`).
+        owner_prior: (B, H, W) the window another cue gives each pixel (-1: none), e.g. the
+            visual hull's (:mod:`nsd.inference.multiview`); with ``owner_bonus`` > 0 its
+            window's log ownership score gains ``owner_bonus`` there and it may claim the
+            pixel whatever its composited weight.
     """
     was_training = model.training
     model.eval()
@@ -150,8 +158,15 @@ def decompose(
     if refine == "residual":
         fg = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness) > 0.5
         weighted = raw * win.det.presence[..., None, None]
-        owner = ownership(weighted, r.layers, images, colour_sigma).argmax(1, keepdim=True)
-        claim = fg[:, None] & (weighted.amax(1, keepdim=True) > min_weight)
+        score = ownership(weighted, r.layers, images, colour_sigma)
+        claim = weighted.amax(1, keepdim=True) > min_weight
+        if owner_prior is not None and owner_bonus > 0:
+            slots = torch.arange(raw.shape[1])[None, :, None, None]
+            prior = owner_prior[:, None] == slots  # (B, N, H, W)
+            score = score + owner_bonus * prior
+            claim = claim | prior.any(1, keepdim=True)
+        owner = score.argmax(1, keepdim=True)
+        claim = fg[:, None] & claim
         masks = (torch.arange(raw.shape[1])[None, :, None, None] == owner) & claim
         masks = masks.to(raw.dtype)
     elif refine == "none":

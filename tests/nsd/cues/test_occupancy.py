@@ -151,3 +151,13 @@ def test_a_hull_component_holding_two_touching_individuals_is_split_into_two_win
     # a camera that sees one person partly behind the other gets mixed pixels (the hull
     # cannot carve between them along its rays): purity is high on average, not everywhere
     assert np.mean(purity) > 0.8, purity
+
+
+def test_training_evidence_defaults_are_the_cue_defaults():
+    """One source: the loss config's evidence settings are nsd.cues.evidence's constants."""
+    from nsd.core.config import compose_app
+    from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD
+
+    cfg = compose_app("train")
+    assert cfg.loss.evidence_threshold == EVIDENCE_THRESHOLD
+    assert cfg.loss.evidence_softness == EVIDENCE_SOFTNESS

@@ -9,8 +9,15 @@ import pytest
 import torch
 
 from nsd.core.errors import ConfigError
+from nsd.cues.evidence import foreground_evidence
+from nsd.cues.occupancy import multiview_proposals
 from nsd.inference.association_scores import association_scores
-from nsd.inference.multiview import InferenceSettings, decompose_views, fuse_detections
+from nsd.inference.multiview import (
+    InferenceSettings,
+    decompose_views,
+    fuse_detections,
+    window_owners,
+)
 from nsd.inference.single import decompose, ownership
 from nsd.io.scene_data import SceneData
 from nsd.model.build import build_model
@@ -120,7 +127,8 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     views = torch.cat([data.views(t)[0] for t in (0, 1)])
     bgs = torch.cat([data.views(t)[1] for t in (0, 1)])
     V = data.num_views
-    same = InferenceSettings.defaults(window_blend=0.0, depth="detector", resolution=16)
+    same = InferenceSettings.defaults(window_blend=0.0, depth="detector", resolution=16,
+                                      hull_ownership=0.0)
     multi = decompose_views(model, views, bgs, V, same, same.grid(data.rig, data.frame_hw))
     single = decompose(model, views, bgs)
     for key in ("windows", "depths", "masks", "raw_masks", "app"):
@@ -132,3 +140,29 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     assert torch.equal(one.masks, single.masks) and one.slots is None
     with pytest.raises(ValueError, match="whole instants"):
         decompose_views(model, views[:3], bgs[:3], V, same, same.grid(data.rig, data.frame_hw))
+
+
+def test_window_owners_map_hull_slots_to_windows():
+    owners = torch.tensor([[[0, 1, -1], [1, 1, 0]]])  # (V=1, H=2, W=3) hull slots
+    slots = torch.tensor([[1, -1, 0]])  # window 0 holds slot 1, window 2 slot 0
+    assert window_owners(owners, slots).tolist() == [[[2, 0, -1], [0, 0, 2]]]
+
+
+def test_hull_ownership_gives_the_hulls_pixels_to_their_windows(tiny_scene):
+    """With a bonus larger than any colour or weight score, every foreground pixel that the
+    hull gives to an individual goes to the window fused with that individual."""
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    model = build_model(tiny_cfg().model)
+    views, bgs = data.views(0)
+    V, k = data.num_views, model.cfg.num_windows
+    settings = InferenceSettings.defaults(resolution=16, hull_ownership=1e6)
+    grid = settings.grid(data.rig, data.frame_hw)
+    dec = decompose_views(model, views, bgs, V, settings, grid)
+    ev = foreground_evidence(views, bgs)
+    hull = multiview_proposals(ev, grid, k, split=not model.detector.use_presence)
+    win = window_owners(hull.owners, dec.slots)
+    held = (win >= 0) & (ev > 0.5)
+    assert held.sum() > 0
+    got = dec.masks.argmax(1)[held]
+    assert torch.equal(got, win[held])
+    assert (dec.masks.amax(1)[held] > 0.5).all()
