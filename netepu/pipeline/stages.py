@@ -24,6 +24,7 @@ from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.stages import Stage, StageResult, config_hash
 from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
+from nsd.evaluation.contact import touching_instants
 from nsd.evaluation.identity import identity_accuracy
 from nsd.evaluation.pose import keypoint_error
 from nsd.evaluation.tracking import tracking_metrics
@@ -344,7 +345,11 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
         summary["column"] = column
         if ground_truth:
             export, scene = up["export"].folder, up["scene"].summary["path"]
-            summary["accuracy"] = identity_accuracy(export, scene, table["id"], identity)
+            cameras = sorted(set(table["camera"].tolist()))
+            frames = sorted(set(int(t) for t in table["frame"].tolist()))
+            touching = touching_instants(GroundTruth.load(scene), cameras, frames)
+            summary["accuracy"] = identity_accuracy(
+                export, scene, table["id"], identity, touching=touching)
             summary["tracking"] = {  # MOT metrics of the per-camera tracks, then of identities
                 "tracks": tracking_metrics(export, scene),
                 "identities": tracking_metrics(

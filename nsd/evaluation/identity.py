@@ -71,12 +71,16 @@ def identity_accuracy(
     identity: np.ndarray,
     min_iou: float = 0.5,
     seed: int = 0,
+    touching: dict[int, bool] | None = None,
 ) -> dict[str, float]:
     """Identity accuracy of an export's rows against a synthetic scene (see the module).
 
     Args:
         row_ids: (R,) annotation ``id`` of the rows to score (others are not scored).
         identity: (R,) their identities.
+        touching: frame -> whether individuals touch then (:mod:`nsd.evaluation.contact`);
+            adds ``identity_accuracy_apart`` and ``identity_accuracy_touching``: the rows of
+            each part that the one best mapping of all rows gets right.
     """
 
     matched = ground_truth_identities(export, scene, min_iou)
@@ -90,6 +94,9 @@ def identity_accuracy(
     counts = np.array([[np.sum((pred_id == p) & (true_id == t)) for t in T] for p in P])
     pr, tc = linear_sum_assignment(-counts)
     acc = float(counts[pr, tc].sum() / len(rows))
+    mapped = dict(zip(P[pr].tolist(), T[tc].tolist(), strict=True))
+    right = np.array([mapped.get(p, None) == t for p, t in zip(pred_id.tolist(), true_id.tolist(),
+                                                                 strict=True)])
     cams = np.array([r[0] for r in rows])
     frames = np.array([r[1] for r in rows])
     same_pred = pred_id[:, None] == pred_id[None]
@@ -101,9 +108,16 @@ def identity_accuracy(
     b = rng.integers(0, len(rows), 200_000)
     keep = (cams[a] == cams[b]) & (np.abs(frames[a] - frames[b]) >= 10)
     a, b = a[keep][:20_000], b[keep][:20_000]
+    split = {}
+    if touching is not None:
+        part = np.array([bool(touching.get(int(t), False)) for t in frames])
+        for name, sel in (("apart", ~part), ("touching", part)):
+            split[f"identity_accuracy_{name}"] = (
+                float(right[sel].mean()) if sel.any() else float("nan"))
     return {
         "matched_rows": float(len(rows)),
         "identity_accuracy": acc,
+        **split,
         "cross_view_accuracy": (
             float(agree[cross_view].mean()) if cross_view.any() else float("nan")
         ),

@@ -388,6 +388,16 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
     assert acc["cross_time_accuracy"] < 0.8
     share = max(len(late), len(anns) - len(late)) / len(anns)
     assert acc["identity_accuracy"] == pytest.approx(share)
+    # split by a scripted contact from frame 10 on: one best mapping for all rows, so one
+    # part is all right and the other all wrong, and the whole is their weighted mean
+    touching = {t: t >= 10 for t in range(20)}
+    acc = identity_accuracy(
+        export, scene, ids, [1 - right[i] if i in late else right[i] for i in ids],
+        touching=touching)
+    apart, touch = acc["identity_accuracy_apart"], acc["identity_accuracy_touching"]
+    assert sorted([apart, touch]) == [0.0, 1.0]
+    whole = (apart * (len(anns) - len(late)) + touch * len(late)) / len(anns)
+    assert acc["identity_accuracy"] == pytest.approx(whole)
     early = [i for i in ids if i not in late]
     acc = identity_accuracy(export, scene, early, [right[i] for i in early])
     assert acc["matched_rows"] == len(early) and acc["identity_accuracy"] == 1
