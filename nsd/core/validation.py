@@ -254,7 +254,7 @@ RULES: dict[str, dict[str, Rule]] = {
 _GROUPS = {
     "train": ("data", "model", "loss", "optim", "trainer", "inference", "prior_position",
               "prior_scale", "prior_aspect", "prior_presence", "prior_proposal",
-              "prior_depth", "prior_association"),
+              "prior_depth", "prior_association", "prior_mask"),
     "eval": ("inference",), "export": ("inference",), "netepu_train": ("trainer", "netepu"),
 }
 _NESTED_APPS = {"run": {"train": "train", "export": "export"}}

@@ -43,6 +43,8 @@ class PairBatch:
             and share slots across views.
         count_v, count_w: (B,) the individuals in view per frame (the hull's count,
             smoothed over time, :func:`nsd.priors.presence.smoothed_counts`), when computed.
+        owners_v, owners_w: (B, H, W) each pixel's hull individual (-1: none), with the
+            multi-view proposals.
     """
 
     image_v: Tensor
@@ -61,6 +63,8 @@ class PairBatch:
     proposal_depth_w: Tensor | None = None
     count_v: Tensor | None = None
     count_w: Tensor | None = None
+    owners_v: Tensor | None = None
+    owners_w: Tensor | None = None
 
 
 def split_frames(num_frames: int, val_fraction: float) -> tuple[np.ndarray, np.ndarray]:
@@ -119,6 +123,7 @@ class SceneData:
         self.proposal_valid: Tensor | None = None
         self.proposal_depths: Tensor | None = None
         self.counts: Tensor | None = None  # (T, V) individuals in view, see smooth_counts
+        self.owners: Tensor | None = None  # (T, V, H, W) hull pixel owners (multi-view)
 
     def compute_multiview_proposals(
         self, k: int, threshold: float, softness: float, resolution: int = 48, split: bool = True
@@ -127,17 +132,19 @@ class SceneData:
         ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`."""
 
         grid = voxel_grid(self.rig, self.frame_hw, resolution)
-        boxes, depths, valid = [], [], []
+        boxes, depths, valid, owners = [], [], [], []
         for t in range(len(self.frames)):
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness
             )
-            b, d, ok, _ = multiview_proposals(ev, grid, k, split=split)
+            b, d, ok, own = multiview_proposals(ev, grid, k, split=split)
             boxes.append(b)
             depths.append(d)
             valid.append(ok)
+            owners.append(own.to(torch.int8))
         self.proposals, self.proposal_valid = torch.stack(boxes), torch.stack(valid)
         self.proposal_depths = torch.stack(depths)
+        self.owners = torch.stack(owners)  # (T, V, H, W) int8: hull individual, -1 none
 
     def smooth_counts(self, window: int, scene_population: bool = False) -> None:
         """Individuals in view per frame: the multi-view proposals' count, median over
@@ -203,6 +210,8 @@ class SceneData:
             batch.proposal_depth_w = self.proposal_depths[t_, w_]
         if self.counts is not None:
             batch.count_v, batch.count_w = self.counts[t_, v_], self.counts[t_, w_]
+        if self.owners is not None:
+            batch.owners_v, batch.owners_w = self.owners[t_, v_].long(), self.owners[t_, w_].long()
         return batch
 
     def sample(

@@ -48,6 +48,7 @@ from nsd.io.scene_data import SceneData
 from nsd.model.association import appearance_similarity, association_softmax, exclude_absent
 from nsd.model.build import build_model
 from nsd.priors.depth import depth_prior
+from nsd.priors.mask import hull_mask_prior
 from nsd.priors.presence import (
     marginal_presence_target,
     presence_target_loss,
@@ -131,6 +132,11 @@ class NSDTask:
                 "prior_presence.target must be 'none', 'marginal' or 'hull', got "
                 f"{self.presence_target!r}"
             )
+        if self.cfg.prior_mask.weight > 0 and self.cfg.prior_proposal.source != "multiview":
+            raise ConfigError(
+                "prior_mask=hull needs prior_proposal.source=multiview (the visual hull's "
+                "pixel owners are its target)"
+            )
         if self.presence_target == "hull" and self.cfg.prior_proposal.source != "multiview":
             raise ConfigError(
                 "prior_presence.target=hull needs prior_proposal.source=multiview (the visual "
@@ -149,6 +155,7 @@ class NSDTask:
         if (
             pp.weight > 0
             or cfg.prior_association.weight > 0
+            or cfg.prior_mask.weight > 0
             or cfg.prior_depth.source == "proposals"
             or self.presence_target == "hull"  # the hull's count is the presence target
         ):
@@ -279,6 +286,8 @@ class NSDTask:
             out["prior_depth"] = self._depth_term(batch, rv, rw, wv, ww, matching, valid)
         if self.cfg.prior_association.weight > 0 and batch.proposal_depth_v is not None:
             out["prior_association"] = self._association_term(batch, rv, rw, wv, ww, matching)
+        if self.cfg.prior_mask.weight > 0:
+            out["prior_mask"] = self._mask_term(batch, rv, rw, matching, valid)
         weights = self.term_weights()
         total = torch.zeros(())
         for k, v in out.items():
@@ -302,6 +311,7 @@ class NSDTask:
             "prior_proposal": self.proposal_weight(),
             "prior_depth": c.prior_depth.weight,
             "prior_association": c.prior_association.weight,
+            "prior_mask": c.prior_mask.weight,
         }
 
     def _evidence(self, batch) -> list[torch.Tensor]:
@@ -359,6 +369,14 @@ class NSDTask:
         matching = match_proposals(boxes, props, valid, active)
         out["prior_proposal"] = proposal_prior(boxes, props, valid, matching)
         return matching
+
+    def _mask_term(self, batch, rv, rw, matching, valid) -> torch.Tensor:
+        """``prior_mask``: each window's composited mask against its hull individual's pixels."""
+        if batch.owners_v is None or matching is None:
+            raise ConfigError("prior_mask needs prior_proposal=multiview (the hull's pixel owners)")
+        weights = torch.cat([rv.composite.weights, rw.composite.weights])
+        owners = torch.cat([batch.owners_v, batch.owners_w])
+        return hull_mask_prior(weights, owners, matching, valid)
 
     def _depth_term(self, batch, rv, rw, wv, ww, matching, valid) -> torch.Tensor:
         """``prior_depth`` from the multi-view proposals' depths or from triangulation."""

@@ -162,3 +162,34 @@ def test_same_view_pairs_share_and_default_draws(tiny_scene):
     assert 0.4 < share < 0.6
     with pytest.raises(ConfigError, match="same_view"):
         data.sample(np.random.default_rng(0), 4, same_view=1.5)
+
+
+def test_hull_mask_prior_trains_the_compositor_masks_towards_the_hull_owners(tiny_data):
+    """``prior_mask=hull``: the batch carries the hull's pixel owners, the term is the
+    prior of nsd.priors.mask on the rendered composites, and it needs the multi-view hull."""
+    from nsd.core.errors import ConfigError
+    from nsd.cues.proposals import match_proposals
+    from nsd.priors.mask import hull_mask_prior
+
+    torch.manual_seed(0)
+    task = NSDTask(tiny_cfg("prior_mask=hull"), tiny_data)
+    assert tiny_data.owners is not None and tiny_data.owners.shape[:2] == tiny_data.frames.shape[:2]
+    batch = tiny_data.sample(np.random.default_rng(5), 4)
+    assert batch.owners_v.shape == batch.image_v.shape[:1] + batch.image_v.shape[-2:]
+    task.model.eval()
+    with torch.no_grad():
+        out = task.losses(batch)
+        assert torch.isfinite(out["prior_mask"]) and out["prior_mask"] > 0
+        cams = tiny_data.cameras
+        rv, rw, wv, ww = task.model(batch.image_v, batch.image_w, batch.background_v,
+                                    batch.background_w, batch.rotation_vw,
+                                    cams[batch.view_v], cams[batch.view_w])
+        boxes = torch.cat([wv.det.boxes, ww.det.boxes])
+        valid = torch.cat([batch.valid_v, batch.valid_w])
+        matching = match_proposals(boxes, torch.cat([batch.proposals_v, batch.proposals_w]),
+                                   valid, None)
+        expect = hull_mask_prior(torch.cat([rv.composite.weights, rw.composite.weights]),
+                                 torch.cat([batch.owners_v, batch.owners_w]), matching, valid)
+    assert out["prior_mask"].item() == pytest.approx(expect.item(), rel=1e-5)
+    with pytest.raises(ConfigError, match="prior_mask=hull needs prior_proposal.source"):
+        NSDTask(tiny_cfg("prior_mask=hull", "prior_proposal=residual"), tiny_data)
