@@ -220,6 +220,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "rig.half_width": RATE, "rig.fov_deg": _r("number", above=0, high=179),
         "rig.target": VEC3, "rig.distortion": _r("numbers", null=True),
         "rig.height": SIGNED, "motion.interaction": _r("str", choices=("free", "close", "huddle")),
+        "motion.linger": FRACTION,
         "motion.area_radius": RATE, "backdrop.wall_radius": RATE, "backdrop.tile": RATE,
         "light.direction": VEC3, "light.ambient": FRACTION, "preview.zoom": POS,
     },

@@ -15,6 +15,8 @@ Warnings (what to do included) for what runs but may mislead:
 
 * frames that are blank or saturated (uniform: phantom subjects otherwise);
 * footage in which nothing moves (the median background is every frame: no subject);
+* footage too short for a median background (fewer than 20 frames, no plates: subjects
+  that do not move away are part of it);
 * footage folders that the calibration does not name (ignored).
 """
 
@@ -52,6 +54,7 @@ SAMPLE_FRAMES = 60  # frames per camera decoded for the content checks
 UNIFORM_STD = 2.0  # grey levels: a frame this flat is blank, saturated or a lens cap
 MOTION_LEVEL = 12.0  # grey levels from the median that count as a change
 MOTION_SHARE = 1e-3  # share of pixels that must change in some frame for footage to "move"
+MIN_MEDIAN_FRAMES = 20  # shorter footage without background plates: its median is doubtful
 RESERVED = {"gt", "calibration", "background", "videos", "images", ".cache"}
 
 
@@ -225,6 +228,13 @@ def _content(footage: MultiViewFootage, sample: int) -> list[str]:
     elif still:
         warnings.append(f"cameras {still}: nothing moves in their footage; check that they "
                         "film the subjects")
+    plates = [footage.plate(v) is not None for v in range(footage.num_views)]
+    if n < MIN_MEDIAN_FRAMES and not all(plates) and len(still) < len(footage.sources):
+        warnings.append(
+            f"the footage has {n} frames: the median background of so few frames holds every "
+            "subject that does not move away from its place, and such subjects will not be "
+            "found; give a background plate (background/<camera>.png: a picture of the empty "
+            "arena) or longer footage")
     return warnings
 
 

@@ -33,8 +33,9 @@ Root paths
     ``apart_seconds``): in a huddle every individual walks to one shared spot and
     stays in contact with the nearest other (a footprint gap of at most
     :data:`HUDDLE_GAP`; pairs groom, groups of 4-8 cluster), facing it; in a
-    dispersal each wanders to its own waypoints, as with ``free``. Individuals never
-    interpenetrate: their ground footprints
+    dispersal each wanders to its own waypoints, as with ``free``. With ``linger`` the
+    first individual stays in place for that share of the recording before it moves.
+    Individuals never interpenetrate: their ground footprints
     (capsules, :attr:`~nsd.synth.skeleton.Species.footprint`) are pushed apart
     (limbs may still touch).
 """
@@ -117,6 +118,10 @@ class MotionConfig(ConfigSection):
             from every other's walks after the nearest, metres.
         huddle_seconds: ``huddle``: mean duration of a huddle (all in contact), s.
         apart_seconds: ``huddle``: mean duration of a dispersal between huddles, s.
+        linger: share of the recording, from its start, during which the first
+            individual stays where it is (standing, gesturing; a sleeping animal, a
+            person at a bench): its pixels are then in most of the per-camera median
+            backgrounds once ``linger`` > 0.5 (0: it moves like the others).
     """
 
     APP: ClassVar[str] = "synth"  # defaults: conf/synth.yaml, section `motion`
@@ -132,6 +137,7 @@ class MotionConfig(ConfigSection):
     follow_gap: float
     huddle_seconds: float
     apart_seconds: float
+    linger: float
 
     def validate(self) -> None:
         if self.interaction not in INTERACTIONS:
@@ -146,6 +152,8 @@ class MotionConfig(ConfigSection):
         for key in ("speed_scale", "turn_noise", "pose_variation", "follow_gap"):
             if getattr(self, key) < 0:
                 raise ConfigError(f"motion.{key}: must be >= 0, got {getattr(self, key)}")
+        if not 0 <= self.linger <= 1:
+            raise ConfigError(f"motion.linger: must be in [0, 1], got {self.linger}")
 
 
 @dataclass(frozen=True)
@@ -465,6 +473,9 @@ def simulate_motion(
         else:
             for n in np.flatnonzero(np.linalg.norm(d, axis=1) < WAYPOINT_REACHED):
                 goals[n] = _waypoint(config, rng)
+        still = t < config.linger * T  # the first individual lingers where it is
+        if still:
+            walking[0], target_speed[0], speed[0], steer[0], omega[0] = False, 0.0, 0.0, 0.0, 0.0
         head = _wrap(head + (omega + steer) * dt)
         speed += (target_speed - speed) * min(1.0, dt / SPEED_TAU)
         step = speed * dt
@@ -480,8 +491,11 @@ def simulate_motion(
                     gap, u = _gap(individuals[n], pos[n], head[n], individuals[m], pos[m], head[m])
                     if gap < SEPARATION_MARGIN:
                         push = 0.5 * (SEPARATION_MARGIN - gap)
-                        pos[n] += push * u
-                        pos[m] -= push * u
+                        if still and n == 0:  # a lingering individual is not pushed
+                            pos[m] -= 2 * push * u
+                        else:
+                            pos[n] += push * u
+                            pos[m] -= push * u
         r = np.linalg.norm(pos, axis=1, keepdims=True)
         pos = np.where(r > config.area_radius, pos * config.area_radius / np.maximum(r, 1e-9), pos)
     times = np.arange(T) * dt

@@ -120,3 +120,15 @@ def test_background_plates_are_listed_and_checked(tiny_scene):
     cv2.imwrite(str(tiny_scene / "background" / "right.png"), np.zeros((5, 5, 3), np.uint8))
     with pytest.raises(FootageError, match=r"camera 'right': background plate .* is 5x5"):
         check_scene(tiny_scene)
+
+
+def test_footage_too_short_for_a_median_background_is_warned_unless_plates_replace_it(tiny_scene):
+    """4 frames: subjects that stay are part of the median (the real two-mouse recording of
+    3 frames ran silently); plates for every camera replace the median and end the warning."""
+    short = [w for w in check_scene(tiny_scene).warnings if "the footage has 4 frames" in w]
+    assert len(short) == 1 and "background plate" in short[0]
+    (tiny_scene / "background").mkdir()
+    cv2.imwrite(str(tiny_scene / "background" / "right.png"), np.zeros((24, 32, 3), np.uint8))
+    assert any("4 frames" in w for w in check_scene(tiny_scene).warnings)  # one camera left
+    cv2.imwrite(str(tiny_scene / "background" / "left.png"), np.zeros((24, 32, 3), np.uint8))
+    assert not any("4 frames" in w for w in check_scene(tiny_scene).warnings)
