@@ -25,13 +25,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from nsd.evaluation.contact import touching_instants
-from nsd.evaluation.identity import identity_accuracy
-from nsd.io.ground_truth import GroundTruth
+from nsd.evaluation.identity import identity_accuracy_by_contact
+from nsd.io.identities import read_identities
 from tools.benchlib import write_report
 
 BIN = Path(sys.executable).parent
@@ -58,16 +55,12 @@ def _row(scene: str, seed: int, method: str, m: dict, prefix: str = "") -> dict:
 
 
 def _identity_split(out: Path, scene: Path) -> dict:
-    """Identity accuracy of the run's identities, all rows and split apart / touching."""
-    lines = (out / "identities" / "identities.csv").read_text().splitlines()[1:]
-    rows = [line.split(",") for line in lines]
-    ids = np.array([int(r[0]) for r in rows])
-    identity = np.array([int(r[4]) for r in rows])
-    cameras = sorted({r[1] for r in rows})
-    frames = sorted({int(r[2]) for r in rows})
-    touching = touching_instants(GroundTruth.load(scene), cameras, frames)
-    keep = identity >= 0
-    return identity_accuracy(out / "export", scene, ids[keep], identity[keep], touching=touching)
+    """Identity accuracy of the run's identities, all rows and split apart / touching (the
+    identities stage's own figures; recomputed here for runs made before it split them)."""
+    ids = read_identities(out / "identities" / "identities.csv")
+    keep = ids["identity"] >= 0
+    rows = {k: v[keep] for k, v in ids.items()}
+    return identity_accuracy_by_contact(out / "export", scene, rows, rows["identity"], (128, 128))
 
 
 def main() -> None:

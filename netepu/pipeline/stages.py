@@ -24,8 +24,7 @@ from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.stages import Stage, StageResult, config_hash
 from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
-from nsd.evaluation.contact import touching_instants
-from nsd.evaluation.identity import identity_accuracy
+from nsd.evaluation.identity import identity_accuracy_by_contact
 from nsd.evaluation.pose import keypoint_error
 from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
@@ -35,6 +34,7 @@ from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embeddings import read_embeddings
 from nsd.io.ground_truth import GroundTruth
+from nsd.io.identities import read_identities, write_identities
 from nsd.io.mot import write_identity_tracks
 from nsd.io.scene_check import check_scene, scene_fingerprint
 from nsd.io.scenes import resolve_scene
@@ -146,6 +146,12 @@ def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
 
     settings = {k: v for k, v in _container(tcfg).items() if k != "threads"}  # not a result
     return Stage("train", run, settings, needs=("scene",))
+
+
+def _train_size(cfg: DictConfig) -> tuple[int, int]:
+    """(H, W) of the training frames, at which evaluations compare masks."""
+    w, h = cfg.train.data.image_size
+    return int(h), int(w)
 
 
 def _checkpoint(up: dict[str, StageResult]) -> Path:
@@ -335,21 +341,15 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
         identity, summary = assign_identities(
             table, column, int(i.k), str(i.method), int(i.restarts)
         )
-        lines = [",".join([*keys, "identity"])] + [
-            ",".join(map(str, row))
-            for row in zip(*(table[c].tolist() for c in keys), identity.tolist(), strict=True)
-        ]
-        atomic_write_text(out / "identities.csv", "\n".join(lines) + "\n")
+        write_identities(out / "identities.csv",
+                         {**{c: table[c].tolist() for c in keys}, "identity": identity.tolist()})
         by_row = dict(zip(table["id"].tolist(), identity.tolist(), strict=True))
         write_identity_tracks(up["export"].folder, by_row, out / "tracks")
         summary["column"] = column
         if ground_truth:
             export, scene = up["export"].folder, up["scene"].summary["path"]
-            cameras = sorted(set(table["camera"].tolist()))
-            frames = sorted(set(int(t) for t in table["frame"].tolist()))
-            touching = touching_instants(GroundTruth.load(scene), cameras, frames)
-            summary["accuracy"] = identity_accuracy(
-                export, scene, table["id"], identity, touching=touching)
+            summary["accuracy"] = identity_accuracy_by_contact(
+                export, scene, table, identity, _train_size(cfg))
             summary["tracking"] = {  # MOT metrics of the per-camera tracks, then of identities
                 "tracks": tracking_metrics(export, scene),
                 "identities": tracking_metrics(
@@ -375,10 +375,8 @@ def overlays_stage(cfg: DictConfig, have_identities: bool) -> Stage:
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         row_ids = None
         if have_identities:
-            with (up["identities"].folder / "identities.csv").open() as f:
-                next(f)
-                row_ids = {int(r[0]): int(r[-1]) for r in (line.strip().split(",") for line in f)
-                           if r[0]}
+            ids = read_identities(up["identities"].folder / "identities.csv")
+            row_ids = dict(zip(ids["id"].tolist(), ids["identity"].tolist(), strict=True))
         return write_overlay_videos(up["export"].folder, up["scene"].summary["path"], out,
                                     row_ids, int(o.size), float(o.fps))
 

@@ -22,7 +22,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["MIN_OVERLAP", "PARTS", "pairs_in_contact", "touching_instants"]
+__all__ = ["MIN_OVERLAP", "PARTS", "pairs_in_contact", "touches", "touching_instants"]
 
 MIN_OVERLAP = 4  # pixels of amodal overlap in one camera (as the depth-order metric's)
 PARTS = ("apart", "touching")  # the two parts of every split metric
@@ -69,11 +69,10 @@ def touching_instants(
         frames: frame indices.
         size: (H, W) at which the masks are compared (None: native).
     """
-    out = {}
-    for t in frames:
-        views = []
-        for cam in cameras:
-            f = gt.frame(cam, int(t), size)
-            views.append((f.identity, f.amodal))
-        out[int(t)] = bool(pairs_in_contact(views))
-    return out
+    return {int(t): touches([gt.frame(cam, int(t), size) for cam in cameras]) for t in frames}
+
+
+def touches(views: Sequence) -> bool:
+    """Whether individuals touch at one instant, from each camera's
+    :class:`nsd.io.ground_truth.FrameGT` (``identity``, ``amodal``)."""
+    return bool(pairs_in_contact([(f.identity, f.amodal) for f in views]))

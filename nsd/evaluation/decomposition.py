@@ -47,7 +47,7 @@ from pycocotools.cocoeval import COCOeval
 from sklearn.metrics import adjusted_rand_score
 from torch import Tensor
 
-from nsd.evaluation.contact import MIN_OVERLAP, PARTS, touching_instants
+from nsd.evaluation.contact import MIN_OVERLAP, PARTS, touches
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.io.coco_results import decomposition_to_coco
@@ -62,6 +62,7 @@ __all__ = [
     "count_associations",
     "evaluate_model",
     "fg_ari",
+    "instant_truth",
     "score_frame",
     "score_views",
 ]
@@ -243,7 +244,6 @@ def evaluate_model(
     grid = (
         settings.grid(data.rig, data.frame_hw) if settings.multiview and gt is not None else None
     )
-    touching = touching_instants(gt, data.rig.names, frames, data.frame_hw) if gt else {}
     psnr, ssim = [], []
     tally = Tally()
     try:
@@ -257,9 +257,10 @@ def evaluate_model(
             dec = decompose_views(
                 model, views, bgs, V, settings, grid, mask_threshold=threshold, refine=refine
             )
-            counts = tally.counts(touching[int(t)])
-            per_view = score_views(dec, data, gt, int(t), threshold, counts)
-            tally.add_coco(dec, data, gt, int(t), threshold)
+            truths = instant_truth(gt, data, int(t))
+            counts = tally.counts(touches(truths))
+            per_view = score_views(dec, truths, threshold, counts)
+            tally.add_coco(dec, truths, threshold)
             _count_associations(model, dec, data, settings, per_view, counts)
     finally:
         model.train(was)
@@ -326,10 +327,10 @@ class Tally:
             c.instants += 1
         return counts
 
-    def add_coco(self, dec, data, gt, t: int, threshold: float) -> None:
-        """COCO results of every view of instant ``t`` (for :func:`coco_ap`)."""
-        for v, cam in enumerate(data.rig.names):
-            fgt = gt.frame(cam, t, data.frame_hw)
+    def add_coco(self, dec, truths: Sequence, threshold: float) -> None:
+        """COCO results of every view of one instant (for :func:`coco_ap`); ``truths`` as
+        :func:`score_views`."""
+        for v, fgt in enumerate(truths):
             self.results += decomposition_to_coco(dec, v, fgt.image_id, fgt.native_size, threshold)
             self.image_ids.append(fgt.image_id)
 
@@ -354,16 +355,22 @@ def _novel_view_scores(model, data, views: Tensor, bgs: Tensor) -> tuple[float, 
     return psnr, ssim
 
 
-def score_views(dec, data, gt, t: int, threshold: float, counts: Sequence[Counts]):
-    """Score every view of instant ``t`` of a decomposition into each of ``counts``.
+def instant_truth(gt, data, t: int) -> list:
+    """The ground truth of every view of instant ``t`` at the frames' size: one
+    :class:`nsd.io.ground_truth.FrameGT` per camera of ``data``, read once per instant."""
+    return [gt.frame(cam, t, data.frame_hw) for cam in data.rig.names]
+
+
+def score_views(dec, truths: Sequence, threshold: float, counts: Sequence[Counts]):
+    """Score every view of one instant of a decomposition into each of ``counts``.
 
     ``dec`` holds per view ``masks`` and ``raw_masks`` (V, N, H, W), ``depths`` and
     ``active`` (V, N) (a :class:`nsd.inference.single.Decomposition`, or the hull-only
-    baseline's). Returns each view's GT matches (identity -> window).
+    baseline's); ``truths`` the instant's :func:`instant_truth`. Returns each view's GT
+    matches (identity -> window).
     """
     per_view = []
-    for v, cam in enumerate(data.rig.names):
-        fgt = gt.frame(cam, t, data.frame_hw)
+    for v, fgt in enumerate(truths):
         truth = (fgt.visible, fgt.amodal, fgt.boxes, fgt.identity, threshold)
         depths, active = np.asarray(dec.depths[v]), np.asarray(dec.active[v])
         s = score_frame(np.asarray(dec.masks[v]), depths, active, *truth)

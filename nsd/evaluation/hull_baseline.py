@@ -20,8 +20,14 @@ from torch import Tensor
 
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals
-from nsd.evaluation.contact import touching_instants
-from nsd.evaluation.decomposition import Tally, coco_ap, count_associations, score_views
+from nsd.evaluation.contact import touches
+from nsd.evaluation.decomposition import (
+    Tally,
+    coco_ap,
+    count_associations,
+    instant_truth,
+    score_views,
+)
 
 __all__ = ["HullDecomposition", "evaluate_hull", "hull_decomposition"]
 
@@ -73,16 +79,16 @@ def evaluate_hull(
 ) -> dict[str, float]:
     """The metrics of :func:`nsd.evaluation.decomposition.evaluate_model` (without the
     novel-view ones) for the hull-only decomposition of ``frames`` of ``data``."""
-    touching = touching_instants(gt, data.rig.names, frames, data.frame_hw)
     tally = Tally()
     V = data.num_views
     for t in frames:
         views, bgs = data.views(int(t))
         dec = hull_decomposition(views, bgs, grid, k, split, evidence_threshold,
                                  evidence_softness)
-        counts = tally.counts(touching[int(t)])
-        per_view = score_views(dec, data, gt, int(t), threshold, counts)
-        tally.add_coco(dec, data, gt, int(t), threshold)
+        truths = instant_truth(gt, data, int(t))
+        counts = tally.counts(touches(truths))
+        per_view = score_views(dec, truths, threshold, counts)
+        tally.add_coco(dec, truths, threshold)
         for v in range(V):
             for w in range(V):
                 if v != w:

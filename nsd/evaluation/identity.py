@@ -25,10 +25,11 @@ import numpy as np
 from pycocotools import mask as mask_utils
 from scipy.optimize import linear_sum_assignment
 
+from nsd.evaluation.contact import touching_instants
 from nsd.io.ground_truth import GroundTruth
 from nsd.ops.boxes import mask_iou
 
-__all__ = ["ground_truth_identities", "identity_accuracy"]
+__all__ = ["ground_truth_identities", "identity_accuracy", "identity_accuracy_by_contact"]
 
 
 def ground_truth_identities(
@@ -127,3 +128,17 @@ def identity_accuracy(
             else float("nan")
         ),
     }
+
+
+def identity_accuracy_by_contact(
+    export: str | Path, scene: str | Path, table: dict, identity: np.ndarray,
+    size: tuple[int, int] | None = None,
+) -> dict[str, float]:
+    """:func:`identity_accuracy` of the rows of ``table`` (columns ``id``, ``camera``,
+    ``frame``), split apart / touching by :func:`nsd.evaluation.contact.touching_instants`
+    over the table's cameras and frames, with masks compared at ``size`` (H, W) as the
+    decomposition's evaluation does (None: native)."""
+    cameras = sorted(set(np.asarray(table["camera"]).tolist()))
+    frames = sorted({int(t) for t in np.asarray(table["frame"]).tolist()})
+    touching = touching_instants(GroundTruth.load(scene), cameras, frames, size)
+    return identity_accuracy(export, scene, table["id"], identity, touching=touching)

@@ -180,8 +180,9 @@ def _unnamed_footage(scene: Path, names: list[str]) -> list[str]:
             "the camera to the calibration to use it" for p in found]
 
 
-def _content(footage: MultiViewFootage, sample: int) -> list[str]:
-    """Warnings about what the frames show: blank or saturated frames, no motion."""
+def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str]) -> list[str]:
+    """Warnings about what the frames show: blank or saturated frames, no motion, footage
+    too short for a median background (cameras with a plate in ``plates`` need none)."""
     n = footage.num_frames
     frames = np.unique(np.linspace(0, n - 1, min(n, sample)).round().astype(int))
     warnings, still = [], []
@@ -228,8 +229,7 @@ def _content(footage: MultiViewFootage, sample: int) -> list[str]:
     elif still:
         warnings.append(f"cameras {still}: nothing moves in their footage; check that they "
                         "film the subjects")
-    plates = [footage.plate(v) is not None for v in range(footage.num_views)]
-    if n < MIN_MEDIAN_FRAMES and not all(plates) and len(still) < len(footage.sources):
+    if n < MIN_MEDIAN_FRAMES and len(plates) < footage.num_views and len(still) < footage.num_views:
         warnings.append(
             f"the footage has {n} frames: the median background of so few frames holds every "
             "subject that does not move away from its place, and such subjects will not be "
@@ -266,7 +266,7 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
     _check_names(folders)
     plates = {src.camera: str(plate.path) for v, src in enumerate(footage.sources)
               if (plate := footage.plate(v)) is not None}  # a plate of another size raises
-    warnings = _unnamed_footage(scene, rig.names) + _content(footage, sample)
+    warnings = _unnamed_footage(scene, rig.names) + _content(footage, sample, plates)
     for w in warnings:
         log.warning("scene %s: %s", scene.name, w)
     return SceneCheck(scene, footage.camera_names, footage.num_frames, sizes, spacing,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.evaluation.contact import pairs_in_contact, touching_instants
-from nsd.evaluation.decomposition import Tally, score_views
+from nsd.evaluation.contact import pairs_in_contact, touches, touching_instants
+from nsd.evaluation.decomposition import Tally, instant_truth, score_views
 from nsd.io.ground_truth import FrameGT
 from nsd.ops.boxes import mask_boxes_xywh
 
@@ -66,16 +66,16 @@ def test_touching_instants_on_a_hand_built_sequence():
 def test_metrics_split_into_apart_and_touching_instants():
     gt = _GT()
     data = SimpleNamespace(rig=SimpleNamespace(names=["c0", "c1"]), frame_hw=(H, W))
-    touching = touching_instants(gt, data.rig.names, [0, 1])
     tally = Tally()
     for t in (0, 1):
+        truths = instant_truth(gt, data, t)
         f = gt.frames[t]
         # apart: both found; touching: one window swallows both (a merge)
         masks = f.visible.astype(float) if t == 0 else np.stack(
             [f.visible.any(0).astype(float), np.zeros((H, W))])
         dec = SimpleNamespace(masks=np.stack([masks] * 2), raw_masks=np.stack([masks] * 2),
                               depths=np.zeros((2, 2)), active=np.ones((2, 2), bool))
-        score_views(dec, data, gt, t, 0.5, tally.counts(touching[t]))
+        score_views(dec, truths, 0.5, tally.counts(touches(truths)))
     m = tally.metrics()
     assert m["detection_rate_apart"] == pytest.approx(1.0)
     assert m["mask_miou_apart"] == pytest.approx(1.0)
