@@ -148,7 +148,8 @@ def _as_exported(export, scene, d) -> tuple[SceneData, InferenceSettings, dict[s
         ecfg.get("inference", {"views": "single", "colour_sigma": 0.0})
     )
     cams = ecfg.get("cameras") or d.get("cameras")
-    data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0))
+    data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0),
+                     d.get("units", "auto"))
     shipped = load_export_config()  # what an export that records no setting used
     decompose_kw = {
         "mask_threshold": float(ecfg.get("threshold", shipped.threshold)),

@@ -75,7 +75,7 @@ def scene_stage(cfg: DictConfig) -> Stage:
     cameras = list(cameras) if cameras else None
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        check = check_scene(path, cameras)
+        check = check_scene(path, cameras, units=cfg.train.data.units)
         summary = {"path": str(path.resolve()), **check.summary(),
                    "ground_truth": GroundTruth.exists(path)}
         atomic_write_text(out / "scene.json", json.dumps(summary, indent=2))

@@ -201,6 +201,7 @@ class CameraRig(Sequence[Camera]):
     def __init__(self, cameras: Sequence[Camera], source: str = "") -> None:
         self._cameras = list(cameras)
         self.source = source
+        self.units_note = ""  # set by nsd.cameras.units.in_metres when it inferred the unit
         if not self._cameras:
             raise CalibrationError(f"{source or 'calibration'}: no cameras")
         names = [c.name for c in self._cameras]
@@ -260,6 +261,10 @@ class CameraRig(Sequence[Camera]):
             for k in ("K", "R", "t")
         )
         return CameraBatch(K, R, t, torch.as_tensor(dist, dtype=dtype)).to(device)
+
+    def with_translation_scale(self, factor: float) -> CameraRig:
+        """The rig with every translation times ``factor`` (a change of length unit)."""
+        return CameraRig([dataclasses.replace(c, t=c.t * factor) for c in self], self.source)
 
     def scaled(self, size: tuple[int, int]) -> CameraRig:
         """Every camera rescaled to images of ``size`` = (width, height)."""

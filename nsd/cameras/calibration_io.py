@@ -51,6 +51,7 @@ from nsd.cameras.calibration_formats import (
     write_colmap,
     write_panoptic,
 )
+from nsd.cameras.units import in_metres
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CalibrationError
 
@@ -353,9 +354,15 @@ def find_calibration(scene: str | os.PathLike) -> Path:
     )
 
 
-def read_calibration(path: str | os.PathLike) -> CameraRig:
-    """Read any supported calibration file (by name and content), or find one in a folder."""
-    path = Path(path)
+def read_calibration(path: str | os.PathLike, units: str = "auto") -> CameraRig:
+    """Read any supported calibration file (by name and content), or find one in a folder;
+    the rig comes back in metres (``units``: ``auto``, ``m``, ``cm`` or ``mm``, the file's
+    length unit where the format does not state it; :mod:`nsd.cameras.units`)."""
+    return in_metres(_read_file(Path(path)), units)
+
+
+def _read_file(path: Path) -> CameraRig:
+    """The rig as the file holds it (formats that state their unit converted to metres)."""
     if path.is_dir():
         path = find_calibration(path)
     if not path.is_file():

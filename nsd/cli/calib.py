@@ -39,7 +39,7 @@ def _first_frames(scene: Path, rig) -> list:
 def _hydra_main(cfg: DictConfig) -> None:
     with reported(PROG):
         source = Path(cfg.calibration).expanduser()
-        rig = read_calibration(source)
+        rig = read_calibration(source, cfg.units)
         print(f"{PROG}: {rig.source}: {len(rig)} cameras\n")
         print(rig_table(rig))
         if cfg.convert:

@@ -25,7 +25,8 @@ def _hydra_main(cfg: DictConfig) -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s", force=True)
     with reported(PROG):
         scene = resolve_scene(cfg.scene)
-        check = check_scene(scene, list(cfg.cameras) if cfg.cameras else None)
+        check = check_scene(scene, list(cfg.cameras) if cfg.cameras else None,
+                            units=cfg.units)
         sizes = ", ".join(f"{k} {w}x{h}" for k, (w, h) in check.sizes.items())
         print(f"{PROG}: {scene}: {len(check.cameras)} cameras ({sizes}), {check.frames} frames, "
               f"cameras a median {check.camera_spacing:.2f} m apart; "

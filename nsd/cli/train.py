@@ -38,7 +38,8 @@ def _hydra_main(cfg: DictConfig) -> float:
             if distributed.rank() == 0:
                 report.attach(folder)
                 cameras = list(cfg.data.cameras) if cfg.data.cameras else None
-                check_scene(resolve_scene(cfg.data.scene), cameras)  # before any long work
+                # before any long work
+                check_scene(resolve_scene(cfg.data.scene), cameras, units=cfg.data.units)
             metrics = train(cfg, out_dir)
             value = metrics.get(cfg.objective, float("nan"))
             log.info("final metrics: %s", metrics)

@@ -134,13 +134,14 @@ SIZE2 = _r("ints", low=1, length=2)  # [width, height]
 VEC3 = _r("numbers", length=3)
 WIDTHS = _r("ints", low=1)
 NULL_TEXT = _r("str", null=True)  # a path, a name or null
+UNITS = _r("str", choices=("auto", "m", "cm", "mm"))  # nsd.cameras.units.UNITS and auto
 ALWAYS = _r("any")
 
 # Per config group (conf/<group>/*.yaml, or the app's own top-level keys): the rules that
 # the shipped default does not imply. Keys are paths inside the group.
 RULES: dict[str, dict[str, Rule]] = {
     "data": {"image_size": SIZE2, "val_fraction": _r("number", low=0, high=0.99),
-             "cameras": _r("any"), "scene": NULL_TEXT, "same_view": FRACTION},
+             "cameras": _r("any"), "scene": NULL_TEXT, "same_view": FRACTION, "units": UNITS},
     "model": {
         "num_windows": POS, "crop_size": _r("int", low=4), "mode": _r(
             "str", choices=("bi_nvs", "autoencoder")),
@@ -241,8 +242,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "texture.model.crop_size": _r("int", low=8), "texture.model.widths": WIDTHS,
         "texture.optim.contrast_temperature": RATE,
     },
-    "check": {"scene": NULL_TEXT, "cameras": ALWAYS},
-    "calib": {"calibration": _r("str"), "convert": NULL_TEXT, "preview": NULL_TEXT,
+    "check": {"scene": NULL_TEXT, "cameras": ALWAYS, "units": UNITS},
+    "calib": {"calibration": _r("str"), "units": UNITS, "convert": NULL_TEXT, "preview": NULL_TEXT,
               "format": _r("str", choices=("auto", "anipose", "caliscope", "opencv", "panoptic",
                                            "colmap", "colmap_bin"))},
     "netepu_embed": {"export": _r("str"), "checkpoint": _r("str"), "keypoints": NULL_TEXT,

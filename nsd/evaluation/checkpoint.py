@@ -89,7 +89,8 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
             "synthetic scene written with dense=true")
     H, W = trained.frame_hw
     cfg = trained.config
-    data = SceneData(scene, (W, H), cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames)
+    data = SceneData(scene, (W, H), cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames,
+                     cfg.data.get("units", "auto"))
     trained.check_cameras(data.rig.names, scene)
     if frames == "val":
         idx = np.asarray(data.heldout_frames)

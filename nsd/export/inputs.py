@@ -93,7 +93,8 @@ def prepare_inputs(cfg: DictConfig) -> ExportInputs:
     scene = Path(scene).expanduser()
     H, W = trained.frame_hw
     cameras = list(cfg.cameras) if cfg.cameras is not None else None
-    calibration = read_calibration(scene) if scene.is_dir() else None  # read once
+    units = trained.config.data.get("units", "auto")  # the unit the model was trained with
+    calibration = read_calibration(scene, units) if scene.is_dir() else None  # read once
     if cameras is None and calibration is not None:
         trained.check_cameras(calibration.names, scene)
     footage = MultiViewFootage(scene, cameras=cameras, image_size=(W, H), calibration=calibration)

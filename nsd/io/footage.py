@@ -243,6 +243,8 @@ class MultiViewFootage:
         cache_dir: where median backgrounds are cached (default ``<scene>/.cache``).
         calibration: the scene's calibration when the caller has read it already
             (default: read from the scene folder).
+        units: the calibration file's length unit when it is read here
+            (:mod:`nsd.cameras.units`).
 
     Attributes:
         calibration_names: every camera of the calibration file, in its order (the
@@ -262,11 +264,12 @@ class MultiViewFootage:
         image_size: tuple[int, int] | None = None,
         cache_dir: str | os.PathLike | None = None,
         calibration: CameraRig | None = None,
+        units: str = "auto",
     ) -> None:
         self.scene = Path(scene)
         if not self.scene.is_dir():
             raise FootageError(f"scene folder {self.scene} does not exist")
-        rig = calibration if calibration is not None else read_calibration(self.scene)
+        rig = calibration if calibration is not None else read_calibration(self.scene, units)
         self.calibration_names = list(rig.names)
         if cameras is not None:
             missing = [c for c in cameras if c not in rig.names]

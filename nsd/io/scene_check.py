@@ -27,7 +27,6 @@ import logging
 import os
 import re
 from dataclasses import dataclass, field
-from itertools import combinations
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +36,7 @@ from PIL import Image, UnidentifiedImageError
 
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_io import read_calibration
+from nsd.cameras.units import camera_spacing
 from nsd.core.errors import CalibrationError, FootageError, SceneError
 from nsd.io.footage import (
     IMAGE_EXTENSIONS,
@@ -101,17 +101,14 @@ def _ranges(frames: list[int]) -> str:
 
 
 def _check_units(rig: CameraRig) -> float:
-    """Median distance between camera centres; an error when it cannot be metres."""
-    centres = [c.center for c in rig]
-    if len(centres) < 2:
-        return 0.0
-    spacing = float(np.median([np.linalg.norm(a - b) for a, b in combinations(centres, 2)]))
+    """Median distance between camera centres (metres); an error when it cannot be metres."""
+    spacing = camera_spacing(rig)
     if spacing > MAX_CAMERA_SPACING:
         raise CalibrationError(
-            f"calibration {rig.source}: the cameras are a median {spacing:.0f} units apart, "
-            "which is not metres (the toolkit's distances, model.association_unit, "
-            "prior_depth.unit and the visual hull's volume, are in metres); it looks like "
-            "millimetres: divide every translation by 1000 (by 100 for centimetres)"
+            f"calibration {rig.source}: the cameras are a median {spacing:.0f} m apart, "
+            "which is not a camera rig (the toolkit's distances, model.association_unit, "
+            "prior_depth.unit and the visual hull's volume, are in metres); give the file's "
+            "unit with units=mm or units=cm"
         )
     return spacing
 
@@ -239,13 +236,14 @@ def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str]) -> 
 
 
 def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
-                sample: int = SAMPLE_FRAMES) -> SceneCheck:
+                sample: int = SAMPLE_FRAMES, units: str = "auto") -> SceneCheck:
     """Check a scene folder; warnings are logged and returned.
 
     Args:
         scene: the scene folder.
         cameras: the cameras to use (default: every camera of the calibration).
         sample: frames per camera decoded for the content checks.
+        units: the calibration's length unit (:mod:`nsd.cameras.units`).
 
     Raises:
         NSDError: what cannot give a meaningful result (see the module docstring).
@@ -253,7 +251,7 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
     scene = Path(scene)
     if not scene.is_dir():
         raise FootageError(f"scene: {scene} is not a folder (give scene=<scene folder>)")
-    rig = read_calibration(scene)
+    rig = read_calibration(scene, units)
     footage = MultiViewFootage(scene, cameras, calibration=rig)
     if footage.num_views < 2:
         raise SceneError(
@@ -266,7 +264,8 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
     _check_names(folders)
     plates = {src.camera: str(plate.path) for v, src in enumerate(footage.sources)
               if (plate := footage.plate(v)) is not None}  # a plate of another size raises
-    warnings = _unnamed_footage(scene, rig.names) + _content(footage, sample, plates)
+    warnings = ([rig.units_note] if rig.units_note else []) + _unnamed_footage(
+        scene, rig.names) + _content(footage, sample, plates)
     for w in warnings:
         log.warning("scene %s: %s", scene.name, w)
     return SceneCheck(scene, footage.camera_names, footage.num_frames, sizes, spacing,

@@ -96,6 +96,7 @@ class SceneData:
         cameras: subset of camera names (default: all).
         val_fraction: tail of the sequence held out for evaluation.
         max_frames: use only the first ``max_frames`` frames (0: all).
+        units: the calibration file's length unit (:mod:`nsd.cameras.units`).
     """
 
     def __init__(
@@ -105,8 +106,10 @@ class SceneData:
         cameras: Sequence[str] | None = None,
         val_fraction: float = 0.2,
         max_frames: int = 0,
+        units: str = "auto",
     ) -> None:
-        self.footage = MultiViewFootage(scene, cameras=cameras, image_size=tuple(image_size))
+        self.footage = MultiViewFootage(scene, cameras=cameras, image_size=tuple(image_size),
+                                        units=units)
         stop = (
             self.footage.num_frames if max_frames <= 0 else min(max_frames, self.footage.num_frames)
         )

@@ -26,7 +26,8 @@ def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     log.info("torch uses %d CPU threads", set_threads(int(cfg.threads)))
     scene = resolve_scene(cfg.data.scene)
     data = SceneData(
-        scene, cfg.data.image_size, cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames
+        scene, cfg.data.image_size, cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames,
+        cfg.data.units,
     )
 
     gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
