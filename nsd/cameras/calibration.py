@@ -19,7 +19,9 @@ import torch
 
 from nsd.cameras.batch import CameraBatch
 from nsd.cameras.projection import (
+    LENS_SIZE,
     SUPPORTED_DISTORTION_SIZES,
+    fisheye_lens,
     pixel_to_normalized,
     project_points,
     relative_rotation,
@@ -45,6 +47,7 @@ class Camera:
             scenes written by this toolkit).
         size: image size ``(width, height)`` in pixels, or None when the file
             does not store it (it is then taken from the footage).
+        fisheye: Kannala-Brandt lens (``cv2.fisheye``): ``dist`` holds k1..k4.
     """
 
     name: str
@@ -54,6 +57,7 @@ class Camera:
     t: np.ndarray
     size: tuple[int, int] | None = None
     source: str = field(default="", compare=False)
+    fisheye: bool = False
 
     def __post_init__(self) -> None:
         for attr, shape in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,))):
@@ -103,6 +107,10 @@ class Camera:
                 f"{where}: rotation is not orthonormal with det +1 "
                 f"(max |R R^T - I| = {err:.2e}, det = {np.linalg.det(self.R):.4f})"
             )
+        if self.fisheye and self.dist.size != 4:
+            raise CalibrationError(
+                f"{where}: a fisheye (Kannala-Brandt) lens has 4 coefficients k1..k4, "
+                f"got {self.dist.size}")
         if self.dist.size not in SUPPORTED_DISTORTION_SIZES:
             raise CalibrationError(
                 f"{where}: {self.dist.size} distortion coefficients; "
@@ -129,10 +137,13 @@ class Camera:
 
         A batch of cameras: :meth:`CameraRig.stacked` (a :class:`CameraBatch`).
         """
-        return {
+        out = {
             k: torch.as_tensor(getattr(self, k), dtype=dtype, device=device)
             for k in ("K", "R", "t", "dist")
         }
+        if self.fisheye:
+            out["dist"] = fisheye_lens(out["dist"])
+        return out
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project world points (N, 3) to pixels (N, 2); also returns depth (N,)."""
@@ -160,6 +171,8 @@ class Camera:
         """Remove lens distortion from an image of this camera (OpenCV, same K)."""
         if not np.any(self.dist):
             return image.copy()
+        if self.fisheye:
+            return cv2.fisheye.undistortImage(image, self.K, self.dist, Knew=self.K)
         return cv2.undistort(image, self.K, self.dist)
 
     def scaled(self, size: tuple[int, int]) -> Camera:
@@ -183,6 +196,7 @@ class Camera:
         return (
             self.name == other.name
             and self.size == other.size
+            and self.fisheye == other.fisheye
             and self.dist.shape == other.dist.shape
             and all(
                 np.allclose(getattr(self, a), getattr(other, a), rtol=0, atol=atol)
@@ -249,13 +263,18 @@ class CameraRig(Sequence[Camera]):
     ) -> CameraBatch:
         """The rig as a :class:`CameraBatch` of V cameras, for batched projection.
 
-        Distortion vectors are zero-padded to the longest in the rig.
+        Distortion vectors are zero-padded to the longest in the rig; a rig with a fisheye
+        camera gets lens vectors (:data:`nsd.cameras.projection.LENS_SIZE` entries).
         """
         n = max(c.dist.size for c in self._cameras)
         n = next(s for s in SUPPORTED_DISTORTION_SIZES if s >= n)
+        if any(c.fisheye for c in self._cameras):
+            n = LENS_SIZE
         dist = np.zeros((len(self), n))
         for i, c in enumerate(self._cameras):
             dist[i, : c.dist.size] = c.dist
+            if c.fisheye:
+                dist[i, -1] = 1.0
         K, R, t = (
             torch.as_tensor(np.stack([getattr(c, k) for c in self._cameras]), dtype=dtype)
             for k in ("K", "R", "t")

@@ -48,10 +48,21 @@ PANOPTIC_UNITS_TO_METRES = 0.01  # Panoptic's translations are centimetres
 COLMAP_PIXEL_CENTRE = 0.5  # COLMAP's top-left pixel centre is (0.5, 0.5); OpenCV's (0, 0)
 # model name -> (id, number of parameters)
 COLMAP_MODELS = {"SIMPLE_PINHOLE": (0, 3), "PINHOLE": (1, 4), "SIMPLE_RADIAL": (2, 4),
-                 "RADIAL": (3, 5), "OPENCV": (4, 8), "FULL_OPENCV": (6, 12)}
+                 "RADIAL": (3, 5), "OPENCV": (4, 8), "OPENCV_FISHEYE": (5, 8),
+                 "FULL_OPENCV": (6, 12)}
 _COLMAP_BY_ID = {i: (name, n) for name, (i, n) in COLMAP_MODELS.items()}
-_COLMAP_UNSUPPORTED = {5: "OPENCV_FISHEYE", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE",
+_COLMAP_UNSUPPORTED = {7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE",
                        9: "RADIAL_FISHEYE", 10: "THIN_PRISM_FISHEYE"}
+
+
+def refuse_fisheye(rig: CameraRig, format: str) -> None:
+    """A format that cannot hold a Kannala-Brandt lens refuses to write one (no silent
+    misreading of k1..k4 as OpenCV's k1, k2, p1, p2 later)."""
+    for c in rig:
+        if c.fisheye:
+            raise CalibrationError(
+                f"camera '{c.name}' has a fisheye lens, which the {format} format cannot hold; "
+                "write anipose TOML (calibration.toml) or COLMAP (OPENCV_FISHEYE) instead")
 
 
 def camera_from_file(source: Path, name: str, **kw) -> Camera:
@@ -95,6 +106,7 @@ def read_caliscope(path: str | os.PathLike) -> CameraRig:
 
 def write_caliscope(rig: CameraRig, path: str | os.PathLike) -> None:
     """Write ``rig`` as a caliscope ``camera_array.toml`` (cameras numbered in order)."""
+    refuse_fisheye(rig, "caliscope")
     tables = {}
     for i, c in enumerate(rig):
         t = {"cam_id": i, "matrix": c.K.tolist(), "distortions": c.dist.tolist(),
@@ -131,6 +143,7 @@ def read_panoptic(path: str | os.PathLike) -> CameraRig:
 
 def write_panoptic(rig: CameraRig, path: str | os.PathLike) -> None:
     """Write ``rig`` as a Panoptic calibration JSON (translations in centimetres)."""
+    refuse_fisheye(rig, "Panoptic")
     entries = [{"name": c.name, "type": "hd", "resolution": list(c.size) if c.size else None,
                 "K": c.K.tolist(), "distCoef": c.dist.tolist(), "R": c.R.tolist(),
                 "t": (c.t / PANOPTIC_UNITS_TO_METRES).reshape(3, 1).tolist()} for c in rig]
@@ -172,7 +185,8 @@ def _intrinsics(model: str, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         dist = [] if model == "SIMPLE_PINHOLE" else [*rest, 0.0, 0.0, 0.0, 0.0][:4]
     else:
         fx, fy, cx, cy, rest = p[0], p[1], p[2], p[3], p[4:]
-        dist = list(rest)  # PINHOLE: none; OPENCV: k1 k2 p1 p2; FULL_OPENCV: + k3..k6
+        dist = list(rest)  # PINHOLE: none; OPENCV: k1 k2 p1 p2; FULL_OPENCV: + k3..k6;
+        # OPENCV_FISHEYE: Kannala-Brandt k1..k4
     K = np.array([[fx, 0, cx - COLMAP_PIXEL_CENTRE], [0, fy, cy - COLMAP_PIXEL_CENTRE],
                   [0, 0, 1]])
     return K, np.asarray(dist, np.float64)
@@ -249,7 +263,8 @@ def read_colmap(folder: str | os.PathLike) -> CameraRig:
                                    f"supported: {sorted(COLMAP_MODELS)}")
         K, dist = _intrinsics(model, params)
         cameras.append(camera_from_file(source, name, K=K, dist=dist, R=_quat_to_matrix(q), t=t,
-                               size=(int(w), int(h))))
+                                        size=(int(w), int(h)),
+                                        fisheye=model == "OPENCV_FISHEYE"))
     if not cameras:
         raise CalibrationError(f"{folder}: the COLMAP model registers no image")
     return CameraRig(cameras, source=str(source))
@@ -261,6 +276,8 @@ def _colmapcamera_from_file(c: Camera) -> tuple[str, list[float]]:
         raise CalibrationError(f"camera '{c.name}': COLMAP models have no skew")
     f = [c.K[0, 0], c.K[1, 1], c.K[0, 2] + COLMAP_PIXEL_CENTRE, c.K[1, 2] + COLMAP_PIXEL_CENTRE]
     d = list(c.dist)
+    if c.fisheye:
+        return "OPENCV_FISHEYE", f + d
     if not any(d):
         return "PINHOLE", f
     if len(d) > 8:

@@ -6,7 +6,8 @@ Formats
     One table per camera, ``[cam_N]`` with ``name``, ``size = [width, height]``,
     ``matrix`` (3x3 K), ``distortions`` (OpenCV order), ``rotation`` (Rodrigues
     vector, world-to-camera) and ``translation`` (world-to-camera). Other tables
-    (``[metadata]``) are ignored; ``fisheye = true`` (Kannala-Brandt) is refused.
+    (``[metadata]``) are ignored; ``fisheye = true``: ``distortions`` are the
+    Kannala-Brandt k1..k4 of ``cv2.fisheye`` (anipose's fisheye model).
 ``intri.yml`` + ``extri.yml`` (OpenCV FileStorage, EasyMocap)
     ``names`` (sequence of camera names); ``K_<name>``, ``dist_<name>`` and
     optionally ``H_<name>``/``W_<name>`` in ``intri.yml``; ``Rot_<name>`` (3x3)
@@ -23,7 +24,9 @@ Formats
 caliscope / FreeMoCap ``camera_array.toml``, CMU Panoptic JSON and COLMAP models
     :mod:`nsd.cameras.calibration_formats`.
 
-Distortion: OpenCV's 4, 5, 8, 12 (thin prism) and 14 (tilted sensor) coefficient models.
+Distortion: OpenCV's 4, 5, 8, 12 (thin prism) and 14 (tilted sensor) coefficient models, and
+the Kannala-Brandt fisheye (anipose TOML, COLMAP OPENCV_FISHEYE); formats that cannot hold a
+fisheye lens refuse to write one.
 All readers return a validated :class:`~nsd.cameras.calibration.CameraRig`; bad values
 raise :class:`~nsd.core.errors.CalibrationError` naming the file and camera.
 """
@@ -47,6 +50,7 @@ from nsd.cameras.calibration_formats import (
     read_caliscope,
     read_colmap,
     read_panoptic,
+    refuse_fisheye,
     write_caliscope,
     write_colmap,
     write_panoptic,
@@ -95,12 +99,6 @@ def read_toml(path: str | os.PathLike) -> CameraRig:
         if key == "metadata" or not isinstance(table, dict):
             continue
         name = str(table.get("name", key))
-        if table.get("fisheye", False):
-            raise CalibrationError(
-                f"camera '{name}' ([{key}]) in {path}: fisheye = true (the Kannala-Brandt lens "
-                "model) is not supported yet; its four coefficients would be misread as OpenCV's "
-                "k1, k2, p1, p2. Calibrate with the standard (pinhole) model, or undistort the "
-                "footage with cv2.fisheye first")
         missing = [k for k in ("matrix", "rotation", "translation") if k not in table]
         if missing:
             raise CalibrationError(f"camera '{name}' ([{key}]) in {path}: missing {missing}")
@@ -114,6 +112,7 @@ def read_toml(path: str | os.PathLike) -> CameraRig:
                 R=_rodrigues(table["rotation"], path, name),
                 t=np.asarray(table["translation"], dtype=np.float64),
                 size=None if size is None else (int(size[0]), int(size[1])),
+                fisheye=bool(table.get("fisheye", False)),
             )
         )
     return CameraRig(cameras, source=str(path))
@@ -132,6 +131,8 @@ def write_toml(rig: CameraRig, path: str | os.PathLike) -> None:
         }
         if c.size is not None:
             table["size"] = list(c.size)
+        if c.fisheye:
+            table["fisheye"] = True
         data[f"cam_{i}"] = table
     data["metadata"] = {"adjusted": False, "error": 0.0}
     atomic_write_text(path, tomli_w.dumps(data))
@@ -205,6 +206,7 @@ def read_opencv_yaml(intri: str | os.PathLike, extri: str | os.PathLike | None =
 
 def write_opencv_yaml(rig: CameraRig, folder: str | os.PathLike) -> None:
     """Write ``intri.yml`` and ``extri.yml`` (EasyMocap layout) into ``folder``."""
+    refuse_fisheye(rig, "OpenCV FileStorage")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for fname, write in (("intri.yml", _write_intri), ("extri.yml", _write_extri)):

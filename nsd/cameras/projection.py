@@ -16,6 +16,20 @@ coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``
 and pixels are :math:`u = K (x_d, y_d, 1)^T`, with pixel centres at integer
 coordinates and (0, 0) the centre of the top-left pixel.
 
+Fisheye lenses (Kannala-Brandt, ``cv2.fisheye``; anipose's ``fisheye = true``, COLMAP's
+OPENCV_FISHEYE) distort the angle from the optical axis instead:
+
+.. math::
+    \theta = \arctan r,\quad
+    \theta_d = \theta (1 + k_1 \theta^2 + k_2 \theta^4 + k_3 \theta^6 + k_4 \theta^8),\quad
+    (x_d, y_d) = \frac{\theta_d}{r} (x, y)
+
+A lens is one vector: OpenCV's coefficients (0, 4, 5, 8, 12 or 14), or a *lens vector* of
+:data:`LENS_SIZE` = 15 entries, OpenCV's 14 then the model (0 OpenCV, 1 fisheye with
+k1..k4 in the first four entries), which is how a rig with any fisheye camera is batched
+(:meth:`nsd.cameras.calibration.CameraRig.stacked`), so that every caller passes ``dist``
+unchanged.
+
 Every projection in the toolkit (calibration, synthetic renderer, NeTePu
 renderer, inverse rendering) calls these functions; they are differentiable and
 work in float32 and float64.
@@ -27,7 +41,9 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "LENS_SIZE",
     "distort_normalized",
+    "fisheye_lens",
     "pixel_to_normalized",
     "project_points",
     "relative_rotation",
@@ -37,6 +53,50 @@ __all__ = [
 
 SUPPORTED_DISTORTION_SIZES = (0, 4, 5, 8, 12, 14)
 _FULL = 14  # k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y
+LENS_SIZE = _FULL + 1  # a lens vector: 14 coefficients and the model (1: fisheye)
+FISHEYE_ITERATIONS = 10  # Newton steps of the fisheye inverse (cv2.fisheye uses 10)
+
+
+def fisheye_lens(k: Tensor) -> Tensor:
+    """The lens vector (..., 15) of Kannala-Brandt coefficients ``k`` (..., 4).
+
+    Example:
+        >>> fisheye_lens(torch.tensor([0.1, 0.0, 0.0, 0.0])).tolist()[-2:]
+        [0.0, 1.0]
+    """
+    pad = torch.zeros(*k.shape[:-1], _FULL - 4, dtype=k.dtype, device=k.device)
+    return torch.cat([k, pad, torch.ones_like(k[..., :1])], dim=-1)
+
+
+def _split_lens(dist: Tensor) -> tuple[Tensor, Tensor | None]:
+    """OpenCV coefficients (..., n) and the fisheye flag (..., 1) (None for plain OpenCV)."""
+    if dist.shape[-1] == LENS_SIZE:
+        return dist[..., :_FULL], dist[..., _FULL:] > 0.5
+    return dist, None
+
+
+def _fisheye_distort(xy: Tensor, k: Tensor) -> Tensor:
+    """Kannala-Brandt distortion of normalised coordinates (..., N, 2), ``k`` (..., 4)."""
+    k1, k2, k3, k4 = (k[..., i : i + 1] for i in range(4))
+    r = torch.sqrt((xy * xy).sum(-1).clamp_min(torch.finfo(xy.dtype).tiny))
+    th = torch.atan(r)
+    t2 = th * th
+    th_d = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    return xy * (th_d / r).unsqueeze(-1)
+
+
+def _fisheye_undistort(xy_d: Tensor, k: Tensor) -> Tensor:
+    """Invert :func:`_fisheye_distort` (Newton on theta, as ``cv2.fisheye.undistortPoints``)."""
+    k1, k2, k3, k4 = (k[..., i : i + 1] for i in range(4))
+    tiny = torch.finfo(xy_d.dtype).tiny
+    th_d = torch.sqrt((xy_d * xy_d).sum(-1).clamp_min(tiny)).clamp_max(torch.pi / 2)
+    th = th_d
+    for _ in range(FISHEYE_ITERATIONS):
+        t2 = th * th
+        f = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - th_d
+        df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + 9 * t2 * k4)))
+        th = th - f / df
+    return xy_d * (torch.tan(th) / th_d).unsqueeze(-1)
 
 
 def _coefficients(dist: Tensor) -> tuple[Tensor, ...]:
@@ -65,11 +125,16 @@ def distort_normalized(xy: Tensor, dist: Tensor) -> Tensor:
 
     Args:
         xy: undistorted normalised coordinates, shape (..., N, 2).
-        dist: coefficients, shape (..., n) with n in {0, 4, 5, 8, 12, 14}; broadcast over N.
+        dist: coefficients, shape (..., n) with n in {0, 4, 5, 8, 12, 14}, or lens vectors
+            (..., 15) (module docstring); broadcast over N.
 
     Returns:
         Distorted normalised coordinates, shape (..., N, 2).
     """
+    dist, fisheye = _split_lens(dist)
+    if fisheye is not None:
+        return torch.where(fisheye.unsqueeze(-1), _fisheye_distort(xy, dist[..., :4]),
+                           distort_normalized(xy, dist))
     if dist.shape[-1] == 0:
         return xy
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tx, ty = _coefficients(dist)
@@ -91,12 +156,16 @@ def undistort_normalized(xy_d: Tensor, dist: Tensor, iterations: int = 20) -> Te
 
     Args:
         xy_d: distorted normalised coordinates, shape (..., N, 2).
-        dist: coefficients, shape (..., n).
+        dist: coefficients, shape (..., n), or lens vectors (..., 15).
         iterations: fixed-point steps; 20 reach ~1e-10 for usual lenses.
 
     Returns:
         Undistorted normalised coordinates, shape (..., N, 2).
     """
+    dist, fisheye = _split_lens(dist)
+    if fisheye is not None:
+        return torch.where(fisheye.unsqueeze(-1), _fisheye_undistort(xy_d, dist[..., :4]),
+                           undistort_normalized(xy_d, dist, iterations))
     if dist.shape[-1] == 0:
         return xy_d
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tx, ty = _coefficients(dist)

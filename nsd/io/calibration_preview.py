@@ -44,9 +44,10 @@ def rig_table(rig: CameraRig) -> str:
     for c in rig:
         size = f"{c.size[0]}x{c.size[1]}" if c.size else "?"
         d = c.viewing_direction / np.linalg.norm(c.viewing_direction)
+        lens = f"{c.dist.size} coeff." + (" fisheye" if c.fisheye else "")
         rows.append(
             f"| {c.name} | {size} | {c.K[0, 0]:.1f}, {c.K[1, 1]:.1f} | "
-            f"{c.K[0, 2]:.1f}, {c.K[1, 2]:.1f} | {c.dist.size} coeff. | "
+            f"{c.K[0, 2]:.1f}, {c.K[1, 2]:.1f} | {lens} | "
             f"{', '.join(f'{v:.3f}' for v in c.center)} | {', '.join(f'{v:.2f}' for v in d)} | "
             f"{np.linalg.norm(c.center - target):.3f} |")
     target = np.round(target, 3) + 0.0  # no -0.0

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_formats import (
@@ -21,9 +23,11 @@ from nsd.cameras.calibration_io import (
     find_calibration,
     read_calibration,
     read_opencv_yaml,
+    write_calibration,
     write_opencv_yaml,
     write_toml,
 )
+from nsd.cameras.projection import project_points
 from nsd.core.errors import CalibrationError
 
 
@@ -98,13 +102,53 @@ def test_colmap_text_known_values(tmp_path):
     np.testing.assert_allclose(rig[1].dist, [-0.1, 0, 0, 0])
 
 
-def test_colmap_fisheye_model_is_refused(tmp_path, random_cameras):
-    write_colmap(CameraRig(random_cameras[:2]), tmp_path, binary=True)
-    data = bytearray((tmp_path / "cameras.bin").read_bytes())
-    data[12:16] = (5).to_bytes(4, "little")  # first camera's model id -> OPENCV_FISHEYE
-    (tmp_path / "cameras.bin").write_bytes(bytes(data))
-    with pytest.raises(CalibrationError, match="OPENCV_FISHEYE"):
-        read_colmap(tmp_path)
+def _fisheye_rig(random_cameras) -> CameraRig:
+    """Cameras 0 and 2 with Kannala-Brandt lenses, the others as they are (a mixed rig)."""
+    k = np.array([-0.05, 0.01, -0.002, 0.0004])
+    return CameraRig([dataclasses.replace(c, dist=k * (1 + i), fisheye=True) if i in (0, 2)
+                      else c for i, c in enumerate(random_cameras)])
+
+
+@pytest.mark.parametrize("fmt", ["anipose", "colmap", "colmap_bin"])
+def test_fisheye_round_trips_and_projects_like_cv2_fisheye(random_cameras, tmp_path, fmt):
+    rig = _fisheye_rig(random_cameras)
+    path = tmp_path / ("calibration.toml" if fmt == "anipose" else "model")
+    write_calibration(rig, path, fmt)
+    back = read_calibration(path if fmt == "anipose" else path / (
+        "cameras.txt" if fmt == "colmap" else "cameras.bin"))
+    assert [c.fisheye for c in back] == [c.fisheye for c in rig]
+    _same_projections(rig, back)
+    X = _points(200)
+    for c in (back[0], back[2]):
+        ref, _ = cv2.fisheye.projectPoints(X.reshape(-1, 1, 3), cv2.Rodrigues(c.R)[0], c.t, c.K,
+                                           c.dist)
+        np.testing.assert_allclose(c.project(X)[0], ref.reshape(-1, 2), atol=1e-6)
+
+
+def test_fisheye_unprojects_like_cv2_fisheye_and_batches_with_pinholes(random_cameras):
+    rig = _fisheye_rig(random_cameras)
+    c = rig[2]
+    uv = np.random.default_rng(0).uniform([0, 0], c.size, (300, 2))
+    ref = cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), c.K, c.dist).reshape(-1, 2)
+    rays = c.unproject(uv) @ c.R.T  # camera-frame unit rays
+    np.testing.assert_allclose(rays[:, :2] / rays[:, 2:], ref, atol=1e-7)
+    cams = rig.stacked(torch.float64)  # one batch: lens vectors for every camera
+    X = torch.as_tensor(_points(100))
+    uv_b, _ = project_points(X.expand(len(rig), -1, -1), cams.K, cams.R, cams.t, cams.dist)
+    for v, cam in enumerate(rig):
+        np.testing.assert_allclose(uv_b[v].numpy(), cam.project(X.numpy())[0], atol=1e-9)
+
+
+@pytest.mark.parametrize("fmt", ["opencv", "panoptic", "caliscope"])
+def test_formats_without_fisheye_refuse_to_write_one(random_cameras, tmp_path, fmt):
+    name = {"opencv": "yml", "panoptic": "c.json", "caliscope": "camera_array.toml"}[fmt]
+    with pytest.raises(CalibrationError, match=r"camera 'cam0' has a fisheye lens.*" + "TOML"):
+        write_calibration(_fisheye_rig(random_cameras), tmp_path / name, fmt)
+
+
+def test_a_fisheye_camera_needs_four_coefficients(random_cameras):
+    with pytest.raises(CalibrationError, match=r"fisheye.*4 coefficients.*got 5"):
+        dataclasses.replace(random_cameras[2], fisheye=True)
 
 
 @pytest.mark.parametrize("n", [12, 14])
@@ -120,15 +164,6 @@ def test_opencv_12_and_14_coefficients_round_trip(random_cameras, tmp_path, n):
     ref, _ = cv2.projectPoints(X, cv2.Rodrigues(cams[0].R)[0], cams[0].t, cams[0].K,
                                cams[0].dist)
     np.testing.assert_allclose(back[0].project(X)[0], ref.reshape(-1, 2), atol=1e-6)
-
-
-def test_anipose_fisheye_is_refused_not_misread(random_cameras, tmp_path):
-    write_toml(CameraRig(random_cameras[:2]), tmp_path / "calibration.toml")
-    text = (tmp_path / "calibration.toml").read_text().replace('name = "cam0"',
-                                                               'name = "cam0"\nfisheye = true')
-    (tmp_path / "calibration.toml").write_text(text)
-    with pytest.raises(CalibrationError, match=r"camera 'cam0'.*fisheye = true"):
-        read_calibration(tmp_path)
 
 
 def test_pose2sim_project_folder_reads_calibration_not_config(random_cameras, tmp_path):
