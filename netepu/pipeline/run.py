@@ -44,6 +44,7 @@ from netepu.pipeline.stages import (
     DEFAULT_SCENE,
     evaluate_stage,
     export_stage,
+    formats_stage,
     grids_stage,
     identities_stage,
     keypoints_stage,
@@ -104,6 +105,7 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
         lambda: identities_stage(
             cfg, _ran(runner, "texture"), bool(runner.results["scene"].summary["ground_truth"])
         ),
+        lambda: formats_stage(cfg, _ran(runner, "identities"), _ran(runner, "keypoints")),
         lambda: overlays_stage(cfg, _ran(runner, "identities")),
         lambda: grids_stage(cfg),
     ]

@@ -1,5 +1,5 @@
 """The stages of ``nsd-run``, one factory each: scene, train, evaluate, export, keypoints,
-texture, identities, grids.
+texture, identities, formats, overlays, grids.
 
 Each factory returns a :class:`nsd.core.stages.Stage` whose ``run(out, upstream)`` writes
 its folder; :mod:`netepu.pipeline.run` chains them and decides which ones a run needs.
@@ -19,6 +19,7 @@ from netepu.pipeline.embed import embed_into_copy
 from netepu.pipeline.pose_keypoints import regress_export
 from netepu.pipeline.subject_keypoints import invert_export
 from netepu.reid.identities import assign_identities
+from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.stages import Stage, StageResult, config_hash
@@ -30,6 +31,8 @@ from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
 from nsd.export.grids import write_grids
 from nsd.export.overlay import write_overlay_videos
+from nsd.export.pose_tools import write_pose_tool_files
+from nsd.export.positions import read_positions, triangulate_positions, write_positions
 from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embeddings import read_embeddings
@@ -45,6 +48,7 @@ __all__ = [
     "KEYPOINT_SOURCES",
     "evaluate_stage",
     "export_stage",
+    "formats_stage",
     "grids_stage",
     "identities_stage",
     "keypoints_stage",
@@ -344,7 +348,10 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
         write_identities(out / "identities.csv",
                          {**{c: table[c].tolist() for c in keys}, "identity": identity.tolist()})
         by_row = dict(zip(table["id"].tolist(), identity.tolist(), strict=True))
-        write_identity_tracks(up["export"].folder, by_row, out / "tracks")
+        rig = read_calibration(up["scene"].summary["path"], cfg.train.data.units)
+        positions = triangulate_positions(up["export"].folder, rig, by_row)
+        write_positions(out / "positions.csv", positions)
+        write_identity_tracks(up["export"].folder, by_row, out / "tracks", positions)
         summary["column"] = column
         if ground_truth:
             export, scene = up["export"].folder, up["scene"].summary["path"]
@@ -365,6 +372,33 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
         enabled=bool(i.enabled),
         why_disabled="netepu.identities.enabled=false",
     )
+
+
+def formats_stage(cfg: DictConfig, have_identities: bool, have_keypoints: bool) -> Stage:
+    """The export in the pose tools' files (nsd.export.pose_tools): SLEAP, NWB, DeepLabCut,
+    TRC and C3D, under the final identities (the per-camera tracks when the identities
+    stage did not run) and with the 3D keypoints when the keypoints stage ran."""
+    f = cfg.formats
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        export, scene = up["export"].folder, up["scene"].summary["path"]
+        rig = read_calibration(scene, cfg.train.data.units)
+        row_ids = positions = None
+        if have_identities:
+            ids = read_identities(up["identities"].folder / "identities.csv")
+            row_ids = dict(zip(ids["id"].tolist(), ids["identity"].tolist(), strict=True))
+            positions = read_positions(up["identities"].folder / "positions.csv")
+        else:
+            positions = triangulate_positions(export, rig)
+        kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
+        return write_pose_tool_files(export, scene, rig, out, row_ids, positions, kp,
+                                     tuple(f.which), f.fps)
+
+    return Stage("formats", run,
+                 {**_container(f), "identities": have_identities, "keypoints": have_keypoints},
+                 needs=("scene", "export", "keypoints", "identities"),
+                 enabled=bool(f.enabled) and len(f.which) > 0,
+                 why_disabled="formats.enabled=false or formats.which=[]")
 
 
 def overlays_stage(cfg: DictConfig, have_identities: bool) -> Stage:

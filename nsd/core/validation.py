@@ -41,10 +41,10 @@ class Rule:
     """What a config value may be.
 
     Attributes:
-        kind: int | number | bool | str | ints | numbers | any.
+        kind: int | number | bool | str | ints | numbers | strs (a list of words) | any.
         low, high: inclusive bounds of a number (or of each element of a list); None: open.
         above: exclusive lower bound (a rate > 0).
-        choices: allowed words (kind str).
+        choices: allowed words (kinds str and strs).
         null: None is allowed.
         length: exact list length.
         odd: an odd integer.
@@ -65,6 +65,8 @@ class Rule:
         """The allowed range in words, e.g. ``an integer >= 1``."""
         if self.kind == "str" and self.choices:
             words = "one of " + ", ".join(self.choices)
+        elif self.kind == "strs":
+            words = "a list of any of " + ", ".join(self.choices)
         else:
             noun = {"int": "an integer", "number": "a finite number", "bool": "true or false",
                     "str": "a string", "ints": "a list of integers",
@@ -105,6 +107,9 @@ class Rule:
             scalar = Rule("int" if self.kind == "ints" else "number", self.low, self.high,
                           self.above)
             return all(scalar.ok(v) for v in value)
+        if self.kind == "strs":
+            return isinstance(value, (list, tuple)) and all(
+                isinstance(v, str) and v in self.choices for v in value)
         if self.kind == "bool":
             return isinstance(value, bool)
         if self.kind == "str":
@@ -199,6 +204,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.identities.method": _r("str", choices=("rows", "tracks")),
         "netepu.identities.restarts": POS, "grids.size": _r("int", low=16),
         "overlays.size": _r("int", low=16), "overlays.fps": RATE,
+        "formats.which": _r("strs", choices=("slp", "nwb", "dlc", "trc", "c3d")),
+        "formats.fps": _r("number", above=0, null=True),
     },
     "eval": {"checkpoint": _r("str"), "scene": NULL_TEXT, "frames": ALWAYS, "out": NULL_TEXT,
              "export": NULL_TEXT,

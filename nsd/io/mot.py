@@ -8,7 +8,8 @@ as in MOTChallenge result files (MOT16/17/20, read by TrackEval and
 py-motmetrics): ``frame`` is 1-based (footage frame index + 1), ``id`` a
 positive track id, the box in pixels with the image's top-left pixel at (1, 1)
 (so ``bb_left`` = COCO ``x`` + 1), ``conf`` the detection score, and
-``x, y, z`` = -1 (no world coordinates). Lines are sorted by frame.
+``x, y, z`` the individual's world position in metres where it is known (the tracks under
+the final identities: :mod:`nsd.export.positions`), else -1. Lines are sorted by frame.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import json
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -26,17 +27,22 @@ __all__ = ["MOT_COLUMNS", "MotWriter", "format_mot_line", "read_mot", "write_ide
 MOT_COLUMNS = ("frame", "id", "bb_left", "bb_top", "bb_width", "bb_height", "conf", "x", "y", "z")
 
 
-def format_mot_line(frame: int, track: int, box: Sequence[float], conf: float) -> str:
-    """One MOTChallenge line for footage frame ``frame`` (0-based) and a COCO box [x, y, w, h].
+def format_mot_line(frame: int, track: int, box: Sequence[float], conf: float,
+                    world: Sequence[float] | None = None) -> str:
+    """One MOTChallenge line for footage frame ``frame`` (0-based) and a COCO box [x, y, w, h];
+    ``world``: the position (x, y, z) in metres, or None (-1, -1, -1).
 
     Example:
         >>> format_mot_line(0, 3, [10.0, 20.0, 5.0, 8.0], 0.91)
         '1,3,11.00,21.00,5.00,8.00,0.9100,-1,-1,-1'
+        >>> format_mot_line(0, 3, [10.0, 20.0, 5.0, 8.0], 0.91, (0.5, -1.25, 0.0))
+        '1,3,11.00,21.00,5.00,8.00,0.9100,0.500000,-1.250000,0.000000'
     """
     if track < 1:
         raise ValueError(f"MOTChallenge track ids are positive, got {track}")
     x, y, w, h = (float(v) for v in box)
-    return f"{frame + 1},{track},{x + 1:.2f},{y + 1:.2f},{w:.2f},{h:.2f},{conf:.4f},-1,-1,-1"
+    xyz = "-1,-1,-1" if world is None else ",".join(f"{float(v):.6f}" for v in world)
+    return f"{frame + 1},{track},{x + 1:.2f},{y + 1:.2f},{w:.2f},{h:.2f},{conf:.4f},{xyz}"
 
 
 class MotWriter:
@@ -55,9 +61,11 @@ class MotWriter:
         }
         self.counts = dict.fromkeys(self.files, 0)
 
-    def write(self, camera: str, frame: int, track: int, box: Sequence[float], conf: float) -> None:
-        """Append one box (frame 0-based, COCO box) to the camera's file."""
-        self.files[camera].write(format_mot_line(frame, track, box, conf) + "\n")
+    def write(self, camera: str, frame: int, track: int, box: Sequence[float], conf: float,
+              world: Sequence[float] | None = None) -> None:
+        """Append one box (frame 0-based, COCO box; world position or None) to the camera's
+        file."""
+        self.files[camera].write(format_mot_line(frame, track, box, conf, world) + "\n")
         self.counts[camera] += 1
 
     def close(self) -> None:
@@ -104,7 +112,8 @@ def read_mot(path: str | os.PathLike) -> np.ndarray:
 
 
 def write_identity_tracks(export: str | os.PathLike, row_ids: dict[int, int],
-                          folder: str | os.PathLike) -> dict[str, int]:
+                          folder: str | os.PathLike,
+                          positions: dict[tuple[int, int], Any] | None = None) -> dict[str, int]:
     """The export's boxes as MOTChallenge files under other ids: track id = ``row_ids[row] + 1``
     (e.g. the final identities, the same id in every camera). Rows without an id, or with a
     negative one, are left out, and so is a second box of one id in one frame.
@@ -113,6 +122,8 @@ def write_identity_tracks(export: str | os.PathLike, row_ids: dict[int, int],
         export: nsd-export folder (``subjects.coco.json``).
         row_ids: annotation id -> id (>= 0).
         folder: where ``<camera>.txt`` go.
+        positions: ``(frame, id)`` -> (world position (3,), views)
+            (:func:`nsd.export.positions.triangulate_positions`) for the x, y, z columns.
 
     Returns:
         Lines written per camera.
@@ -127,5 +138,6 @@ def write_identity_tracks(export: str | os.PathLike, row_ids: dict[int, int],
         for (camera, frame), ident, box, conf in rows:
             if (camera, frame, ident) not in seen:
                 seen.add((camera, frame, ident))
-                w.write(camera, frame, ident + 1, box, conf)
+                pos = (positions or {}).get((frame, ident))
+                w.write(camera, frame, ident + 1, box, conf, None if pos is None else pos[0])
         return dict(w.counts)

@@ -1,0 +1,311 @@
+"""The export in the files the pose tools read: SLEAP, NWB, DeepLabCut, TRC and C3D.
+
+Written with the tools' own libraries where one exists: sleap-io builds one ``Labels`` (a
+video per camera, a track per identity, per camera-frame the subjects' poses, masks and
+boxes, the cameras as a recording session) and writes it as SLEAP's ``.slp``, as NWB
+(ndx-pose ``PoseEstimation``, through sleap-io) and as DeepLabCut's multi-animal CSV (one
+per camera); ezc3d writes C3D. TRC (OpenSim, Pose2Sim) has no maintained Python writer:
+it is a tab-separated text format, written here.
+
+The pose of a subject in a camera: its 3D keypoints projected into that camera when the
+pipeline fitted keypoints (``keypoints3d.npz``, nodes ``kp0``..), else one node,
+``centroid``, the centroid of its visible mask. 3D files hold, per identity, its world
+position (:mod:`nsd.export.positions`) and, with keypoints, its keypoints, in metres.
+
+Layout (``<out>/``)::
+
+    subjects.slp            SLEAP labels (sleap-io, SLEAP, the movement package read it)
+    subjects.nwb            NWB with ndx-pose PoseEstimation per camera and track
+    dlc/<camera>.csv        DeepLabCut multi-animal CSV (scorer nsd-netepu)
+    trajectories.trc        markers id<k> (and id<k>_kp<j>) per frame, metres
+    trajectories.c3d        the same markers, metres
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import ezc3d
+import numpy as np
+import sleap_io as sio
+from pycocotools import mask as mask_utils
+from sleap_io.io import nwb_predictions
+
+from nsd.cameras.calibration import CameraRig
+from nsd.core.atomic import atomic_write_text
+from nsd.export.positions import mask_centroids
+from nsd.io.footage import ImageFolderSource, find_source
+
+__all__ = ["POSE_TOOL_FORMATS", "read_trc", "write_c3d", "write_pose_tool_files", "write_trc"]
+
+log = logging.getLogger(__name__)
+
+POSE_TOOL_FORMATS = ("slp", "nwb", "dlc", "trc", "c3d")
+SCORER = "nsd-netepu"
+
+
+def _video(scene: Path, camera: str) -> sio.Video:
+    source = find_source(scene, camera)
+    if isinstance(source, ImageFolderSource):
+        # an image sequence is stored with its backend's record (a list alone does not load)
+        return sio.Video(filename=[str(p) for p in source.files])
+    return sio.Video(filename=str(source.path), open_backend=False)
+
+
+def _cameras(coco: dict, rig: CameraRig) -> list[str]:
+    """The exported cameras in calibration order."""
+    return sorted({im["camera"] for im in coco["images"]}, key=rig.names.index)
+
+
+def _session(rig: CameraRig, videos: dict[str, sio.Video]) -> sio.RecordingSession | None:
+    """The cameras as a sleap-io recording session; None when a lens does not fit its
+    five-coefficient OpenCV model (fisheye, rational or thin-prism lenses)."""
+    if any(c.fisheye or np.any(c.dist[5:]) for c in rig):
+        log.info("pose tools: a lens model beyond k1, k2, p1, p2, k3: the .slp file holds no "
+                 "recording session (the calibration file stays the reference)")
+        return None
+    cams = {c.name: sio.Camera(matrix=c.K, dist=np.resize(np.r_[c.dist, np.zeros(5)], 5),
+                               size=c.size, rvec=cv2.Rodrigues(c.R)[0].ravel(), tvec=c.t,
+                               name=c.name) for c in rig}
+    session = sio.RecordingSession(camera_group=sio.CameraGroup(cameras=list(cams.values())))
+    for name, video in videos.items():
+        session.add_video(video, cams[name])
+    return session
+
+
+def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int],
+                 keypoints: dict[int, np.ndarray] | None) -> sio.Labels:
+    """One sleap-io ``Labels`` of the export (module docstring).
+
+    Args:
+        coco: ``subjects.coco.json`` of the export.
+        scene: the scene folder (the videos the labels point at).
+        rig: the calibration at native size, metres.
+        row_ids: annotation id -> identity (a track each); rows without one are left out.
+        keypoints: annotation id -> its subject's world keypoints (K, 3), or None.
+    """
+    n_kp = len(next(iter(keypoints.values()))) if keypoints else 0
+    skeleton = sio.Skeleton([f"kp{j}" for j in range(n_kp)] if n_kp else ["centroid"],
+                            name="subject")
+    cameras = _cameras(coco, rig)
+    videos = {c: _video(scene, c) for c in cameras}
+    tracks = {i: sio.Track(name=f"id{i}") for i in sorted(set(row_ids.values())) if i >= 0}
+    centroids = mask_centroids(coco) if not n_kp else {}
+    frames: dict[tuple[str, int], sio.LabeledFrame] = {}
+    for a in coco["annotations"]:
+        aid, ident = int(a["id"]), row_ids.get(int(a["id"]), -1)
+        if ident < 0:
+            continue
+        key = (a["camera"], int(a["frame"]))
+        lf = frames.get(key)
+        if lf is None:
+            lf = frames[key] = sio.LabeledFrame(video=videos[key[0]], frame_idx=key[1])
+        track, score = tracks[ident], float(a.get("score", 1.0))
+        if n_kp and aid in keypoints:
+            uv, z = rig[key[0]].project(keypoints[aid])
+            points = np.where((z > 0)[:, None], uv, np.nan)
+        elif aid in centroids:
+            points = centroids[aid][None]
+        else:
+            continue
+        inst = sio.PredictedInstance.from_numpy(points, skeleton=skeleton, score=score,
+                                                point_scores=np.full(len(points), score),
+                                                track=track)
+        lf.instances.append(inst)
+        seg = a["segmentation"]
+        lf.masks.append(sio.PredictedSegmentationMask.from_numpy(
+            mask_utils.decode(seg).astype(bool), score=score, track=track, instance=inst))
+        x, y, w, h = (float(v) for v in a["bbox"])
+        lf.bboxes.append(sio.PredictedBoundingBox.from_xywh(x, y, w, h, score=score,
+                                                            track=track, instance=inst))
+    session = _session(rig.select(cameras), videos)
+    return sio.Labels(labeled_frames=[frames[k] for k in sorted(frames)],
+                      videos=list(videos.values()), skeletons=[skeleton],
+                      tracks=list(tracks.values()), sessions=[session] if session else [],
+                      provenance={"source": SCORER})
+
+
+def _markers(positions: dict[tuple[int, int], tuple[np.ndarray, int]],
+             keypoints: dict[tuple[int, int], np.ndarray] | None
+             ) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Marker names, frames (F,) and points (F, M, 3) (NaN: not seen)."""
+    ids = sorted({i for _, i in positions} | ({i for _, i in keypoints} if keypoints else set()))
+    n_kp = len(next(iter(keypoints.values()))) if keypoints else 0
+    names = [f"id{i}" for i in ids] + [f"id{i}_kp{j}" for i in ids for j in range(n_kp)]
+    all_frames = sorted({f for f, _ in positions} | ({f for f, _ in keypoints}
+                                                      if keypoints else set()))
+    frames = np.arange(all_frames[0], all_frames[-1] + 1) if all_frames else np.zeros(0, int)
+    pts = np.full((len(frames), len(names), 3), np.nan)
+    col = {i: c for c, i in enumerate(ids)}
+    for (f, i), (xyz, _) in positions.items():
+        pts[f - frames[0], col[i]] = xyz
+    for (f, i), kp in (keypoints or {}).items():
+        start = len(ids) + col[i] * n_kp
+        pts[f - frames[0], start:start + n_kp] = kp
+    return names, frames, pts
+
+
+def write_trc(path: Path, names: list[str], frames: np.ndarray, points: np.ndarray,
+              fps: float) -> None:
+    """A TRC file (OpenSim / Pose2Sim), metres; NaN points are left empty; atomically.
+
+    Args:
+        names: M marker names; frames: (F,) 0-based footage frames; points: (F, M, 3).
+    """
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\t"
+        "OrigDataStartFrame\tOrigNumFrames",
+        f"{fps:.6g}\t{fps:.6g}\t{len(frames)}\t{len(names)}\tm\t{fps:.6g}\t"
+        f"{int(frames[0]) + 1 if len(frames) else 1}\t{len(frames)}",
+        "Frame#\tTime\t" + "\t".join(f"{n}\t\t" for n in names).rstrip("\t"),
+        "\t\t" + "\t".join(f"X{k}\tY{k}\tZ{k}" for k in range(1, len(names) + 1)),
+        "",
+    ]
+    for f, row in zip(frames, points, strict=True):
+        vals = ["" if not np.isfinite(v) else f"{v:.6f}" for v in row.reshape(-1)]
+        lines.append(f"{int(f) + 1}\t{f / fps:.6f}\t" + "\t".join(vals))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_trc(path: Path) -> tuple[list[str], np.ndarray, np.ndarray, float]:
+    """Marker names, 0-based frames (F,), points (F, M, 3) (NaN: empty) and the rate."""
+    rows = Path(path).read_text().split("\n")
+    rate = float(rows[2].split("\t")[0])
+    names = [n for n in rows[3].split("\t")[2:] if n]
+    data = [r.split("\t") for r in rows[6:] if r.strip()]
+    frames = np.array([int(r[0]) - 1 for r in data], np.int64)
+    pts = np.array([[float(v) if v else np.nan for v in r[2:2 + 3 * len(names)]] for r in data])
+    return names, frames, pts.reshape(len(frames), len(names), 3), rate
+
+
+def write_c3d(path: Path, names: list[str], frames: np.ndarray, points: np.ndarray,
+              fps: float) -> None:
+    """A C3D file (ezc3d), metres; NaN points are C3D's missing points; atomically.
+
+    Args:
+        names: M marker names; frames: (F,) 0-based footage frames; points: (F, M, 3).
+    """
+    c3d = ezc3d.c3d()
+    c3d["parameters"]["POINT"]["RATE"]["value"] = [float(fps)]
+    c3d["parameters"]["POINT"]["LABELS"]["value"] = list(names)
+    c3d["parameters"]["POINT"]["UNITS"]["value"] = ["m"]
+    data = np.ones((4, len(names), len(frames)))
+    data[:3] = points.transpose(2, 1, 0)
+    c3d["data"]["points"] = data
+    c3d.add_parameter("TRIAL", "ACTUAL_START_FIELD", [int(frames[0]) + 1 if len(frames) else 1, 0])
+    tmp = path.with_name(f".{path.stem}.tmp.c3d")  # ezc3d appends .c3d to other names
+    c3d.write(str(tmp))
+    os.replace(tmp, path)
+
+
+def _frame_rate(scene: Path, cameras: list[str], fps: float | None) -> float:
+    """The footage's frame rate: ``fps`` when given, a video's own rate, the synthetic
+    scene's (``gt/scene.json``), else 30 (said)."""
+    if fps:
+        return float(fps)
+    for camera in cameras:
+        source = find_source(scene, camera)
+        if not isinstance(source, ImageFolderSource):
+            cap = cv2.VideoCapture(str(source.path))
+            rate = cap.get(cv2.CAP_PROP_FPS)
+            cap.release()
+            if rate and np.isfinite(rate) and rate > 0:
+                return float(rate)
+    meta = scene / "gt" / "scene.json"
+    if meta.is_file():
+        rate = json.loads(meta.read_text()).get("fps")
+        if rate:
+            return float(rate)
+    log.warning("pose tools: %s has no frame rate (image folders): TRC/C3D use 30 frames/s; "
+                "give formats.fps", scene)
+    return 30.0
+
+
+def write_pose_tool_files(
+    export: str | os.PathLike,
+    scene: str | os.PathLike,
+    rig: CameraRig,
+    out: str | os.PathLike,
+    row_ids: dict[int, int] | None = None,
+    positions: dict[tuple[int, int], tuple[np.ndarray, int]] | None = None,
+    keypoints: str | os.PathLike | None = None,
+    formats: tuple[str, ...] = POSE_TOOL_FORMATS,
+    fps: float | None = None,
+) -> dict[str, Any]:
+    """Write the export in the pose tools' formats (module docstring).
+
+    Args:
+        export: an ``nsd-export`` folder.
+        scene: its scene folder.
+        rig: the calibration at native size, in metres.
+        out: the folder to write.
+        row_ids: annotation id -> identity (default: the rows' ``subject_id``).
+        positions: ``(frame, id)`` -> (world position, views), for TRC/C3D.
+        keypoints: a ``keypoints3d.npz`` (``id``, ``keypoints``), or None.
+        formats: which of :data:`POSE_TOOL_FORMATS`.
+        fps: frame rate of the 3D files (default: the footage's).
+
+    Returns:
+        Counts per file (instances, tracks, frames, markers).
+    """
+    export, scene, out = Path(export), Path(scene), Path(out)
+    unknown = sorted(set(formats) - set(POSE_TOOL_FORMATS))
+    if unknown:
+        raise ValueError(f"formats: unknown {unknown}; choose from {list(POSE_TOOL_FORMATS)}")
+    out.mkdir(parents=True, exist_ok=True)
+    coco = json.loads((export / "subjects.coco.json").read_text())
+    if row_ids is None:
+        row_ids = {int(a["id"]): int(a["subject_id"]) for a in coco["annotations"]}
+    kp_rows = None
+    if keypoints is not None:
+        with np.load(keypoints) as z:
+            kp_rows = dict(zip(z["id"].tolist(), z["keypoints"], strict=True))
+    rate = _frame_rate(scene, rig.names, fps)
+    summary: dict[str, Any] = {"fps": rate}
+    if {"slp", "nwb", "dlc"} & set(formats):
+        labels = build_labels(coco, scene, rig, row_ids, kp_rows)
+        summary["instances"] = sum(len(lf.instances) for lf in labels.labeled_frames)
+        summary["tracks"] = len(labels.tracks)
+        if "slp" in formats:
+            sio.save_slp(labels, str(out / "subjects.slp"))
+        # DeepLabCut and NWB name a camera's source by one path: an image folder's
+        for camera, video in zip(_cameras(coco, rig), labels.videos, strict=True):
+            if isinstance(video.filename, list):
+                video.replace_filename(str(find_source(scene, camera).path), open=False)
+        if "dlc" in formats:
+            (out / "dlc").mkdir(exist_ok=True)
+            for i, camera in enumerate(_cameras(coco, rig)):  # the labels' video order
+                # sleap-io writes no per-point likelihood to DeepLabCut tables (its DLC
+                # writer drops point scores): the table is a labelled-data table, x and y
+                sio.save_csv(labels, str(out / "dlc" / f"{camera}.csv"), format="dlc", video=i,
+                             scorer=SCORER, include_score=False)
+        if "nwb" in formats:
+            # timestamps in seconds for every footage frame (sleap-io's default, one per
+            # frame with data, misplaces exports that do not start at frame 0)
+            last = max(lf.frame_idx for lf in labels.labeled_frames) if labels else 0
+            nwb_predictions.write_nwb(labels, str(out / "subjects.nwb"),
+                                      pose_estimation_metadata={
+                                          "video_timestamps": np.arange(last + 1) / rate,
+                                          "video_sample_rate": rate})
+    if {"trc", "c3d"} & set(formats):
+        kp3d = None
+        if kp_rows:  # one pose per identity and frame
+            kp3d = {}
+            for a in coco["annotations"]:
+                ident = row_ids.get(int(a["id"]), -1)
+                if ident >= 0 and int(a["id"]) in kp_rows:
+                    kp3d[(int(a["frame"]), ident)] = kp_rows[int(a["id"])]
+        names, frames, pts = _markers(positions or {}, kp3d)
+        if "trc" in formats:
+            write_trc(out / "trajectories.trc", names, frames, pts, rate)
+        if "c3d" in formats:
+            write_c3d(out / "trajectories.c3d", names, frames, pts, rate)
+        summary.update(markers=len(names), frames=len(frames))
+    summary["files"] = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
+    return summary

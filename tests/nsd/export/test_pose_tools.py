@@ -1,0 +1,192 @@
+"""World positions and the pose tools' files (nsd/export/positions.py, nsd/export/pose_tools.py):
+known positions triangulated back, every file read back by its own library."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import ezc3d
+import numpy as np
+import pandas as pd
+import pytest
+import sleap_io as sio
+from ndx_pose import PoseEstimation
+from pycocotools import mask as mask_utils
+from pynwb import NWBHDF5IO
+
+from nsd.cameras.calibration import CameraRig
+from nsd.cameras.calibration_io import read_calibration
+from nsd.export.pose_tools import read_trc, write_pose_tool_files
+from nsd.export.positions import (
+    mask_centroids,
+    read_positions,
+    triangulate_positions,
+    write_positions,
+)
+from nsd.io.mot import read_mot, write_identity_tracks
+from nsd.synth.scene import tiny_config, write_scene
+
+
+def _square(uv: np.ndarray, size: tuple[int, int], half: int = 2) -> dict:
+    """RLE of a (2 half + 1)-pixel square centred on the pixel nearest ``uv``."""
+    m = np.zeros((size[1], size[0]), np.uint8, order="F")
+    x, y = (int(round(v)) for v in uv)
+    m[y - half:y + half + 1, x - half:x + half + 1] = 1
+    rle = mask_utils.encode(m)
+    rle["counts"] = rle["counts"].decode()
+    return rle
+
+
+def test_known_positions_are_triangulated_back(random_cameras, tmp_path):
+    """Points seen by 6 distorted cameras: the centroids of masks around their projections
+    (rounded to pixels) give back the points within the rounding's reach."""
+    rig = CameraRig(random_cameras)
+    points = {(0, 0): np.array([0.3, -0.2, 0.5]), (0, 1): np.array([-0.4, 0.1, 0.9]),
+              (1, 0): np.array([0.0, 0.5, 0.2])}
+    anns, images = [], []
+    for (frame, ident), X in points.items():
+        for c in rig:
+            uv = c.project(X[None])[0][0]
+            images.append({"id": len(images) + 1, "camera": c.name, "frame": frame})
+            anns.append({"id": len(anns) + 1, "image_id": len(images), "camera": c.name,
+                         "frame": frame, "subject_id": ident + 1,
+                         "segmentation": _square(uv, c.size), "bbox": [0, 0, 1, 1]})
+    (tmp_path / "subjects.coco.json").write_text(json.dumps({"images": images,
+                                                             "annotations": anns}))
+    ids = {a["id"]: a["subject_id"] - 1 for a in anns}
+    got = triangulate_positions(tmp_path, rig, ids)
+    assert set(got) == set(points)
+    for key, X in points.items():
+        np.testing.assert_allclose(got[key][0], X, atol=0.01)  # 0.5 px at ~5 m, f >= 200
+        assert got[key][1] == len(rig)
+    one_view = {a["id"]: (ids[a["id"]] if a["camera"] == "cam0" else -1) for a in anns}
+    assert triangulate_positions(tmp_path, rig, one_view) == {}  # one view: no position
+    write_positions(tmp_path / "positions.csv", got)
+    back = read_positions(tmp_path / "positions.csv")
+    for key in got:
+        np.testing.assert_allclose(back[key][0], got[key][0], atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def gt_export(tmp_path_factory):
+    """An export whose rows are a synthetic scene's ground truth (masks, boxes, identities),
+    so that every file can be checked against known values."""
+    root = tmp_path_factory.mktemp("formats")
+    scene = write_scene(tiny_config(image_size=[64, 64], rig={
+        "kind": "ring", "count": 3, "radius": 4.0, "height": 2.0, "fov_deg": 50.0,
+        "start_deg": 30.0}), root / "scene")
+    coco = json.loads((scene / "gt" / "coco.json").read_text())
+    images = {im["id"]: im for im in coco["images"]}
+    for a in coco["annotations"]:
+        im = images[a["image_id"]]
+        a.update(camera=im["camera"], frame=im["frame"], subject_id=a["identity_id"] + 1,
+                 score=0.9)
+    export = root / "export"
+    export.mkdir()
+    (export / "subjects.coco.json").write_text(json.dumps(coco))
+    rig = read_calibration(scene)
+    row_ids = {a["id"]: a["identity_id"] for a in coco["annotations"]}
+    positions = triangulate_positions(export, rig, row_ids)
+    summary = write_pose_tool_files(export, scene, rig, root / "formats", row_ids, positions)
+    return {"scene": scene, "export": export, "coco": coco, "rig": rig, "row_ids": row_ids,
+            "positions": positions, "out": root / "formats", "summary": summary}
+
+
+def test_positions_of_the_ground_truth_are_near_the_bodies(gt_export):
+    """Visible-mask centroids triangulated: within 0.25 m of the mean of the individual's 3D
+    keypoints (a centroid of what a camera sees is not the body's centre)."""
+    with np.load(gt_export["scene"] / "gt" / "keypoints3d.npz") as z:
+        kp = {int(k.split("_")[1]): z[k] for k in z.files}  # identity -> (T, K, 3)
+    pos = gt_export["positions"]
+    assert len(pos) >= len(kp[0])
+    errors = [np.linalg.norm(xyz - kp[i][f].mean(0)) for (f, i), (xyz, _) in pos.items()]
+    assert np.median(errors) < 0.25, errors
+
+
+def test_sleap_file_holds_every_row(gt_export):
+    coco, rig = gt_export["coco"], gt_export["rig"]
+    labels = sio.load_slp(str(gt_export["out"] / "subjects.slp"))
+    n_rows = sum(1 for a in coco["annotations"] if mask_utils.area(a["segmentation"]) > 0)
+    assert sum(len(lf.instances) for lf in labels.labeled_frames) == n_rows
+    assert sorted(t.name for t in labels.tracks) == ["id0", "id1"]
+    assert len(labels.masks) == len(labels.bboxes) == len(coco["annotations"])
+    centroids = mask_centroids(coco)
+    by_key = {(a["camera"], a["frame"], a["identity_id"]): a for a in coco["annotations"]}
+    cams = [c.name for c in rig]
+    for lf in labels.labeled_frames:
+        cam = cams[labels.videos.index(lf.video)]
+        for inst in lf.instances:
+            a = by_key[(cam, lf.frame_idx, int(inst.track.name[2:]))]
+            np.testing.assert_allclose(inst.numpy()[0], centroids[a["id"]], atol=1e-6)
+    lf = labels.labeled_frames[0]
+    a = by_key[(cams[labels.videos.index(lf.video)], lf.frame_idx,
+                int(lf.masks[0].track.name[2:]))]
+    assert np.array_equal(lf.masks[0].data.astype(bool),
+                          mask_utils.decode(a["segmentation"]).astype(bool))
+    session = labels.sessions[0]
+    np.testing.assert_allclose(session.camera_group.cameras[1].matrix, rig[1].K)
+
+
+def test_nwb_file_holds_a_pose_series_per_camera_and_track(gt_export):
+    with NWBHDF5IO(str(gt_export["out"] / "subjects.nwb"), "r") as io:
+        nwb = io.read()
+        series = [obj for obj in nwb.objects.values() if isinstance(obj, PoseEstimation)]
+        assert len(series) == 3 * 2  # cameras x tracks
+        for pe in series:
+            (node,) = pe.pose_estimation_series.values()
+            data = np.asarray(node.data)
+            assert data.shape[1] == 2 and np.isfinite(data).any()
+    labels = sio.load_nwb(str(gt_export["out"] / "subjects.nwb"))  # and sleap-io reads it
+    assert sum(len(lf.instances) for lf in labels.labeled_frames) == gt_export["summary"][
+        "instances"]
+
+
+def test_deeplabcut_tables_hold_the_centroids(gt_export):
+    coco, centroids = gt_export["coco"], mask_centroids(gt_export["coco"])
+    table = pd.read_csv(gt_export["out"] / "dlc" / "cam1.csv", header=[0, 1, 2, 3], index_col=0)
+    rows = [a for a in coco["annotations"] if a["camera"] == "cam1" and a["id"] in centroids]
+    for a in rows:
+        row = table.iloc[[i for i, name in enumerate(table.index)
+                          if name.endswith(f"img{a['frame']:04d}.png")][0]]
+        x = row[("nsd-netepu", f"id{a['identity_id']}", "centroid", "x")]
+        y = row[("nsd-netepu", f"id{a['identity_id']}", "centroid", "y")]
+        np.testing.assert_allclose([x, y], centroids[a["id"]], atol=1e-6)
+
+
+def test_trc_and_c3d_hold_the_positions(gt_export):
+    pos = gt_export["positions"]
+    names, frames, pts, rate = read_trc(gt_export["out"] / "trajectories.trc")
+    assert names == ["id0", "id1"] and rate == pytest.approx(gt_export["summary"]["fps"])
+    c3d = ezc3d.c3d(str(gt_export["out"] / "trajectories.c3d"))
+    assert c3d["parameters"]["POINT"]["LABELS"]["value"] == names
+    c3d_pts = c3d["data"]["points"][:3].transpose(2, 1, 0)  # (F, M, 3)
+    for (f, i), (xyz, _) in pos.items():
+        row = int(np.flatnonzero(frames == f)[0])
+        np.testing.assert_allclose(pts[row, i], xyz, atol=1e-6)
+        np.testing.assert_allclose(c3d_pts[row, i], xyz, atol=1e-5)  # float32 in the file
+    missing = np.isnan(pts).any(-1)
+    assert np.array_equal(missing, np.isnan(c3d_pts).any(-1))
+
+
+def test_mot_tracks_carry_identities_and_world_positions(gt_export, tmp_path):
+    counts = write_identity_tracks(gt_export["export"], gt_export["row_ids"], tmp_path,
+                                   gt_export["positions"])
+    assert sum(counts.values()) == len(gt_export["coco"]["annotations"])
+    rows = read_mot(tmp_path / "cam0.txt")
+    for r in rows:
+        key = (int(r[0]) - 1, int(r[1]) - 1)
+        if key in gt_export["positions"]:
+            np.testing.assert_allclose(r[7:10], gt_export["positions"][key][0], atol=1e-5)
+        else:
+            assert np.all(r[7:10] == -1)
+
+
+def test_image_folders_and_unknown_formats(gt_export, tmp_path):
+    with pytest.raises(ValueError, match="unknown.*'xls'"):
+        write_pose_tool_files(gt_export["export"], gt_export["scene"], gt_export["rig"],
+                              tmp_path, formats=("xls",))
+    shutil.rmtree(tmp_path)
+    s = write_pose_tool_files(gt_export["export"], gt_export["scene"], gt_export["rig"],
+                              tmp_path, formats=("slp",))  # per-camera tracks as ids
+    assert s["files"] == ["subjects.slp"] and s["tracks"] == 2
