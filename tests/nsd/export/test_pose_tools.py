@@ -31,7 +31,7 @@ from nsd.synth.scene import tiny_config, write_scene
 def _square(uv: np.ndarray, size: tuple[int, int], half: int = 2) -> dict:
     """RLE of a (2 half + 1)-pixel square centred on the pixel nearest ``uv``."""
     m = np.zeros((size[1], size[0]), np.uint8, order="F")
-    x, y = (int(round(v)) for v in uv)
+    x, y = (round(v) for v in uv)
     m[y - half:y + half + 1, x - half:x + half + 1] = 1
     rle = mask_utils.encode(m)
     rle["counts"] = rle["counts"].decode()
@@ -147,8 +147,8 @@ def test_deeplabcut_tables_hold_the_centroids(gt_export):
     table = pd.read_csv(gt_export["out"] / "dlc" / "cam1.csv", header=[0, 1, 2, 3], index_col=0)
     rows = [a for a in coco["annotations"] if a["camera"] == "cam1" and a["id"] in centroids]
     for a in rows:
-        row = table.iloc[[i for i, name in enumerate(table.index)
-                          if name.endswith(f"img{a['frame']:04d}.png")][0]]
+        row = table.iloc[next(i for i, name in enumerate(table.index)
+                          if name.endswith(f"img{a['frame']:04d}.png"))]
         x = row[("nsd-netepu", f"id{a['identity_id']}", "centroid", "x")]
         y = row[("nsd-netepu", f"id{a['identity_id']}", "centroid", "y")]
         np.testing.assert_allclose([x, y], centroids[a["id"]], atol=1e-6)
@@ -183,7 +183,7 @@ def test_mot_tracks_carry_identities_and_world_positions(gt_export, tmp_path):
 
 
 def test_image_folders_and_unknown_formats(gt_export, tmp_path):
-    with pytest.raises(ValueError, match="unknown.*'xls'"):
+    with pytest.raises(ValueError, match=r"unknown.*'xls'"):
         write_pose_tool_files(gt_export["export"], gt_export["scene"], gt_export["rig"],
                               tmp_path, formats=("xls",))
     shutil.rmtree(tmp_path)
