@@ -35,6 +35,10 @@ else
     $pip install $quiet "torch==$TORCH_VERSION"
 fi
 $pip install $quiet -e ".$extra"
+# TrackEval (HOTA, nsd/evaluation/tracking.py) without its dependencies: its metadata asks for
+# the opencv-python wheel, a second OpenCV beside opencv-python-headless (its HOTA code uses
+# none); everything else it imports is a dependency of the toolkit.
+$pip install $quiet --no-deps "trackeval>=1.3,<2"
 .venv/bin/python - <<'PY'
 import torch
 

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
-from nsd.evaluation.tracking import tracking_metrics
+from nsd.evaluation.tracking import hota, tracking_metrics
 from nsd.io.mot import read_mot, write_identity_tracks
 
 A, B = [10.0, 10.0, 20.0, 30.0], [60.0, 10.0, 20.0, 30.0]
@@ -64,3 +65,40 @@ def test_identities_across_cameras_replace_the_tracks(tmp_path):
     mot = read_mot(tmp_path / "tracks" / "c0.txt")
     assert sorted(mot[mot[:, 0] == 2][:, 1]) == [1, 2]  # frame 1 (MOT: 2) holds ids 1 and 2
     assert mot[(mot[:, 0] == 2) & (mot[:, 1] == 1)][0, 2] == A[0] + 1  # identity 0 is box A
+
+
+def _one_track(ids: list[int], iou: float = 1.0) -> dict:
+    """One ground-truth individual over len(ids) frames, tracked under ``ids`` per frame."""
+    return {"gt_ids": [[0]] * len(ids), "tracker_ids": [[i] for i in ids],
+            "similarity": [np.array([[iou]])] * len(ids)}
+
+
+def test_hota_known_values():
+    """Perfect tracking: 1. One switch halfway: every match's association is 1/2
+    (TPA = FNA = T/2), DetA 1, so HOTA = sqrt(1/2). A missed half: DetA = AssA = 1/2."""
+    assert hota([_one_track([5] * 8)]) == pytest.approx({"hota": 1.0, "deta": 1.0, "assa": 1.0})
+    switch = hota([_one_track([1] * 4 + [2] * 4)])
+    assert switch["deta"] == pytest.approx(1.0) and switch["assa"] == pytest.approx(0.5)
+    assert switch["hota"] == pytest.approx(np.sqrt(0.5))
+    half = _one_track([3] * 8)
+    half["tracker_ids"] = [[3]] * 4 + [[]] * 4
+    half["similarity"] = [np.array([[1.0]])] * 4 + [np.zeros((1, 0))] * 4
+    got = hota([half])
+    assert got["deta"] == pytest.approx(0.5) and got["assa"] == pytest.approx(0.5)
+    pooled = hota([_one_track([5] * 8), _one_track([1] * 4 + [2] * 4)])  # sequences combined
+    assert switch["hota"] < pooled["hota"] < 1.0
+
+
+def test_hota_without_trackeval_is_nan_and_said(monkeypatch, caplog):
+    import builtins
+
+    real = builtins.__import__
+
+    def no_trackeval(name, *a, **kw):
+        if name.startswith("trackeval"):
+            raise ImportError(name)
+        return real(name, *a, **kw)
+
+    monkeypatch.setattr(builtins, "__import__", no_trackeval)
+    got = hota([_one_track([1, 1])])
+    assert all(np.isnan(v) for v in got.values()) and "TrackEval" in caplog.text
