@@ -1,4 +1,4 @@
-"""Tracking metrics (MOTA, IDF1, ID switches; motmetrics) on three synthetic scenes.
+"""Tracking metrics (HOTA: TrackEval; MOTA, IDF1, ID switches: motmetrics) on three scenes.
 
     .venv/bin/python tools/bench_tracking.py     # ~20 minutes on 2 cores, nothing else running
 
@@ -33,7 +33,8 @@ SCENES = {  # name -> nsd-synth overrides (None: the built-in default scene)
     "3 bipeds, free": ["num_individuals=3", "motion.interaction=free", "seed=1"],
     "2 quadrupeds, close": ["num_individuals=2", "species=[quadruped]", "seed=2"],
 }
-KEYS = ("mota", "idf1", "id_switches", "recall", "precision", "motp_iou")
+KEYS = ("hota", "deta", "assa", "mota", "idf1", "id_switches", "recall", "precision",
+        "motp_iou")
 
 
 def _run(args: list[str]) -> None:
@@ -71,14 +72,14 @@ def main() -> None:
                          **({"identity_accuracy": ident} if label == "identities" else {})})
         print(rows[-3:], flush=True)
     write_report(
-        "tracking", "Tracking: MOTA, IDF1 and ID switches of the export", rows,
+        "tracking", "Tracking: HOTA, MOTA, IDF1 and ID switches of the export", rows,
         notes=(f"`nsd-run` with `train.trainer.max_steps={args.steps}` per scene, every "
-               "frame of every camera (motmetrics, box IoU >= 0.5, ground-truth boxes of at "
-               "least 16 visible pixels; nsd/evaluation/tracking.py). `tracks`: the export's "
-               "per-camera tracks; `identities`: the same boxes under the final identities "
-               "across cameras; baseline: the same decomposition re-exported with "
-               "`tracking.appearance_weight=0` (box overlap alone). HOTA is not reported: "
-               "TrackEval needs the opencv-python wheel beside the toolkit's headless one."),
+               "frame of every camera, ground-truth boxes of at least 16 visible pixels "
+               "(nsd/evaluation/tracking.py): HOTA, DetA, AssA by TrackEval (means over box-IoU "
+               "thresholds 0.05-0.95), MOTA, IDF1, ID switches by motmetrics (box IoU >= 0.5). "
+               "`tracks`: the export's per-camera tracks; `identities`: the same boxes under "
+               "the final identities across cameras; baseline: the same decomposition "
+               "re-exported with `tracking.appearance_weight=0` (box overlap alone)."),
     )
 
 
