@@ -55,6 +55,7 @@ from nsd.cameras.calibration_formats import (
     write_colmap,
     write_panoptic,
 )
+from nsd.cameras.dlt import read_dlt, write_dlt
 from nsd.cameras.units import in_metres
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CalibrationError
@@ -332,7 +333,8 @@ def find_calibration(scene: str | os.PathLike) -> Path:
     ``sparse/0/`` (COLMAP's), for, in this order: ``calibration.toml``, a caliscope
     ``camera_array.toml``, any other TOML file that holds cameras (so a Pose2Sim
     ``Config.toml`` is passed over), ``intri.yml``, ``*.qca.txt``, a CMU Panoptic
-    ``calibration*.json`` and a COLMAP ``cameras.txt`` / ``cameras.bin``.
+    ``calibration*.json``, a COLMAP ``cameras.txt`` / ``cameras.bin`` and a DLT coefficient
+    file (``*dlt*.csv``, any case: Argus ``*_dlt-coefs.csv``, DLTdv, easyWand).
     """
     scene = Path(scene)
     for folder in (scene, scene / "calibration", scene / "sparse" / "0"):
@@ -344,15 +346,17 @@ def find_calibration(scene: str | os.PathLike) -> Path:
             if _calibration_toml(p):
                 return p
         for pattern in ("intri.yml", "*.qca.txt", "calibration*.json", "cameras.txt",
-                        "cameras.bin"):
+                        "cameras.bin", "*.csv"):
             hits = [p for p in sorted(folder.glob(pattern))
-                    if not p.name.endswith(".json") or _panoptic_json(p)]
+                    if (not p.name.endswith(".json") or _panoptic_json(p))
+                    and (not p.name.endswith(".csv") or "dlt" in p.name.lower())]
             if hits:
                 return hits[0]
     raise CalibrationError(
         f"no calibration file in {scene} (expected calibration.toml, camera_array.toml, "
-        "intri.yml + extri.yml, *.qca.txt, a Panoptic calibration*.json or a COLMAP "
-        "cameras.txt/.bin, in the scene folder or its calibration/ subfolder)"
+        "intri.yml + extri.yml, *.qca.txt, a Panoptic calibration*.json, a COLMAP "
+        "cameras.txt/.bin or DLT coefficients *dlt*.csv, in the scene folder or its "
+        "calibration/ subfolder)"
     )
 
 
@@ -380,8 +384,11 @@ def _read_file(path: Path) -> CameraRig:
         return read_panoptic(path)
     if name in ("cameras.txt", "cameras.bin", "images.txt", "images.bin"):
         return read_colmap(path.parent)
+    if name.endswith(".csv"):
+        return read_dlt(path)
     raise CalibrationError(
-        f"{path}: unknown calibration format (.toml, .yml, .qca.txt, .json, COLMAP cameras.txt)")
+        f"{path}: unknown calibration format (.toml, .yml, .qca.txt, .json, COLMAP "
+        "cameras.txt, DLT .csv)")
 
 
 # format -> writer(rig, path); folder formats take a folder
@@ -392,12 +399,14 @@ WRITERS = {
     "panoptic": write_panoptic,
     "colmap": write_colmap,
     "colmap_bin": lambda rig, folder: write_colmap(rig, folder, binary=True),
+    "dlt": write_dlt,
 }
 
 
 def write_calibration(rig: CameraRig, path: str | os.PathLike, format: str = "auto") -> str:
     """Write ``rig`` in any writable format; ``auto`` picks it by the name (``*.toml``:
-    anipose, ``camera_array.toml``: caliscope, ``*.json``: Panoptic). Returns the format.
+    anipose, ``camera_array.toml``: caliscope, ``*.json``: Panoptic, ``*.csv``: DLT).
+    Returns the format.
 
     Raises:
         CalibrationError: an unknown format, or ``auto`` for a name that does not say one.
@@ -406,7 +415,8 @@ def write_calibration(rig: CameraRig, path: str | os.PathLike, format: str = "au
     if format == "auto":
         name = path.name.lower()
         format = ("caliscope" if name == "camera_array.toml" else "anipose"
-                  if name.endswith(".toml") else "panoptic" if name.endswith(".json") else "")
+                  if name.endswith(".toml") else "panoptic" if name.endswith(".json")
+                  else "dlt" if name.endswith(".csv") else "")
         if not format:
             raise CalibrationError(
                 f"{path}: give the format ({', '.join(WRITERS)}); a folder name does not say it")

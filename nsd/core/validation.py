@@ -252,7 +252,7 @@ RULES: dict[str, dict[str, Rule]] = {
     "check": {"scene": NULL_TEXT, "cameras": ALWAYS, "units": UNITS},
     "calib": {"calibration": _r("str"), "units": UNITS, "convert": NULL_TEXT, "preview": NULL_TEXT,
               "format": _r("str", choices=("auto", "anipose", "caliscope", "opencv", "panoptic",
-                                           "colmap", "colmap_bin"))},
+                                           "colmap", "colmap_bin", "dlt"))},
     "netepu_embed": {"export": _r("str"), "checkpoint": _r("str"), "keypoints": NULL_TEXT,
                      "calibration": NULL_TEXT, "maps": NULL_TEXT, "batch_size": POS,
                      "column": _r("str")},

@@ -20,10 +20,9 @@ without its dependencies; where it is missing, HOTA is NaN and said once.
 from __future__ import annotations
 
 import json
+import logging
 from collections import defaultdict
 from pathlib import Path
-
-import logging
 
 import motmetrics as mm
 import numpy as np

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import cv2
 import numpy as np
@@ -27,6 +28,7 @@ from nsd.cameras.calibration_io import (
     write_opencv_yaml,
     write_toml,
 )
+from nsd.cameras.dlt import read_dlt, write_dlt
 from nsd.cameras.projection import project_points
 from nsd.core.errors import CalibrationError
 
@@ -173,3 +175,62 @@ def test_pose2sim_project_folder_reads_calibration_not_config(random_cameras, tm
     write_toml(CameraRig(random_cameras), tmp_path / "calibration" / "Calib_board.toml")
     assert find_calibration(tmp_path).name == "Calib_board.toml"
     _same_projections(CameraRig(random_cameras), read_calibration(tmp_path))
+
+
+def _pinhole_rig(random_cameras) -> CameraRig:
+    """The random cameras without lens distortion, one with skew (a DLT holds 11 values)."""
+    cams = [dataclasses.replace(c, dist=np.zeros(0)) for c in random_cameras]
+    K = cams[2].K.copy()
+    K[0, 1] = 3.0
+    cams[2] = dataclasses.replace(cams[2], K=K)
+    return CameraRig([dataclasses.replace(c, name=f"cam{i + 1}") for i, c in enumerate(cams)])
+
+
+@pytest.mark.parametrize("origin", ["lower_left", "upper_left"])
+def test_dlt_round_trip_and_known_projection(random_cameras, tmp_path, origin):
+    rig = _pinhole_rig(random_cameras)
+    write_dlt(rig, tmp_path / "x_dlt-coefs.csv", origin)
+    back = read_dlt(tmp_path / "x_dlt-coefs.csv", {c.name: c.size for c in rig}, origin)
+    _same_projections(rig, back)
+    for a, b in zip(rig, back, strict=True):
+        np.testing.assert_allclose(b.K, a.K, atol=1e-6)
+        np.testing.assert_allclose(b.R, a.R, atol=1e-9)
+    # the DLT equations themselves, in the tools' image coordinates
+    L = np.loadtxt(tmp_path / "x_dlt-coefs.csv", delimiter=",")[:, 0]
+    X = _points(20)
+    den = X @ L[8:11] + 1
+    u, v = (X @ L[0:3] + L[3]) / den, (X @ L[4:7] + L[7]) / den
+    uv, _ = rig[0].project(X)
+    H = rig[0].size[1]
+    expect = (uv[:, 0] + 1, H - uv[:, 1]) if origin == "lower_left" else (uv[:, 0], uv[:, 1])
+    np.testing.assert_allclose(u, expect[0], atol=1e-6)
+    np.testing.assert_allclose(v, expect[1], atol=1e-6)
+
+
+def test_dlt_in_a_scene_folder_takes_sizes_from_the_footage(random_cameras, tmp_path):
+    rig = _pinhole_rig(random_cameras)[:2]
+    for c in rig:
+        (tmp_path / c.name).mkdir()
+        cv2.imwrite(str(tmp_path / c.name / "000000.png"),
+                    np.zeros((c.size[1], c.size[0], 3), np.uint8))
+    write_calibration(rig, tmp_path / "trial_dlt-coefs.csv")
+    assert find_calibration(tmp_path).name == "trial_dlt-coefs.csv"
+    _same_projections(rig, read_calibration(tmp_path))
+    shutil.rmtree(tmp_path / "cam2")
+    with pytest.raises(CalibrationError, match=r"camera 'cam2'.*no image size"):
+        read_calibration(tmp_path)
+
+
+def test_dlt_refuses_what_it_cannot_hold(random_cameras, tmp_path):
+    with pytest.raises(CalibrationError, match=r"camera 'cam1'.*lens distortion"):
+        write_dlt(CameraRig(random_cameras[1:2]).select(["cam1"]), tmp_path / "d.csv")
+    (tmp_path / "bad_dlt.csv").write_text("1,2\n3,4\n")
+    with pytest.raises(CalibrationError, match="11 rows"):
+        read_dlt(tmp_path / "bad_dlt.csv", {})
+    rig = _pinhole_rig(random_cameras)[:1]
+    write_dlt(rig, tmp_path / "m_dlt.csv")
+    L = np.loadtxt(tmp_path / "m_dlt.csv", delimiter=",").reshape(11, 1)
+    L[[0, 4, 8]] *= -1  # X mirrored: a left-handed world
+    np.savetxt(tmp_path / "m_dlt.csv", L, delimiter=",")
+    with pytest.raises(CalibrationError, match="left-handed"):
+        read_dlt(tmp_path / "m_dlt.csv", {"cam1": rig[0].size})
