@@ -39,6 +39,11 @@ $pip install $quiet -e ".$extra"
 # the opencv-python wheel, a second OpenCV beside opencv-python-headless (its HOTA code uses
 # none); everything else it imports is a dependency of the toolkit.
 $pip install $quiet --no-deps "trackeval>=1.3,<2"
+if [ -n "$extra" ]; then
+    # aniposelib for the calibration round-trip tests, without its opencv-contrib-python
+    # (a second OpenCV) and jax (triangulation only) requirements; numba, toml: test extra
+    $pip install $quiet --no-deps "aniposelib>=0.8,<0.9"
+fi
 .venv/bin/python - <<'PY'
 import torch
 

@@ -25,7 +25,7 @@ import numpy as np
 from nsd.cameras.calibration import CameraRig
 from nsd.core.errors import CalibrationError
 
-__all__ = ["AUTO_MM_SPACING", "UNITS", "camera_spacing", "in_metres"]
+__all__ = ["AUTO_MM_SPACING", "UNITS", "camera_spacing", "file_units", "in_metres"]
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,20 @@ def camera_spacing(rig: CameraRig) -> float:
     if len(centres) < 2:
         return 0.0
     return float(np.median([np.linalg.norm(a - b) for a, b in combinations(centres, 2)]))
+
+
+def file_units(rig: CameraRig, units: str = "auto") -> str:
+    """The unit of a rig as read from its file: ``units`` itself, or what ``auto`` infers
+    (``mm`` or ``m``); other files of the scene in that unit (anipose's 3D labels) follow.
+
+    Raises:
+        CalibrationError: an unknown unit.
+    """
+    if units != "auto" and units not in UNITS:
+        raise CalibrationError(f"units={units!r}: one of auto, {', '.join(UNITS)}")
+    if units != "auto":
+        return units
+    return "mm" if camera_spacing(rig) > AUTO_MM_SPACING else "m"
 
 
 def in_metres(rig: CameraRig, units: str = "auto") -> CameraRig:
@@ -55,17 +69,12 @@ def in_metres(rig: CameraRig, units: str = "auto") -> CameraRig:
     Raises:
         CalibrationError: an unknown unit.
     """
-    if units != "auto" and units not in UNITS:
-        raise CalibrationError(f"units={units!r}: one of auto, {', '.join(UNITS)}")
-    note = ""
-    if units == "auto":
-        spacing = camera_spacing(rig)
-        units = "mm" if spacing > AUTO_MM_SPACING else "m"
-        if units == "mm":
-            note = (f"calibration {rig.source}: the cameras are a median {spacing:.0f} units "
-                    f"apart, read as millimetres and converted to metres (give units=m, cm "
-                    f"or mm to say the unit)")
-            log.warning("%s", note)
-    out = rig if units == "m" else rig.with_translation_scale(UNITS[units])
+    resolved, note = file_units(rig, units), ""
+    if units == "auto" and resolved == "mm":
+        note = (f"calibration {rig.source}: the cameras are a median {camera_spacing(rig):.0f} "
+                f"units apart, read as millimetres and converted to metres (give units=m, cm "
+                f"or mm to say the unit)")
+        log.warning("%s", note)
+    out = rig if resolved == "m" else rig.with_translation_scale(UNITS[resolved])
     out.units_note = note
     return out

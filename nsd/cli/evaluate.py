@@ -10,10 +10,16 @@ from omegaconf import DictConfig
 
 from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_write_text
+from nsd.core.errors import ConfigError
 from nsd.core.threads import set_threads
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
+from nsd.evaluation.labelled import LABEL_METRICS, score_labels
 from nsd.evaluation.tracking import tracking_metrics
 from nsd.inference.multiview import InferenceSettings
+from nsd.io.footage import MultiViewFootage
+from nsd.io.ground_truth import GroundTruth
+from nsd.io.identities import read_identities
+from nsd.io.labels import Labels2D, read_labels_2d
 from nsd.io.scenes import resolve_scene
 from nsd.model.checkpoint import load_decomposition
 
@@ -28,20 +34,49 @@ def _hydra_main(cfg: DictConfig) -> float:
         set_threads(int(cfg.threads))
         frames = cfg.frames if isinstance(cfg.frames, str) else list(cfg.frames)
         settings = InferenceSettings.from_config(cfg.inference)
-        metrics = evaluate_checkpoint(
-            cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings,
-            baseline=bool(cfg.baseline),
-        )
-        if cfg.export:
-            scene = cfg.scene or load_decomposition(cfg.checkpoint).config.data.scene
-            tracks = tracking_metrics(cfg.export, resolve_scene(scene))
+        scene = resolve_scene(cfg.scene or load_decomposition(cfg.checkpoint).config.data.scene)
+        labels = _labels(cfg, scene)  # read and checked before any work
+        metrics: dict[str, float] = {}
+        if labels is None or GroundTruth.exists(scene):  # real footage: the labels alone
+            metrics = evaluate_checkpoint(
+                cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings,
+                baseline=bool(cfg.baseline),
+            )
+        if cfg.export and GroundTruth.exists(scene):
+            tracks = tracking_metrics(cfg.export, scene)
             metrics.update({f"tracking_{k}": v for k, v in tracks.items()})
+        if labels is not None:
+            row_ids = None
+            if cfg.identities:
+                ids = read_identities(Path(cfg.identities))
+                row_ids = dict(zip(ids["id"].tolist(), ids["identity"].tolist(), strict=True))
+            scores = score_labels(cfg.export, labels, row_ids)
+            metrics.update({f"labels_{k}": v for k, v in scores.items()})
         ckpt = Path(cfg.checkpoint)
         out = Path(cfg.out) if cfg.out else (ckpt if ckpt.is_dir() else ckpt.parent)
         atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
-        atomic_write_text(out / "eval.md", markdown_table(metrics))
-        print(markdown_table(metrics))
+        table = markdown_table(metrics) + _labels_table(metrics)
+        atomic_write_text(out / "eval.md", table)
+        print(table)
         return float(metrics.get("mask_miou", float("nan")))
+
+
+def _labels(cfg: DictConfig, scene: Path) -> Labels2D | None:
+    """The labelled keypoints of ``labels=`` (None without), with what they need."""
+    if not cfg.labels:
+        return None
+    if not cfg.export:
+        raise ConfigError("labels= scores an export: give export=<nsd-export folder of the scene>")
+    return read_labels_2d(cfg.labels, MultiViewFootage(scene).calibration_names)
+
+
+def _labels_table(metrics: dict[str, float]) -> str:
+    if "labels_keypoints_in_mask" not in metrics:
+        return ""
+    rows = ["", "Against the labelled keypoints (nsd/evaluation/labelled.py):", "",
+            "| metric | value |", "|---|---|"]
+    rows += [f"| {k} | {metrics[f'labels_{k}']:.4g} |" for k in LABEL_METRICS]
+    return "\n".join(rows) + "\n"
 
 
 def main() -> None:

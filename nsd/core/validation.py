@@ -190,7 +190,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "stage": _r("str", choices=("decomposition", "pose")), "batch_size": POS,
         "eval_frames": POS, "init_from": NULL_TEXT, "pose.label_fraction": _r(
             "number", above=0, high=1), "pose.hidden": POS,
-        "pose.dropout": _r("number", low=0, high=0.99), "pose.lr": RATE,
+        "pose.dropout": _r("number", low=0, high=0.99), "pose.lr": RATE, "pose.labels": NULL_TEXT,
     },
     "run": {
         "scene": NULL_TEXT, "out": NULL_TEXT, "checkpoint": NULL_TEXT,
@@ -208,7 +208,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "formats.fps": _r("number", above=0, null=True),
     },
     "eval": {"checkpoint": _r("str"), "scene": NULL_TEXT, "frames": ALWAYS, "out": NULL_TEXT,
-             "export": NULL_TEXT,
+             "export": NULL_TEXT, "labels": NULL_TEXT, "identities": NULL_TEXT,
              "refine": _r("str", choices=("residual", "none"))},
     "export": {
         "checkpoint": _r("str"), "scene": NULL_TEXT, "out": NULL_TEXT, "cameras": ALWAYS,

@@ -3,7 +3,9 @@
 B and E are frozen (their windows and latent clouds are computed once); P maps
 a window's latent cloud, expressed in its camera's frame, to the individual's
 root-relative 3D keypoints in that camera frame. Only ``pose.label_fraction``
-of the training frames carry labels; a labelled individual is tied to the
+of the training frames carry labels (or, with ``pose.labels``, a user's 3D labels, e.g.
+anipose's ``pose-3d`` CSV (:mod:`nsd.io.labels`): the training frames it labels train P,
+the held-out ones it labels score it); a labelled individual is tied to the
 window whose visible mask holds most of its projected keypoints (labels plus
 calibration only, no masks). The metric is MPJPE (root-relative, in scene
 units x 1000, i.e. mm for metric scenes) on held-out frames, as NSD's Fig. 8.
@@ -45,14 +47,26 @@ class PoseTask:
 
     def __init__(self, cfg, data, gt) -> None:
         if gt is None:
-            raise ConfigError("stage=pose needs a scene with 3D keypoint ground truth (gt/)")
+            raise ConfigError("stage=pose needs 3D keypoints: a scene with ground truth (gt/) "
+                              "or pose.labels=<anipose pose-3d CSV>")
         if not cfg.init_from:
             raise ConfigError("stage=pose needs init_from=<decomposition checkpoint.pt>")
         self.cfg, self.data, self.gt = cfg, data, gt
         self.model = build_model(cfg.model)
         for p in self.model.parameters():
             p.requires_grad_(False)
-        self.labelled = label_frames(data.train_frames, cfg.pose.label_fraction, cfg.trainer.seed)
+        if hasattr(gt, "frames"):  # a user's labels: every labelled training frame
+            self.labelled = np.intersect1d(data.train_frames, gt.frames)
+            missing = [n for n, f in (("training", self.labelled), ("held-out", np.intersect1d(
+                data.heldout_frames, gt.frames))) if not len(f)]
+            if missing:
+                raise ConfigError(
+                    f"pose.labels {gt.source}: no labelled {' or '.join(missing)} frames "
+                    f"(labelled: {len(gt.frames)} frames; the held-out tail is the last "
+                    f"data.val_fraction of the footage)")
+        else:
+            self.labelled = label_frames(data.train_frames, cfg.pose.label_fraction,
+                                         cfg.trainer.seed)
         self._latents: dict[str, tuple[Tensor, Tensor]] = {}
         self.regressor: PoseRegressor | None = None
         self.opt: torch.optim.Optimizer | None = None

@@ -7,10 +7,13 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from nsd.cameras.calibration_io import read_calibration
+from nsd.cameras.units import file_units
 from nsd.core.errors import ConfigError
 from nsd.core.threads import set_threads
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 from nsd.io.ground_truth import GroundTruth
+from nsd.io.labels import read_labels_3d
 from nsd.io.scene_data import SceneData
 from nsd.io.scenes import resolve_scene
 from nsd.training.pose_task import PoseTask
@@ -31,6 +34,9 @@ def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     )
 
     gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
+    if cfg.stage == "pose" and cfg.pose.get("labels"):  # a user's 3D labels, in the rig's unit
+        unit = file_units(read_calibration(scene, "m"), cfg.data.units)
+        gt = read_labels_3d(cfg.pose.labels, unit)
     tcfg = TrainerConfig.from_config(OmegaConf.to_container(cfg.trainer, resolve=True))
     seed_everything(tcfg.seed)  # model initialisation is part of the seeded train
     if cfg.stage == "pose":

@@ -234,3 +234,19 @@ def test_dlt_refuses_what_it_cannot_hold(random_cameras, tmp_path):
     np.savetxt(tmp_path / "m_dlt.csv", L, delimiter=",")
     with pytest.raises(CalibrationError, match="left-handed"):
         read_dlt(tmp_path / "m_dlt.csv", {"cam1": rig[0].size})
+
+
+@pytest.mark.parametrize("fisheye", [False, True])
+def test_anipose_toml_is_read_by_aniposelib_and_back(random_cameras, tmp_path, fisheye):
+    """Our TOML loaded by aniposelib (anipose's own library) projects like our rig, and
+    a TOML aniposelib writes reads back to the same projections, fisheye lenses included."""
+    aniposelib = pytest.importorskip("aniposelib.cameras")  # tools/setup.sh --dev installs it
+    rig = _fisheye_rig(random_cameras) if fisheye else CameraRig(random_cameras)
+    write_toml(rig, tmp_path / "ours.toml")
+    group = aniposelib.CameraGroup.load(str(tmp_path / "ours.toml"))
+    X = _points(100)
+    theirs = group.project(X)
+    for v, cam in enumerate(rig):
+        np.testing.assert_allclose(theirs[v], cam.project(X)[0], atol=1e-6)
+    group.dump(str(tmp_path / "theirs.toml"))
+    _same_projections(rig, read_calibration(tmp_path / "theirs.toml"))

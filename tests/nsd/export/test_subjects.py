@@ -327,3 +327,43 @@ def test_threads_are_not_changed_by_the_library(trained, tmp_path):
     before = torch.get_num_threads()
     _export(ckpt, scene, tmp_path / "out", frames=[0], threads=1)
     assert torch.get_num_threads() == before
+
+
+def test_nsd_eval_scores_labels_on_footage_without_ground_truth(trained, tmp_path):
+    """Real footage has no gt/: nsd-eval labels= scores an export against a user's SLEAP
+    labels alone; without export= it stops before any work, naming the key."""
+    import sleap_io as sio
+
+    ckpt, scene = trained
+    s = _export(ckpt, scene, tmp_path / "out")
+    real = tmp_path / "real"
+    shutil.copytree(scene, real, ignore=shutil.ignore_patterns("gt", ".cache"))
+    coco = json.loads((scene / "gt" / "coco.json").read_text())
+    images = {im["id"]: im for im in coco["images"]}
+    skeleton = sio.Skeleton([f"kp{k}" for k in range(17)])
+    videos = {c: sio.Video(filename=sorted(str(p) for p in (real / c).glob("*.png")))
+              for c in ("cam0", "cam1")}
+    frames = {}
+    for a in coco["annotations"]:
+        im = images[a["image_id"]]
+        kp = np.asarray(a["keypoints"], np.float64).reshape(-1, 3)
+        lf = frames.setdefault((im["camera"], im["frame"]), sio.LabeledFrame(
+            video=videos[im["camera"]], frame_idx=im["frame"]))
+        lf.instances.append(sio.Instance.from_numpy(
+            np.where((kp[:, 2] == 2)[:, None], kp[:, :2], np.nan), skeleton=skeleton))
+    slp = tmp_path / "labels.slp"
+    sio.save_slp(sio.Labels(labeled_frames=list(frames.values()), videos=list(videos.values()),
+                            skeletons=[skeleton]), str(slp))
+    cmd = [sys.executable, "-m", "nsd.cli.evaluate", f"checkpoint={ckpt}", f"scene={real}",
+           f"labels={slp}", f"out={tmp_path / 'ev'}"]
+    bad = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert bad.returncode == 2 and "labels= scores an export: give export=" in bad.stderr
+    ok = subprocess.run([*cmd, f"export={s.out}"], capture_output=True, text=True, cwd=ROOT,
+                        timeout=300)
+    assert ok.returncode == 0, ok.stderr
+    metrics = json.loads((tmp_path / "ev" / "eval.json").read_text())
+    assert "mask_miou" not in metrics  # no ground truth: the labels alone
+    assert metrics["labels_labelled_instances"] == len(coco["annotations"])
+    assert 0 <= metrics["labels_keypoints_in_mask"] <= 1
+    assert np.isnan(metrics["labels_cross_view_identity"])  # untracked labels: no pairs
+    assert "keypoints_in_mask" in (tmp_path / "ev" / "eval.md").read_text()

@@ -1,0 +1,135 @@
+"""A user's labels (nsd/io/labels.py) and an export scored against them
+(nsd/evaluation/labelled.py): files written by the tools' conventions read back exactly,
+known scores on a synthetic scene's ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import sleap_io as sio
+
+from nsd.core.errors import ConfigError
+from nsd.evaluation.labelled import score_labels
+from nsd.io.labels import read_labels_2d, read_labels_3d
+from nsd.synth.scene import tiny_config, write_scene
+
+CAMS = ["cam0", "cam1", "cam2"]
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A 3-camera synthetic scene, its ground truth as an export, and its 2D keypoints."""
+    root = tmp_path_factory.mktemp("labels")
+    scene = write_scene(tiny_config(image_size=[64, 64], rig={
+        "kind": "ring", "count": 3, "radius": 4.0, "height": 2.0, "fov_deg": 50.0,
+        "start_deg": 30.0}), root / "scene")
+    coco = json.loads((scene / "gt" / "coco.json").read_text())
+    images = {im["id"]: im for im in coco["images"]}
+    points = {}  # (camera, frame) -> identity -> (K, 2), only visible keypoints
+    for a in coco["annotations"]:
+        im = images[a["image_id"]]
+        a.update(camera=im["camera"], frame=im["frame"], subject_id=a["identity_id"] + 1)
+        kp = np.asarray(a["keypoints"], np.float64).reshape(-1, 3)
+        xy = np.where((kp[:, 2] == 2)[:, None], kp[:, :2], np.nan)
+        points.setdefault((im["camera"], im["frame"]), {})[f"id{a['identity_id']}"] = xy
+    export = root / "export"
+    export.mkdir()
+    (export / "subjects.coco.json").write_text(json.dumps(coco))
+    return {"root": root, "scene": scene, "coco": coco, "export": export, "points": points}
+
+
+def _slp(world, path):
+    """The visible 2D keypoints as SLEAP user instances, one video per camera folder."""
+    K = next(iter(next(iter(world["points"].values())).values())).shape[0]
+    skeleton = sio.Skeleton([f"kp{k}" for k in range(K)])
+    videos = {c: sio.Video(filename=sorted(str(p) for p in (world["scene"] / c).glob("*.png")))
+              for c in CAMS}
+    tracks = {n: sio.Track(name=n) for n in ("id0", "id1")}
+    frames = [sio.LabeledFrame(video=videos[c], frame_idx=f, instances=[
+        sio.Instance.from_numpy(xy, skeleton=skeleton, track=tracks[n])
+        for n, xy in who.items()]) for (c, f), who in sorted(world["points"].items())]
+    sio.save_slp(sio.Labels(labeled_frames=frames, videos=list(videos.values()),
+                            skeletons=[skeleton], tracks=list(tracks.values())), str(path))
+    return path
+
+
+def test_sleap_labels_read_back(world):
+    labels = read_labels_2d(_slp(world, world["root"] / "l.slp"), CAMS)
+    assert labels.tracked and set(labels.points) == set(world["points"])
+    for key, who in world["points"].items():
+        for name, xy in who.items():
+            np.testing.assert_allclose(labels.points[key][name], xy, atol=1e-9)
+
+
+def test_deeplabcut_table_reads_back(world, tmp_path):
+    """A multi-animal CollectedData CSV (4 header rows, DeepLabCut >= 2.3's 3-column index)."""
+    bodyparts = [f"kp{k}" for k in range(17)]
+    cols = pd.MultiIndex.from_tuples(
+        [("me", n, b, c) for n in ("id0", "id1") for b in bodyparts for c in ("x", "y")],
+        names=["scorer", "individuals", "bodyparts", "coords"])
+    keys = sorted(k for k in world["points"] if k[0] == "cam1")
+    index = pd.MultiIndex.from_tuples([("labeled-data", c, f"img{f:04d}.png") for c, f in keys])
+    data = [[world["points"][k].get(n, np.full((17, 2), np.nan))[b, j]
+             for n in ("id0", "id1") for b in range(17) for j in range(2)] for k in keys]
+    pd.DataFrame(data, index=index, columns=cols).to_csv(tmp_path / "CollectedData_me.csv")
+    labels = read_labels_2d(tmp_path / "CollectedData_me.csv", CAMS)
+    assert labels.bodyparts == bodyparts and set(labels.points) == set(keys)
+    for k in keys:
+        for name, xy in world["points"][k].items():
+            np.testing.assert_allclose(labels.points[k][name], xy, atol=1e-9)
+
+
+def test_scores_of_the_ground_truth_and_of_swapped_identities(world):
+    labels = read_labels_2d(_slp(world, world["root"] / "s.slp"), CAMS)
+    got = score_labels(world["export"], labels)
+    assert got["detected"] == 1.0 and got["cross_view_identity"] == 1.0
+    assert got["keypoints_in_mask"] > 0.9  # visible keypoints lie in the visible masks
+    # identities swapped in one camera: every cross-camera pair with it is wrong
+    rows = {a["id"]: (1 - a["identity_id"] if a["camera"] == "cam2" else a["identity_id"])
+            for a in world["coco"]["annotations"]}
+    swapped = score_labels(world["export"], labels, rows)
+    per_frame = {}
+    for (c, f), who in labels.points.items():
+        per_frame.setdefault(f, []).extend((c, n) for n in who)
+    pairs = wrong = 0
+    for insts in per_frame.values():
+        for i, (ca, _) in enumerate(insts):
+            for cb, _ in insts[i + 1:]:
+                if ca != cb:
+                    pairs += 1
+                    wrong += "cam2" in (ca, cb)
+    assert swapped["cross_view_pairs"] == pairs
+    assert swapped["cross_view_identity"] == pytest.approx(1 - wrong / pairs)
+    assert swapped["keypoints_in_mask"] == got["keypoints_in_mask"]  # masks unchanged
+
+
+def test_labels_name_what_is_wrong(world, tmp_path):
+    with pytest.raises(ConfigError, match=r"none of the scene's cameras"):
+        read_labels_2d(_slp(world, tmp_path / "x.slp"), ["left", "right"])
+    with pytest.raises(ConfigError, match="does not exist"):
+        read_labels_2d(tmp_path / "missing.slp", CAMS)
+    (tmp_path / "l.txt").write_text("x")
+    with pytest.raises(ConfigError, match="unknown format"):
+        read_labels_2d(tmp_path / "l.txt", CAMS)
+
+
+def test_anipose_3d_labels_in_millimetres(tmp_path):
+    xyz = np.arange(2 * 3 * 3, dtype=float).reshape(2, 3, 3) * 100.0  # frames, bodyparts, xyz
+    cols = {}
+    for k, b in enumerate(("nose", "tail", "paw")):
+        for j, c in enumerate("xyz"):
+            cols[f"{b}_{c}"] = xyz[:, k, j]
+        cols[f"{b}_error"] = [0.5, 0.5]
+    cols["fnum"] = [7, 9]
+    df = pd.DataFrame(cols)
+    df.loc[1, "tail_y"] = np.nan  # an incomplete pose is left out
+    df.to_csv(tmp_path / "pose3d.csv", index=False)
+    labels = read_labels_3d(tmp_path / "pose3d.csv", "mm")
+    assert labels.bodyparts == ["nose", "tail", "paw"] and list(labels.frames) == [7]
+    np.testing.assert_allclose(labels.keypoints3d(7)[0], xyz[0] / 1000.0)
+    assert labels.keypoints3d(9) == {} and labels.num_keypoints == 3
+    with pytest.raises(ConfigError, match="units 'ft'"):
+        read_labels_3d(tmp_path / "pose3d.csv", "ft")
