@@ -47,8 +47,9 @@ class ImageEntries:
     entries are computed when asked, so nothing here grows with the footage.
     """
 
-    def __init__(self, footage: MultiViewFootage, scene: Path, frames: np.ndarray) -> None:
-        self.footage, self.scene = footage, scene
+    def __init__(self, footage: MultiViewFootage, scene: Path, frames: np.ndarray,
+                 frame_images: bool = False) -> None:
+        self.footage, self.scene, self.frame_images = footage, scene, frame_images
         self.gt: dict[tuple[str, int], dict] | None = None
         gt_file = scene / "gt" / "coco.json"
         if gt_file.is_file():
@@ -65,12 +66,20 @@ class ImageEntries:
         self.index = {c: names.index(c) for c in footage.camera_names}
         self.num_cameras = len(names)
 
+    @staticmethod
+    def image_path(camera: str, t: int) -> str:
+        """Where ``frame_images`` puts a camera-frame, relative to the export folder."""
+        return f"images/{camera}/{t:06d}.jpg"
+
     def __call__(self, v: int, t: int) -> dict:
         cam = self.footage.camera_names[v]
         if self.gt is not None:
-            return self.gt[(cam, t)]
+            entry = self.gt[(cam, t)]
+            return dict(entry, file_name=self.image_path(cam, t)) if self.frame_images else entry
         src = self.footage.sources[v]
-        if isinstance(src, ImageFolderSource):
+        if self.frame_images:
+            name = self.image_path(cam, t)
+        elif isinstance(src, ImageFolderSource):
             name = src.files[t].relative_to(self.scene).as_posix()
         else:
             name = f"{src.path.relative_to(self.scene).as_posix()}#{t:06d}"
@@ -109,7 +118,7 @@ def prepare_inputs(cfg: DictConfig) -> ExportInputs:
         footage,
         scene,
         frames,
-        ImageEntries(footage, scene, frames),
+        ImageEntries(footage, scene, frames, bool(cfg.get("frame_images", False))),
         bg,
         footage.rig.stacked(torch.float32),
     )

@@ -20,7 +20,7 @@ from omegaconf import DictConfig
 from pycocotools import mask as mask_utils
 
 from nsd.core.memory import trim_heap
-from nsd.export.inputs import ExportInputs, to_model_size
+from nsd.export.inputs import ExportInputs, ImageEntries, to_model_size
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.inference.single import associate_views
@@ -36,6 +36,7 @@ from nsd.ops.vectors import unit_vectors
 __all__ = ["CATEGORIES", "COLUMN_TYPES", "SubjectWriter", "columns"]
 
 
+JPEG_QUALITY = 95  # frame_images: the exported frames as JPEG of this quality
 CATEGORIES = [{"id": SUBJECT_CATEGORY, "name": "subject", "supercategory": "subject"}]
 
 
@@ -85,9 +86,21 @@ class SubjectWriter:
         )
         for b, (t, views) in enumerate(items):
             self._frame(dec, b * V, t, views)
+            if self.cfg.get("frame_images", False):
+                self._frame_images(t, views)
         self.frames_done += len(items)
         del dec, images, bgs, small
         trim_heap()
+
+    def _frame_images(self, t: int, views: list[np.ndarray]) -> None:
+        """The native frames as JPEG files, where the COCO ``file_name`` points
+        (:meth:`nsd.export.inputs.ImageEntries.image_path`)."""
+        for cam, view in zip(self.names, views, strict=True):
+            path = self.root / ImageEntries.image_path(cam, t)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if not cv2.imwrite(str(path), cv2.cvtColor(view, cv2.COLOR_RGB2BGR),
+                               [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
+                raise OSError(f"cannot write {path}")
 
     def _frame(self, dec, first: int, t: int, views: list[np.ndarray]) -> None:
         """Write instant ``t``, whose views are rows ``first ..`` of ``dec``."""

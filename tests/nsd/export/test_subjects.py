@@ -367,3 +367,24 @@ def test_nsd_eval_scores_labels_on_footage_without_ground_truth(trained, tmp_pat
     assert 0 <= metrics["labels_keypoints_in_mask"] <= 1
     assert np.isnan(metrics["labels_cross_view_identity"])  # untracked labels: no pairs
     assert "keypoints_in_mask" in (tmp_path / "ev" / "eval.md").read_text()
+
+
+def test_frame_images_give_coco_real_image_paths(trained, tmp_path):
+    """frame_images=true: every COCO image's file_name is a JPEG in the export that image
+    tools open, the camera-frame itself (JPEG-close to the footage)."""
+    import cv2
+
+    from nsd.io.footage import MultiViewFootage
+
+    ckpt, scene = trained
+    s = _export(ckpt, scene, tmp_path / "out", frame_images=True, frames=[0, 3])
+    coco = json.loads((s.out / "subjects.coco.json").read_text())
+    assert len(coco["images"]) == 4  # 2 frames x 2 cameras
+    footage = MultiViewFootage(scene)
+    for im in coco["images"]:
+        img = cv2.imread(str(s.out / im["file_name"]))
+        assert img is not None and img.shape[:2] == (im["height"], im["width"])
+        native = footage.sources[footage.camera_names.index(im["camera"])].read(im["frame"])
+        assert np.abs(img[..., ::-1].astype(float) - native).mean() < 4.0
+    manifest = json.loads((s.out / "manifest.json").read_text())
+    assert any(k.startswith("images/") for k in manifest["files"])
