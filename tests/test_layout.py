@@ -37,7 +37,8 @@ LAYERS = [
     "netepu.cli",
 ]
 # imports that may stay inside a function, with the reason given at the import
-LAZY = {"matplotlib", "matplotlib.pyplot", "sklearn.manifold"}
+# trackeval.metrics: optional (tools/setup.sh installs it without its dependencies)
+LAZY = {"matplotlib", "matplotlib.pyplot", "sklearn.manifold", "trackeval.metrics"}
 
 
 def _modules() -> dict[str, Path]:

@@ -66,6 +66,7 @@ class SubjectWriter:
             else None
         )
         self.frames_done = 0
+        self.native_backgrounds: list[np.ndarray] | None = None  # native_refine, on first use
 
     def batch(self, items: list[tuple[int, list[np.ndarray]]]) -> None:
         """Decompose and write B instants: ``items`` = [(t, native views)]."""
@@ -105,7 +106,7 @@ class SubjectWriter:
     def _frame(self, dec, first: int, t: int, views: list[np.ndarray]) -> None:
         """Write instant ``t``, whose views are rows ``first ..`` of ``dec``."""
         assoc = self._associate(dec, first)
-        per_view = self._coco_results(dec, first, t, assoc)
+        per_view = self._coco_results(dec, first, t, assoc, views)
         track = self.tracker.update(t, self._observations(dec, first, per_view))
         rows: dict[str, list] = defaultdict(list)
         for v, cam in enumerate(self.names):
@@ -127,9 +128,15 @@ class SubjectWriter:
 
         return associate_views(dec.app[sl], dec.active[sl], self.dims, score)
 
-    def _coco_results(self, dec, first: int, t: int, assoc: torch.Tensor) -> list[list[dict]]:
-        """Each view's COCO results at its native size, with their ``association_id``."""
+    def _coco_results(self, dec, first: int, t: int, assoc: torch.Tensor,
+                      views: list[np.ndarray]) -> list[list[dict]]:
+        """Each view's COCO results at its native size, with their ``association_id``
+        (``native_refine``: masks refined at native resolution, :mod:`nsd.cues.native`)."""
         per_view = []
+        refine = bool(self.cfg.get("native_refine", False))
+        if refine and self.native_backgrounds is None:
+            self.native_backgrounds = [self.inp.footage.native_background(v)
+                                       for v in range(len(self.names))]
         for v, cam in enumerate(self.names):
             image = self.inp.images(v, t)
             self.coco.add_image(image)
@@ -141,6 +148,7 @@ class SubjectWriter:
                 native,
                 float(self.cfg.threshold),
                 {"camera": cam, "frame": t},
+                (views[v], self.native_backgrounds[v]) if refine else None,
             )
             for r in res:
                 r["association_id"] = int(assoc[v, r["slot"]])

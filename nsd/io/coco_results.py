@@ -13,6 +13,8 @@ import cv2
 import numpy as np
 from pycocotools import mask as mask_utils
 
+from nsd.cues.native import native_masks
+
 __all__ = ["SUBJECT_CATEGORY", "decomposition_to_coco", "encode_rle", "resize_mask"]
 
 SUBJECT_CATEGORY = 1
@@ -39,6 +41,7 @@ def decomposition_to_coco(
     native_size: tuple[int, int],
     threshold: float = 0.5,
     extra: dict | None = None,
+    native: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[dict]:
     """COCO results for frame ``b`` of an :class:`nsd.inference.single.Decomposition`.
 
@@ -49,11 +52,21 @@ def decomposition_to_coco(
         native_size: (H, W) of the footage (masks are upsampled to it).
         threshold: visible-mask threshold.
         extra: fields added to every result (e.g. camera, frame).
+        native: (frame, background), native uint8 RGB: the masks are refined at native
+            resolution (:func:`nsd.cues.native.native_masks`) instead of upsampled
+            and thresholded.
     """
     out = []
-    for k in np.flatnonzero(dec.active[b].cpu().numpy()):
-        soft = resize_mask(dec.masks[b, k].cpu().numpy(), native_size)
-        m = soft > threshold
+    active = np.flatnonzero(dec.active[b].cpu().numpy())
+    refined = None
+    if native is not None and len(active):
+        low = (dec.masks[b, active].cpu().numpy() > threshold).astype(np.float32)
+        refined = native_masks(low, *native)
+    for j, k in enumerate(active):
+        if refined is not None:
+            m = refined[j]
+        else:
+            m = resize_mask(dec.masks[b, k].cpu().numpy(), native_size) > threshold
         if not m.any():
             continue
         rle = encode_rle(m)

@@ -415,6 +415,11 @@ class MultiViewFootage:
                 f"{plate.size[0]}x{plate.size[1]} but the footage is {src.size[0]}x{src.size[1]}")
         return plate
 
+    def native_background(self, v: int, num_samples: int = BACKGROUND_SAMPLES) -> np.ndarray:
+        """Camera ``v``'s background at the footage's native resolution, uint8 (H, W, 3)
+        (the plate or the median of :meth:`background`, from the same disk cache)."""
+        return self._native_background(v, num_samples)
+
     def _native_background(self, v: int, num_samples: int) -> np.ndarray:
         plate = self.plate(v)
         src = self.sources[v] if plate is None else plate

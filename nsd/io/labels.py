@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import sleap_io as sio
 
 from nsd.cameras.units import UNITS
 from nsd.core.errors import ConfigError
@@ -74,8 +75,6 @@ def _camera(candidates: list[str], cameras: list[str], what: str, source: Path) 
 
 
 def _read_sleap(path: Path, cameras: list[str]) -> Labels2D:
-    import sleap_io as sio
-
     labels = sio.load_file(str(path))
     if not labels.skeletons:
         raise ConfigError(f"labels {path}: no skeleton")
