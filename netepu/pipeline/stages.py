@@ -293,6 +293,7 @@ def _regress_keypoints(
     c.trainer.progress = bool(cfg.train.trainer.progress)
     c.stage, c.init_from = "pose", str(checkpoint)
     c.pose.label_fraction = float(k.label_fraction)
+    c.pose.labels = k.get("labels")  # a user's labels instead of the scene's gt/
     c.trainer.max_steps, c.trainer.max_minutes = int(k.regressor_steps), 0.0
     c.trainer.eval_at_minutes = []
     metrics = train(c, out / "pose")

@@ -200,7 +200,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.keypoints.steps": POS, "netepu.keypoints.templates": POS,
         "netepu.keypoints.source": _r("str", choices=("inverse", "regressor")),
         "netepu.keypoints.label_fraction": _r("number", above=0, high=1),
-        "netepu.keypoints.regressor_steps": POS,
+        "netepu.keypoints.regressor_steps": POS, "netepu.keypoints.labels": NULL_TEXT,
         "netepu.identities.method": _r("str", choices=("rows", "tracks")),
         "netepu.identities.restarts": POS, "grids.size": _r("int", low=16),
         "overlays.size": _r("int", low=16), "overlays.fps": RATE,

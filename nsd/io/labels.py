@@ -16,6 +16,9 @@ keypoints (anipose), for evaluation on real footage and for the pose regressor.
     * anipose ``pose-3d/*.csv``: columns ``<bodypart>_x, _y, _z`` (plus ``_error``,
       ``_ncams``, ``_score``) and ``fnum`` (the frame; the row number when absent), one
       individual, in the calibration's unit (converted with ``units``).
+    * 2D labels of one individual (a track name) in two or more cameras of a frame,
+      triangulated with the calibration (:func:`triangulate_labels`): a keypoint labelled
+      in fewer than two cameras leaves the pose out.
 
 Missing keypoints are NaN.
 """
@@ -31,10 +34,13 @@ import numpy as np
 import pandas as pd
 import sleap_io as sio
 
+from nsd.cameras.calibration import CameraRig
 from nsd.cameras.units import UNITS
 from nsd.core.errors import ConfigError
+from nsd.cues.triangulation import nearest_point_to_rays
 
-__all__ = ["Keypoints3DLabels", "Labels2D", "read_labels_2d", "read_labels_3d"]
+__all__ = ["Keypoints3DLabels", "Labels2D", "read_labels_2d", "read_labels_3d",
+           "read_pose_labels", "triangulate_labels"]
 
 
 @dataclass
@@ -163,7 +169,7 @@ class Keypoints3DLabels:
     """
 
     bodyparts: list[str]
-    poses: dict[int, np.ndarray]
+    poses: dict[int, np.ndarray | dict[int, np.ndarray]]
     source: str = ""
 
     @property
@@ -177,7 +183,9 @@ class Keypoints3DLabels:
     def keypoints3d(self, frame: int) -> dict[int, np.ndarray]:
         """Individual -> (K, 3) at ``frame`` (empty when the frame is not labelled)."""
         pose = self.poses.get(int(frame))
-        return {} if pose is None else {0: pose}
+        if pose is None:
+            return {}
+        return dict(pose) if isinstance(pose, dict) else {0: pose}
 
 
 def read_labels_3d(path: str | os.PathLike, units: str = "m") -> Keypoints3DLabels:
@@ -208,3 +216,48 @@ def read_labels_3d(path: str | os.PathLike, units: str = "m") -> Keypoints3DLabe
     frames = df["fnum"].to_numpy(np.int64) if "fnum" in df.columns else np.arange(len(df))
     poses = {int(f): p for f, p in zip(frames, xyz, strict=True) if np.isfinite(p).all()}
     return Keypoints3DLabels(bodyparts, poses, str(path))
+
+
+def triangulate_labels(labels: Labels2D, rig: CameraRig) -> Keypoints3DLabels:
+    """3D poses from 2D labels: every individual (track name) labelled in two or more
+    cameras of a frame, each keypoint the point nearest to its rays
+    (:func:`nsd.cues.triangulation.nearest_point_to_rays`, lens distortion undone).
+
+    Raises:
+        ConfigError: untracked labels (no individual named across cameras).
+    """
+    if not labels.tracked:
+        raise ConfigError(f"labels {labels.source}: 2D labels need individuals named across "
+                          "cameras (tracks) to be triangulated")
+    views: dict[tuple[int, str], list[tuple[str, np.ndarray]]] = {}
+    for (cam, frame), who in labels.points.items():
+        for name, xy in who.items():
+            views.setdefault((frame, name), []).append((cam, xy))
+    names = sorted({n for _, n in views})
+    poses: dict[int, dict[int, np.ndarray]] = {}
+    for (frame, name), seen in views.items():
+        pose = np.full((len(labels.bodyparts), 3), np.nan)
+        for k in range(len(labels.bodyparts)):
+            rays = [(rig[c].center, rig[c].unproject(xy[k][None])[0]) for c, xy in seen
+                    if np.isfinite(xy[k]).all()]
+            if len(rays) >= 2:
+                try:
+                    pose[k] = nearest_point_to_rays(*map(np.stack, zip(*rays, strict=True)))
+                except ValueError:  # parallel rays
+                    pass
+        if np.isfinite(pose).all():
+            poses.setdefault(frame, {})[names.index(name)] = pose
+    return Keypoints3DLabels(labels.bodyparts, poses, labels.source)
+
+
+def read_pose_labels(path: str | os.PathLike, rig: CameraRig, units: str = "m"
+                     ) -> Keypoints3DLabels:
+    """3D labels for the pose regressor from any labels file: an anipose ``pose-3d`` CSV
+    (``units``: its length unit), or 2D labels (SLEAP, DeepLabCut) triangulated with
+    ``rig`` (metres)."""
+    path = Path(path)
+    if path.suffix.lower() == ".csv" and path.is_file():
+        head = path.read_text().split("\n", 1)[0].split(",")
+        if any(c.endswith("_x") for c in head) and head[0] != "scorer":
+            return read_labels_3d(path, units)
+    return triangulate_labels(read_labels_2d(path, rig.names), rig)

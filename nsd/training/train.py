@@ -13,7 +13,7 @@ from nsd.core.errors import ConfigError
 from nsd.core.threads import set_threads
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
 from nsd.io.ground_truth import GroundTruth
-from nsd.io.labels import read_labels_3d
+from nsd.io.labels import read_pose_labels
 from nsd.io.scene_data import SceneData
 from nsd.io.scenes import resolve_scene
 from nsd.training.pose_task import PoseTask
@@ -34,9 +34,9 @@ def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     )
 
     gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
-    if cfg.stage == "pose" and cfg.pose.get("labels"):  # a user's 3D labels, in the rig's unit
+    if cfg.stage == "pose" and cfg.pose.get("labels"):  # a user's labels, in the rig's unit
         unit = file_units(read_calibration(scene, "m"), cfg.data.units)
-        gt = read_labels_3d(cfg.pose.labels, unit)
+        gt = read_pose_labels(cfg.pose.labels, data.footage.native_rig, unit)
     tcfg = TrainerConfig.from_config(OmegaConf.to_container(cfg.trainer, resolve=True))
     seed_everything(tcfg.seed)  # model initialisation is part of the seeded train
     if cfg.stage == "pose":

@@ -133,3 +133,52 @@ def test_a_decomposition_checkpoint_is_not_a_pose_checkpoint(regressor_run):
     model, pose, cfg = load_pose_checkpoint(out / "keypoints" / "pose" / "checkpoint.pt")
     assert cfg["stage"] == "pose" and pose.keypoints == 17 and not pose.training
     assert not model.training
+
+
+def _slp_labels(scene, path, keep=lambda frame: True):
+    """The scene's ground-truth 2D keypoints as a SLEAP file, individuals tracked."""
+    import sleap_io as sio
+
+    coco = json.loads((scene / "gt" / "coco.json").read_text())
+    images = {im["id"]: im for im in coco["images"]}
+    skeleton = sio.Skeleton([f"kp{k}" for k in range(17)])
+    videos = {c: sio.Video(filename=sorted(str(p) for p in (scene / c).glob("*.png")))
+              for c in ("cam0", "cam1")}
+    tracks = {i: sio.Track(name=f"id{i}") for i in (0, 1)}
+    frames: dict = {}
+    for a in coco["annotations"]:
+        im = images[a["image_id"]]
+        if not keep(im["frame"]):
+            continue
+        kp = np.asarray(a["keypoints"], np.float64).reshape(-1, 3)
+        lf = frames.setdefault((im["camera"], im["frame"]), sio.LabeledFrame(
+            video=videos[im["camera"]], frame_idx=im["frame"]))
+        lf.instances.append(sio.Instance.from_numpy(
+            np.where((kp[:, 2] > 0)[:, None], kp[:, :2], np.nan), skeleton=skeleton,
+            track=tracks[a["identity_id"]]))
+    sio.save_slp(sio.Labels(labeled_frames=list(frames.values()), videos=list(videos.values()),
+                            skeletons=[skeleton], tracks=list(tracks.values())), str(path))
+    return path
+
+
+def test_pose_regressor_trains_from_a_users_2d_labels(regressor_run, tmp_path):
+    """stage=pose with pose.labels=<SLEAP file>: the tracked 2D labels are triangulated
+    into 3D labels; their training frames train the regressor, their held-out frames score
+    it. Without a labelled held-out frame it stops before training, saying so."""
+    from omegaconf import OmegaConf
+
+    from nsd.core.trainer import load_checkpoint
+    from nsd.training.train import train
+
+    scene, out, _ = regressor_run
+    ckpt = out / "train" / "checkpoint.pt"
+    c = OmegaConf.create(load_checkpoint(ckpt)["config"])
+    c.stage, c.init_from = "pose", str(ckpt)
+    c.pose.labels = str(_slp_labels(scene, tmp_path / "all.slp"))
+    c.trainer.max_steps, c.trainer.max_minutes, c.trainer.progress = 3, 0.0, False
+    c.trainer.eval_at_minutes = []
+    metrics = train(c, tmp_path / "pose")
+    assert metrics["labelled_frames"] >= 1 and np.isfinite(metrics["mpjpe_mm"])
+    c.pose.labels = str(_slp_labels(scene, tmp_path / "train.slp", lambda f: f < 3))
+    with pytest.raises(ConfigError, match="no labelled held-out frames"):
+        train(c, tmp_path / "pose2")

@@ -11,9 +11,10 @@ import pandas as pd
 import pytest
 import sleap_io as sio
 
+from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
 from nsd.evaluation.labelled import score_labels
-from nsd.io.labels import read_labels_2d, read_labels_3d
+from nsd.io.labels import read_labels_2d, read_labels_3d, read_pose_labels, triangulate_labels
 from nsd.synth.scene import tiny_config, write_scene
 
 CAMS = ["cam0", "cam1", "cam2"]
@@ -133,3 +134,24 @@ def test_anipose_3d_labels_in_millimetres(tmp_path):
     assert labels.keypoints3d(9) == {} and labels.num_keypoints == 3
     with pytest.raises(ConfigError, match="units 'ft'"):
         read_labels_3d(tmp_path / "pose3d.csv", "ft")
+
+
+def test_2d_labels_triangulate_to_the_3d_keypoints(world):
+    """SLEAP labels of the visible keypoints in 3 cameras, triangulated with the scene's
+    calibration, give the ground truth's 3D keypoints (poses with a keypoint seen by fewer
+    than two cameras are left out), and read_pose_labels dispatches to it."""
+    rig = read_calibration(world["scene"])
+    labels = read_pose_labels(_slp(world, world["root"] / "t.slp"), rig)
+    with np.load(world["scene"] / "gt" / "keypoints3d.npz") as z:
+        truth = {int(k.split("_")[1]): z[k] for k in z.files}
+    assert len(labels.frames) > 0 and labels.num_keypoints == 17
+    n = 0
+    for f in labels.frames:
+        for i, pose in labels.keypoints3d(f).items():  # i: index of the track name id0, id1
+            np.testing.assert_allclose(pose, truth[i][f], atol=2e-3)  # 2D labels to 1e-4 px
+            n += 1
+    assert n >= 2
+    with pytest.raises(ConfigError, match="named across cameras"):
+        untracked = read_labels_2d(_slp(world, world["root"] / "u.slp"), CAMS)
+        untracked.tracked = False
+        triangulate_labels(untracked, rig)
