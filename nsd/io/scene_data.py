@@ -1,7 +1,8 @@
-"""Training data for NSD: a scene's frames in memory at training resolution, view pairs.
+"""Training data for NSD: a scene's frames at training resolution, view pairs.
 
-Frames are decoded once (sequentially) into a uint8 tensor (T, V, 3, H, W); a
-batch is a set of random view pairs (t, v, w) of the same instant with their
+Frames are decoded once (sequentially) into a file read through a memory map
+(:class:`nsd.io.frame_store.FrameStore`: memory stays flat in the recording's length),
+indexed as uint8 (T, V, 3, H, W); a batch is a set of random view pairs (t, v, w) of the same instant with their
 median backgrounds and the relative rotation :math:`R_{v \\to w}`. Sampling
 draws only from the ``numpy.random.Generator`` it is given, so a training run
 resumes exactly.
@@ -23,6 +24,7 @@ from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import multiview_proposals, voxel_grid
 from nsd.cues.proposals import evidence_proposals
 from nsd.io.footage import MultiViewFootage
+from nsd.io.frame_store import FrameStore
 from nsd.priors.presence import smoothed_counts
 
 __all__ = ["PairBatch", "SceneData", "split_frames"]
@@ -113,8 +115,7 @@ class SceneData:
         stop = (
             self.footage.num_frames if max_frames <= 0 else min(max_frames, self.footage.num_frames)
         )
-        frames = np.stack([v for _, v in self.footage.iter_frames(0, stop)])  # T, V, H, W, 3
-        self.frames = torch.from_numpy(frames).permute(0, 1, 4, 2, 3).contiguous()
+        self.frames = FrameStore(self.footage, stop)  # indexed as (T, V, 3, H, W) uint8
         bg = self.footage.background()
         self.backgrounds = to_float(torch.from_numpy(bg).permute(0, 3, 1, 2).contiguous())
         rig: CameraRig = self.footage.rig

@@ -1,0 +1,95 @@
+"""A scene's training frames decoded once into a file on disk and read through a memory map.
+
+Training reads random frames of the whole recording many times; holding them in the
+process (the former ``(T, V, 3, H, W)`` tensor) made memory grow with the recording: 30
+minutes of 4 cameras at 128 x 128 is about 10 GB. The store decodes the footage once,
+streaming (one instant in memory at a time), into ``<cache>/frames/<key>.u8`` laid out
+``(T, V, H, W, 3)`` uint8, and reads it through ``numpy.memmap``: the operating system
+keeps the pages that are used and drops the others, so the process's own memory stays
+flat in the number of frames. The key is the footage's signature (files, sizes, times),
+the training size and the frame count, so changed footage is decoded again; a store is
+complete only once its ``.json`` record is written (an interrupted decode starts over).
+Where the cache folder cannot be written, frames are held in memory as before (said).
+
+Indexing returns torch uint8 tensors in the layout the model reads: ``store[t]`` is
+``(V, 3, H, W)``, ``store[t_idx, v_idx]`` ``(n, 3, H, W)``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from nsd.core.atomic import atomic_write_text
+from nsd.io.footage import MultiViewFootage
+
+__all__ = ["FrameStore"]
+
+log = logging.getLogger(__name__)
+
+
+class FrameStore:
+    """Frames ``0 .. stop - 1`` of ``footage`` at its training size (module docstring).
+
+    Args:
+        footage: the scene's footage, resized to the training size.
+        stop: number of frames.
+    """
+
+    def __init__(self, footage: MultiViewFootage, stop: int) -> None:
+        V = footage.num_views
+        H, W = footage.rig[0].size[1], footage.rig[0].size[0]
+        self.shape_thwc = (int(stop), V, H, W, 3)
+        sig = "|".join(s.signature() for s in footage.sources)
+        key = hashlib.sha1(f"{sig}|{W}x{H}|{stop}".encode()).hexdigest()[:16]
+        folder = footage.cache_dir / "frames"
+        self.path = folder / f"{key}.u8"
+        record = self.path.with_suffix(".json")
+        self._array: np.ndarray
+        try:
+            if not (record.is_file() and self.path.is_file()
+                    and self.path.stat().st_size == int(np.prod(self.shape_thwc))):
+                folder.mkdir(parents=True, exist_ok=True)
+                self._decode(footage, stop)
+                atomic_write_text(record, json.dumps({"shape": list(self.shape_thwc),
+                                                      "cameras": footage.camera_names}))
+            self._array = np.memmap(self.path, np.uint8, "r", shape=self.shape_thwc)
+        except OSError as e:
+            log.warning("frames of %s held in memory (cannot write %s: %s)", footage.scene,
+                        folder, e)
+            self._array = np.stack([v for _, v in footage.iter_frames(0, stop)])
+
+    def _decode(self, footage: MultiViewFootage, stop: int) -> None:
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        out = np.memmap(tmp, np.uint8, "w+", shape=self.shape_thwc)
+        try:
+            for t, views in footage.iter_frames(0, stop):
+                out[t] = views
+            out.flush()
+            del out
+            os.replace(tmp, self.path)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    @property
+    def shape(self) -> tuple[int, int, int, int, int]:
+        """(T, V, 3, H, W), the layout of what indexing returns."""
+        T, V, H, W, C = self.shape_thwc
+        return T, V, C, H, W
+
+    def __len__(self) -> int:
+        return self.shape_thwc[0]
+
+    def __getitem__(self, index: Any) -> Tensor:
+        if not isinstance(index, tuple):
+            index = (index,)
+        index = tuple(i.numpy() if isinstance(i, Tensor) else i for i in index)
+        arr = np.ascontiguousarray(self._array[index])  # (..., H, W, 3), read from the file
+        return torch.from_numpy(arr).movedim(-1, -3)

@@ -1,0 +1,50 @@
+"""Training frames on disk behind a memory map (nsd/io/frame_store.py)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+
+from nsd.io.footage import MultiViewFootage
+from nsd.io.frame_store import FrameStore
+
+
+def test_store_holds_the_decoded_frames_and_is_reused(tiny_scene):
+    footage = MultiViewFootage(tiny_scene, image_size=(16, 12))
+    store = FrameStore(footage, footage.num_frames)
+    frames = np.stack([v for _, v in footage.iter_frames()])  # (T, V, H, W, 3)
+    assert store.shape == (4, 2, 3, 12, 16) and len(store) == 4
+    assert torch.equal(store[2], torch.from_numpy(frames[2]).permute(0, 3, 1, 2))
+    t, v = torch.tensor([3, 0, 3]), torch.tensor([1, 0, 0])
+    assert torch.equal(store[t, v], torch.from_numpy(frames[[3, 0, 3], [1, 0, 0]]).permute(
+        0, 3, 1, 2))
+    assert torch.equal(store[1:3], torch.from_numpy(frames[1:3]).permute(0, 1, 4, 2, 3))
+    stamp = store.path.stat().st_mtime_ns
+    again = FrameStore(footage, footage.num_frames)  # the same footage: not decoded again
+    assert again.path == store.path and again.path.stat().st_mtime_ns == stamp
+    other = FrameStore(MultiViewFootage(tiny_scene, image_size=(8, 6)), 4)  # another size
+    assert other.path != store.path and other.shape[-2:] == (6, 8)
+
+
+def test_an_interrupted_decode_is_not_taken_for_a_store(tiny_scene):
+    footage = MultiViewFootage(tiny_scene, image_size=(16, 12))
+    store = FrameStore(footage, 4)
+    store.path.with_suffix(".json").unlink()  # as if the decode had been cut short
+    with open(store.path, "r+b") as f:
+        f.write(b"\xff" * 64)
+    fresh = FrameStore(footage, 4)
+    frames = np.stack([v for _, v in footage.iter_frames()])
+    assert torch.equal(fresh[0], torch.from_numpy(frames[0]).permute(0, 3, 1, 2))
+
+
+def test_an_unwritable_cache_keeps_frames_in_memory(tiny_scene, tmp_path, caplog):
+    blocked = tmp_path / "a-file"  # the cache folder cannot be made (even by root)
+    blocked.write_text("")
+    footage = MultiViewFootage(tiny_scene, image_size=(16, 12), cache_dir=blocked)
+    with caplog.at_level(logging.WARNING):
+        store = FrameStore(footage, 4)
+    assert "held in memory" in caplog.text and store.shape == (4, 2, 3, 12, 16)
+    frames = np.stack([v for _, v in footage.iter_frames()])
+    assert torch.equal(store[3], torch.from_numpy(frames[3]).permute(0, 3, 1, 2))
