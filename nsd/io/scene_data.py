@@ -2,10 +2,10 @@
 
 Frames are decoded once (sequentially) into a file read through a memory map
 (:class:`nsd.io.frame_store.FrameStore`: memory stays flat in the recording's length),
-indexed as uint8 (T, V, 3, H, W); a batch is a set of random view pairs (t, v, w) of the same instant with their
-median backgrounds and the relative rotation :math:`R_{v \\to w}`. Sampling
-draws only from the ``numpy.random.Generator`` it is given, so a training run
-resumes exactly.
+indexed as uint8 (T, V, 3, H, W); a batch is a set of random view pairs (t, v, w) of
+the same instant with their median backgrounds and the relative rotation
+:math:`R_{v \\to w}`. Sampling draws only from the ``numpy.random.Generator`` it is
+given, so a training run resumes exactly.
 """
 
 from __future__ import annotations
