@@ -1,0 +1,93 @@
+"""Training memory against the recording's length: frames on disk (memory map) or in memory.
+
+    .venv/bin/python tools/bench_memory.py         # ~5 minutes, nothing else running
+
+A synthetic recording of ``--frames`` frames (4 cameras, 128 x 128; the default scene's
+settings otherwise) is written once; for T = 300 .. ``--frames`` frames a fresh process
+builds the training data (``SceneData``, multi-view proposals as the default training
+does) and runs 20 default training steps. Rows: the process's anonymous memory (RssAnon:
+what cannot be dropped) and its peak resident memory (VmHWM: also file pages the OS may
+drop), with the frames in the disk store (``nsd/io/frame_store.py``, the default) and,
+as the baseline, held in memory (the former behaviour, forced by making the store's file
+unwritable).
+
+Writes ``docs/benchmarks/memory.{md,json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tools.benchlib import write_report  # noqa: E402
+
+CHILD = r"""
+import json, sys
+import numpy as np, torch
+from hydra import compose, initialize_config_module
+import nsd.io.frame_store as fs
+from nsd.io.scene_data import SceneData
+from nsd.training.task import NSDTask
+
+scene, frames, store = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "disk"
+if not store:  # the baseline: the store cannot write its file, frames stay in memory
+    def refuse(*a, **k):
+        raise OSError("baseline: in memory")
+    fs.np.memmap = refuse
+torch.set_num_threads(2)
+with initialize_config_module("nsd.conf", version_base="1.3"):
+    cfg = compose("train", [f"data.scene={scene}", f"data.max_frames={frames}"])
+d = cfg.data
+data = SceneData(scene, d.image_size, d.cameras, d.val_fraction, d.max_frames)
+task = NSDTask(cfg, data)
+rng = np.random.default_rng(0)
+for _ in range(20):
+    task.opt.zero_grad(set_to_none=True)
+    task.training_step(10**6, rng)["loss"].backward()
+    task.opt.step()
+status = dict(l.split(":", 1) for l in open("/proc/self/status").read().splitlines() if ":" in l)
+mb = lambda k: int(status[k].split()[0]) / 1024
+print(json.dumps({"rss_anon_mb": mb("RssAnon"), "peak_rss_mb": mb("VmHWM"),
+                  "rss_file_mb": mb("RssFile")}))
+"""
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=2400, help="length of the long recording")
+    args = ap.parse_args()
+    root = Path(tempfile.mkdtemp(prefix="bench-memory-"))
+    scene = root / "long"
+    subprocess.run([str(Path(sys.executable).parent / "nsd-synth"), f"out={scene}",
+                    f"num_frames={args.frames}", "dense=false"],
+                   check=True, capture_output=True)
+    rows = []
+    lengths = sorted({300, args.frames // 4, args.frames // 2, args.frames})
+    for store in ("disk", "memory"):
+        for T in lengths:
+            out = subprocess.run([sys.executable, "-c", CHILD, str(scene), str(T), store],
+                                 capture_output=True, text=True, check=True, cwd=ROOT)
+            m = json.loads(out.stdout.strip().splitlines()[-1])
+            frames_mb = T * 4 * 128 * 128 * 3 / 2**20
+            rows.append({"frames": store, "T": T, "frame_bytes_mb": frames_mb, **m})
+            print(rows[-1], flush=True)
+    write_report(
+        "memory", "Training memory against the recording's length", rows,
+        notes=("A fresh process per row: training data of T frames (4 cameras, 128 x 128, "
+               "multi-view proposals) and 20 default training steps; `frames=disk`: the "
+               "default store on disk behind a memory map, `memory`: the baseline, frames "
+               "held in the process. RssAnon: anonymous memory (cannot be dropped); "
+               "RssFile: file pages resident now (the OS drops them under pressure); "
+               "peak_rss_mb: VmHWM, the peak of both. frame_bytes_mb: the frames' size."),
+    )
+
+
+if __name__ == "__main__":
+    main()
