@@ -146,7 +146,8 @@ ALWAYS = _r("any")
 # the shipped default does not imply. Keys are paths inside the group.
 RULES: dict[str, dict[str, Rule]] = {
     "data": {"image_size": SIZE2, "val_fraction": _r("number", low=0, high=0.99),
-             "cameras": _r("any"), "scene": NULL_TEXT, "same_view": FRACTION, "units": UNITS},
+             "cameras": _r("any"), "scene": NULL_TEXT, "same_view": FRACTION, "units": UNITS,
+             "frame_stride": POS},
     "model": {
         "num_windows": POS, "crop_size": _r("int", low=4), "mode": _r(
             "str", choices=("bi_nvs", "autoencoder")),

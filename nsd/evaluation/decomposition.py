@@ -358,7 +358,8 @@ def _novel_view_scores(model, data, views: Tensor, bgs: Tensor) -> tuple[float, 
 def instant_truth(gt, data, t: int) -> list:
     """The ground truth of every view of instant ``t`` at the frames' size: one
     :class:`nsd.io.ground_truth.FrameGT` per camera of ``data``, read once per instant."""
-    return [gt.frame(cam, t, data.frame_hw) for cam in data.rig.names]
+    f = data.frame_index(t)  # positions of a strided scene are not footage frames
+    return [gt.frame(cam, f, data.frame_hw) for cam in data.rig.names]
 
 
 def score_views(dec, truths: Sequence, threshold: float, counts: Sequence[Counts]):

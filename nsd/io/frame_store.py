@@ -36,19 +36,24 @@ log = logging.getLogger(__name__)
 
 
 class FrameStore:
-    """Frames ``0 .. stop - 1`` of ``footage`` at its training size (module docstring).
+    """Frames ``0, stride, 2 stride, .. < stop`` of ``footage`` at its training size
+    (module docstring); ``store[i]`` is footage frame ``i * stride``.
 
     Args:
         footage: the scene's footage, resized to the training size.
-        stop: number of frames.
+        stop: frames of the footage to cover.
+        stride: keep every this many frames (decoding still reads them all, in order).
     """
 
-    def __init__(self, footage: MultiViewFootage, stop: int) -> None:
+    def __init__(self, footage: MultiViewFootage, stop: int, stride: int = 1) -> None:
         V = footage.num_views
         H, W = footage.rig[0].size[1], footage.rig[0].size[0]
-        self.shape_thwc = (int(stop), V, H, W, 3)
+        self.stride = int(stride)
+        if self.stride < 1:
+            raise ValueError(f"frame stride must be >= 1, got {stride}")
+        self.shape_thwc = (len(range(0, int(stop), self.stride)), V, H, W, 3)
         sig = "|".join(s.signature() for s in footage.sources)
-        key = hashlib.sha1(f"{sig}|{W}x{H}|{stop}".encode()).hexdigest()[:16]
+        key = hashlib.sha1(f"{sig}|{W}x{H}|{stop}|{self.stride}".encode()).hexdigest()[:16]
         folder = footage.cache_dir / "frames"
         self.path = folder / f"{key}.u8"
         record = self.path.with_suffix(".json")
@@ -58,20 +63,24 @@ class FrameStore:
                     and self.path.stat().st_size == int(np.prod(self.shape_thwc))):
                 folder.mkdir(parents=True, exist_ok=True)
                 self._decode(footage, stop)
+                log.info("decoded %d frames of %s into %s", self.shape_thwc[0], footage.scene,
+                         self.path)
                 atomic_write_text(record, json.dumps({"shape": list(self.shape_thwc),
                                                       "cameras": footage.camera_names}))
             self._array = np.memmap(self.path, np.uint8, "r", shape=self.shape_thwc)
         except OSError as e:
             log.warning("frames of %s held in memory (cannot write %s: %s)", footage.scene,
                         folder, e)
-            self._array = np.stack([v for _, v in footage.iter_frames(0, stop)])
+            self._array = np.stack([v for t, v in footage.iter_frames(0, stop)
+                                    if t % self.stride == 0])
 
     def _decode(self, footage: MultiViewFootage, stop: int) -> None:
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         out = np.memmap(tmp, np.uint8, "w+", shape=self.shape_thwc)
         try:
             for t, views in footage.iter_frames(0, stop):
-                out[t] = views
+                if t % self.stride == 0:
+                    out[t // self.stride] = views
             out.flush()
             del out
             os.replace(tmp, self.path)

@@ -99,6 +99,8 @@ class SceneData:
         val_fraction: tail of the sequence held out for evaluation.
         max_frames: use only the first ``max_frames`` frames (0: all).
         units: the calibration file's length unit (:mod:`nsd.cameras.units`).
+        frame_stride: keep every this many frames (hours of footage); indices ``t`` of
+            this object are positions, footage frame :meth:`frame_index` ``(t)``.
     """
 
     def __init__(
@@ -109,13 +111,15 @@ class SceneData:
         val_fraction: float = 0.2,
         max_frames: int = 0,
         units: str = "auto",
+        frame_stride: int = 1,
     ) -> None:
         self.footage = MultiViewFootage(scene, cameras=cameras, image_size=tuple(image_size),
                                         units=units)
         stop = (
             self.footage.num_frames if max_frames <= 0 else min(max_frames, self.footage.num_frames)
         )
-        self.frames = FrameStore(self.footage, stop)  # indexed as (T, V, 3, H, W) uint8
+        self.frames = FrameStore(self.footage, stop, frame_stride)  # (T, V, 3, H, W) uint8
+        self.frame_stride = int(frame_stride)
         bg = self.footage.background()
         self.backgrounds = to_float(torch.from_numpy(bg).permute(0, 3, 1, 2).contiguous())
         rig: CameraRig = self.footage.rig
@@ -173,6 +177,10 @@ class SceneData:
             boxes.append(b.view(len(f), V, k, 4))
             valid.append(ok.view(len(f), V, k))
         self.proposals, self.proposal_valid = torch.cat(boxes), torch.cat(valid)
+
+    def frame_index(self, t: int) -> int:
+        """The footage frame of position ``t`` (``t * frame_stride``)."""
+        return int(t) * self.frame_stride
 
     @property
     def rig(self) -> CameraRig:

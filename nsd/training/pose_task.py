@@ -56,9 +56,14 @@ class PoseTask:
         for p in self.model.parameters():
             p.requires_grad_(False)
         if hasattr(gt, "frames"):  # a user's labels: every labelled training frame
-            self.labelled = np.intersect1d(data.train_frames, gt.frames)
-            missing = [n for n, f in (("training", self.labelled), ("held-out", np.intersect1d(
-                data.heldout_frames, gt.frames))) if not len(f)]
+            labelled = set(gt.frames.tolist())  # footage frames; data indices are positions
+
+            def on(ts: np.ndarray) -> np.ndarray:
+                return np.array([t for t in ts if data.frame_index(t) in labelled], int)
+
+            self.labelled = on(data.train_frames)
+            missing = [n for n, f in (("training", self.labelled),
+                                      ("held-out", on(data.heldout_frames))) if not len(f)]
             if missing:
                 raise ConfigError(
                     f"pose.labels {gt.source}: no labelled {' or '.join(missing)} frames "
@@ -90,7 +95,7 @@ class PoseTask:
         for t in frames:
             views, bgs = self.data.views(int(t))
             dec = decompose_views(self.model, views, bgs, len(rig), settings, grid)
-            kp = self.gt.keypoints3d(int(t))  # identity -> (K, 3) world
+            kp = self.gt.keypoints3d(self.data.frame_index(t))  # identity -> (K, 3) world
             for v, cam in enumerate(rig):
                 act = np.flatnonzero(dec.active[v].numpy())
                 ids = list(kp)

@@ -65,7 +65,8 @@ def test_touching_instants_on_a_hand_built_sequence():
 
 def test_metrics_split_into_apart_and_touching_instants():
     gt = _GT()
-    data = SimpleNamespace(rig=SimpleNamespace(names=["c0", "c1"]), frame_hw=(H, W))
+    data = SimpleNamespace(rig=SimpleNamespace(names=["c0", "c1"]), frame_hw=(H, W),
+                           frame_index=lambda t: t)
     tally = Tally()
     for t in (0, 1):
         truths = instant_truth(gt, data, t)

@@ -48,3 +48,16 @@ def test_an_unwritable_cache_keeps_frames_in_memory(tiny_scene, tmp_path, caplog
     assert "held in memory" in caplog.text and store.shape == (4, 2, 3, 12, 16)
     frames = np.stack([v for _, v in footage.iter_frames()])
     assert torch.equal(store[3], torch.from_numpy(frames[3]).permute(0, 3, 1, 2))
+
+
+def test_a_frame_stride_keeps_every_kth_frame(tiny_scene):
+    """SceneData with frame_stride=2 holds footage frames 0 and 2 at positions 0 and 1,
+    and its ground-truth lookups go through frame_index."""
+    from nsd.io.scene_data import SceneData
+
+    data = SceneData(tiny_scene, (16, 12), val_fraction=0.0, frame_stride=2)
+    footage = MultiViewFootage(tiny_scene, image_size=(16, 12))
+    frames = np.stack([v for _, v in footage.iter_frames()])
+    assert len(data.frames) == 2 and [data.frame_index(t) for t in (0, 1)] == [0, 2]
+    assert torch.equal(data.frames[1], torch.from_numpy(frames[2]).permute(0, 3, 1, 2))
+    assert list(data.train_frames) == [0, 1]
