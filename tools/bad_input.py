@@ -138,10 +138,12 @@ def _calib(fn: Callable[[dict], None]) -> Callable[[Path], None]:
     return edit
 
 
-def _mm(data: dict) -> None:
-    for cam in data.values():
-        if "translation" in cam:
-            cam["translation"] = [1000.0 * v for v in cam["translation"]]
+def _scaled(factor: float):
+    def edit(data: dict) -> None:
+        for cam in data.values():
+            if "translation" in cam:
+                cam["translation"] = [factor * v for v in cam["translation"]]
+    return edit
 
 
 def _singular(data: dict) -> None:
@@ -264,7 +266,10 @@ def _cases(base: Path, nodense: Path) -> list[Case]:
              setup=_edit(base, _blank(255))),
         Case("nothing moves", run, [], "moves", expect="warning", setup=_edit(base, _still)),
         Case("one camera", run, [], "camera", setup=_edit(base, _one_camera)),
-        Case("calibration in mm", run, [], "millimetres", setup=_edit(base, _calib(_mm))),
+        Case("calibration in mm", run, [], "millimetres", expect="warning",
+             setup=_edit(base, _calib(_scaled(1e3)))),
+        Case("calibration kilometres apart", run, [], "units=",
+             setup=_edit(base, _calib(_scaled(1e6)))),
         Case("singular K", run, [], "cam0", setup=_edit(base, _calib(_singular))),
         Case("NaN in calibration", run, [], "cam0", setup=_edit(base, _calib(_nan_calib))),
         Case("camera without calibration", run, [], "cam3", expect="warning",
