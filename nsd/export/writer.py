@@ -103,6 +103,15 @@ class SubjectWriter:
                                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
                 raise OSError(f"cannot write {path}")
 
+    def _native_refine(self) -> bool:
+        """``native_refine``: true, false, or auto (when the footage is larger than the
+        training frames; at equal size the masks are the training-size ones)."""
+        setting = self.cfg.get("native_refine", False)
+        if setting == "auto":
+            H, W = self.inp.trained.frame_hw
+            return any(s.size[0] > W or s.size[1] > H for s in self.inp.footage.sources)
+        return bool(setting)
+
     def _frame(self, dec, first: int, t: int, views: list[np.ndarray]) -> None:
         """Write instant ``t``, whose views are rows ``first ..`` of ``dec``."""
         assoc = self._associate(dec, first)
@@ -133,7 +142,7 @@ class SubjectWriter:
         """Each view's COCO results at its native size, with their ``association_id``
         (``native_refine``: masks refined at native resolution, :mod:`nsd.cues.native`)."""
         per_view = []
-        refine = bool(self.cfg.get("native_refine", False))
+        refine = self._native_refine()
         if refine and self.native_backgrounds is None:
             self.native_backgrounds = [self.inp.footage.native_background(v)
                                        for v in range(len(self.names))]

@@ -388,3 +388,20 @@ def test_frame_images_give_coco_real_image_paths(trained, tmp_path):
         assert np.abs(img[..., ::-1].astype(float) - native).mean() < 4.0
     manifest = json.loads((s.out / "manifest.json").read_text())
     assert any(k.startswith("images/") for k in manifest["files"])
+
+
+def test_native_refine_auto_turns_on_for_footage_larger_than_training():
+    """native_refine=auto: on when a camera's footage is larger than the training frames."""
+    from types import SimpleNamespace
+
+    from nsd.export.writer import SubjectWriter
+
+    def writer(setting, native):
+        w = SubjectWriter.__new__(SubjectWriter)
+        w.cfg = {"native_refine": setting}
+        w.inp = SimpleNamespace(trained=SimpleNamespace(frame_hw=(48, 64)), footage=SimpleNamespace(
+            sources=[SimpleNamespace(size=native), SimpleNamespace(size=(64, 48))]))
+        return w._native_refine()
+
+    assert writer("auto", (640, 480)) and not writer("auto", (64, 48))
+    assert writer(True, (64, 48)) and not writer(False, (640, 480))
