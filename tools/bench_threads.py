@@ -54,8 +54,11 @@ st = InferenceSettings.defaults()
 grid = st.grid(data.rig, data.frame_hw)
 views, bgs = data.views(30)
 frame = lambda: decompose_views(task.model, views, bgs, data.num_views, st, grid)
+a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
+gemm = median_time(lambda: torch.mm(a, b), repeats=5, warmup=1)
 print(json.dumps({"threads": n, "train_step_ms": 1000 * median_time(step, repeats=8, warmup=2),
-                  "frame_ms": 1000 * median_time(frame, repeats=8, warmup=2)}))
+                  "frame_ms": 1000 * median_time(frame, repeats=8, warmup=2),
+                  "gemm_gflops": 2 * 2048**3 / gemm / 1e9}))
 """
 
 
@@ -71,13 +74,15 @@ def main() -> None:
     for r in rows:
         r["train_speed_up"] = rows[0]["train_step_ms"] / r["train_step_ms"]
         r["frame_speed_up"] = rows[0]["frame_ms"] / r["frame_ms"]
+        r["gemm_speed_up"] = r["gemm_gflops"] / rows[0]["gemm_gflops"]
     write_report(
         "threads", "Speed against CPU threads", rows,
         notes=("Each row a fresh process with that many threads on that many cores (taskset); "
                "medians of 8 runs after 2 warm-ups; default training step (16 view pairs, "
                "128 x 128) and one frame of multi-view inference (4 views) on the default "
-               "scene. `threads: 0` (every command's default) uses every core the process "
-               "may run on (docs/scaling.md says how to go beyond one machine's cores)."),
+               "scene; gemm: a 2048 x 2048 fp32 matrix product, what more threads can give. "
+               "`threads: 0` (every command's default) uses every core the process may run "
+               "on; docs/scaling.md has the rule for bigger machines."),
     )
 
 
