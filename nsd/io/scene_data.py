@@ -134,13 +134,16 @@ class SceneData:
         self.owners: Tensor | None = None  # (T, V, H, W) hull pixel owners (multi-view)
 
     def compute_multiview_proposals(
-        self, k: int, threshold: float, softness: float, resolution: int = 48, split: bool = True
+        self, k: int, threshold: float, softness: float, resolution: int = 48, split: bool = True,
+        owners: bool = True,
     ) -> None:
         """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
-        ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`."""
+        ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`; ``owners``: also keep
+        every pixel's hull individual (``self.owners``, (T, V, H, W) int8, a third of the
+        frames' size: only the mask prior reads it)."""
 
         grid = voxel_grid(self.rig, self.frame_hw, resolution)
-        boxes, depths, valid, owners = [], [], [], []
+        boxes, depths, valid, pixel_owners = [], [], [], []
         for t in range(len(self.frames)):
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness
@@ -149,10 +152,12 @@ class SceneData:
             boxes.append(b)
             depths.append(d)
             valid.append(ok)
-            owners.append(own.to(torch.int8))
+            if owners:
+                pixel_owners.append(own.to(torch.int8))
         self.proposals, self.proposal_valid = torch.stack(boxes), torch.stack(valid)
         self.proposal_depths = torch.stack(depths)
-        self.owners = torch.stack(owners)  # (T, V, H, W) int8: hull individual, -1 none
+        # (T, V, H, W) int8: hull individual, -1 none
+        self.owners = torch.stack(pixel_owners) if owners else None
 
     def smooth_counts(self, window: int, scene_population: bool = False) -> None:
         """Individuals in view per frame: the multi-view proposals' count, median over

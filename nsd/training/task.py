@@ -168,7 +168,8 @@ class NSDTask:
                     )
                 if split == "auto":  # num_windows is an upper bound when presence is learned
                     split = not cfg.model.detector.presence
-                data.compute_multiview_proposals(*args, resolution=pp.resolution, split=split)
+                data.compute_multiview_proposals(*args, resolution=pp.resolution, split=split,
+                                                 owners=cfg.prior_mask.weight > 0)
                 if self.presence_target == "hull":
                     self._hull_counts(cfg.prior_presence, data)
             elif pp.source == "single_view":
