@@ -268,6 +268,10 @@ def write_pose_tool_files(
             kp_rows = dict(zip(z["id"].tolist(), z["keypoints"], strict=True))
     rate = _frame_rate(scene, rig.names, fps)
     summary: dict[str, Any] = {"fps": rate}
+    if not any(row_ids.get(int(a["id"]), -1) >= 0 for a in coco["annotations"]):
+        log.warning("pose tools: the export holds no subject with an identity: no files written")
+        summary.update(instances=0, tracks=0, files=[], skipped="no subjects")
+        return summary
     if {"slp", "nwb", "dlc"} & set(formats):
         labels = build_labels(coco, scene, rig, row_ids, kp_rows)
         summary["instances"] = sum(len(lf.instances) for lf in labels.labeled_frames)

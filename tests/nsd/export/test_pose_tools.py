@@ -190,3 +190,15 @@ def test_image_folders_and_unknown_formats(gt_export, tmp_path):
     s = write_pose_tool_files(gt_export["export"], gt_export["scene"], gt_export["rig"],
                               tmp_path, formats=("slp",))  # per-camera tracks as ids
     assert s["files"] == ["subjects.slp"] and s["tracks"] == 2
+
+
+def test_an_export_without_subjects_writes_nothing_and_says_so(gt_export, tmp_path, caplog):
+    """Footage in which nothing was found: no file (the tools' writers refuse empty
+    labels), a warning, and a summary that says why."""
+    empty = tmp_path / "export"
+    empty.mkdir()
+    coco = dict(gt_export["coco"], annotations=[])
+    (empty / "subjects.coco.json").write_text(json.dumps(coco))
+    s = write_pose_tool_files(empty, gt_export["scene"], gt_export["rig"], tmp_path / "out")
+    assert s["files"] == [] and s["skipped"] == "no subjects"
+    assert "no subject" in caplog.text
