@@ -8,7 +8,7 @@ keypoints (anipose), for evaluation on real footage and for the pose regressor.
       when a frame has any, else its predictions. An instance's individual is its track's
       name (``mouse1``): the same name in several cameras is one individual, which is what
       the cross-view score checks; untracked instances count for the mask score only.
-    * DeepLabCut ``CollectedData_<scorer>.csv`` / ``.h5`` (single- or multi-animal,
+    * DeepLabCut ``CollectedData_<scorer>.csv`` (single- or multi-animal,
       one- or three-column index), read by pandas: the camera is the video folder of the
       image path (``labeled-data/<camera>/img0123.png``), the frame the last number of the
       image name; multi-animal ``individuals`` are the individuals.
@@ -105,14 +105,11 @@ def _read_sleap(path: Path, cameras: list[str]) -> Labels2D:
 
 
 def _read_dlc(path: Path, cameras: list[str]) -> Labels2D:
-    if path.suffix.lower() in (".h5", ".hdf5"):
-        df = pd.read_hdf(path)
-    else:
-        first = path.read_text().splitlines()
-        cells = first[0].split(",")
-        n_index = 1 + next((i for i, c in enumerate(cells[1:]) if c.strip()), 0)
-        n_header = 4 if len(first) > 1 and first[1].split(",")[0] == "individuals" else 3
-        df = pd.read_csv(path, header=list(range(n_header)), index_col=list(range(n_index)))
+    first = path.read_text().splitlines()
+    cells = first[0].split(",")
+    n_index = 1 + next((i for i, c in enumerate(cells[1:]) if c.strip()), 0)
+    n_header = 4 if len(first) > 1 and first[1].split(",")[0] == "individuals" else 3
+    df = pd.read_csv(path, header=list(range(n_header)), index_col=list(range(n_index)))
     levels = list(df.columns.names)
     multi = "individuals" in levels
     bodyparts = list(dict.fromkeys(df.columns.get_level_values("bodyparts")))
@@ -150,13 +147,14 @@ def read_labels_2d(path: str | os.PathLike, cameras: list[str]) -> Labels2D:
     try:
         if path.suffix.lower() in (".slp", ".nwb"):
             return _read_sleap(path, cameras)
-        if path.suffix.lower() in (".csv", ".h5", ".hdf5"):
+        if path.suffix.lower() == ".csv":
             return _read_dlc(path, cameras)
     except ConfigError:
         raise
     except Exception as e:  # any reader failure names the file
         raise ConfigError(f"labels {path}: cannot be read ({type(e).__name__}: {e})") from None
-    raise ConfigError(f"labels {path}: unknown format (.slp, .nwb, DeepLabCut .csv / .h5)")
+    raise ConfigError(f"labels {path}: unknown format (.slp, .nwb, DeepLabCut .csv; for a "
+                      "DeepLabCut .h5 give the CollectedData .csv DeepLabCut writes beside it)")
 
 
 @dataclass

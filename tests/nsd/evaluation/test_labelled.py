@@ -155,3 +155,20 @@ def test_2d_labels_triangulate_to_the_3d_keypoints(world):
         untracked = read_labels_2d(_slp(world, world["root"] / "u.slp"), CAMS)
         untracked.tracked = False
         triangulate_labels(untracked, rig)
+
+
+def test_single_animal_deeplabcut_table_with_a_one_column_index(tmp_path):
+    """Older DeepLabCut: 3 header rows (scorer, bodyparts, coords), the image path as one
+    index column; the camera is the folder the table sits in when the path names none."""
+    cols = pd.MultiIndex.from_tuples([("me", b, c) for b in ("nose", "tail") for c in "xy"],
+                                     names=["scorer", "bodyparts", "coords"])
+    table = pd.DataFrame([[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, np.nan, np.nan]],
+                         index=["labeled-data/cam2/img0007.png", "img0011.png"], columns=cols)
+    (tmp_path / "cam2").mkdir()
+    table.to_csv(tmp_path / "cam2" / "CollectedData_me.csv")
+    labels = read_labels_2d(tmp_path / "cam2" / "CollectedData_me.csv", CAMS)
+    assert not labels.tracked and labels.bodyparts == ["nose", "tail"]
+    np.testing.assert_allclose(labels.points[("cam2", 7)]["individual"], [[1, 2], [3, 4]])
+    got = labels.points[("cam2", 11)]["individual"]
+    np.testing.assert_allclose(got[0], [5, 6])
+    assert np.isnan(got[1]).all()  # an unlabelled keypoint
