@@ -23,67 +23,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import defaultdict
 from pathlib import Path
-
-import cv2
-import numpy as np
-from pycocotools import mask as mask_utils
-from scipy.optimize import linear_sum_assignment
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from nsd.evaluation.export_masks import export_mask_scores  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
-
-
-def _by_image(coco: dict, key: str = "segmentation") -> dict[tuple[str, int], list]:
-    images = {im["id"]: im for im in coco["images"]}
-    out = defaultdict(list)
-    for a in coco["annotations"]:
-        im = images[a["image_id"]]
-        out[(im["camera"], int(im["frame"]))].append(mask_utils.decode(a[key]).astype(bool))
-    return out
-
-
-def _boundary(m: np.ndarray) -> np.ndarray:
-    m8 = m.astype(np.uint8)
-    return (m8 - cv2.erode(m8, np.ones((3, 3), np.uint8))) > 0
-
-
-def _boundary_f(a: np.ndarray, b: np.ndarray, tol: int = 2) -> float:
-    ba, bb = _boundary(a), _boundary(b)
-    if not ba.any() and not bb.any():
-        return 1.0
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * tol + 1, 2 * tol + 1))
-    da, db = cv2.dilate(ba.astype(np.uint8), k) > 0, cv2.dilate(bb.astype(np.uint8), k) > 0
-    precision = (bb & da).sum() / max(bb.sum(), 1)
-    recall = (ba & db).sum() / max(ba.sum(), 1)
-    return float(2 * precision * recall / max(precision + recall, 1e-9))
-
-
-def score(export: Path, scene: Path, min_area: int = 16) -> dict[str, float]:
-    pred = _by_image(json.loads((export / "subjects.coco.json").read_text()))
-    gt_coco = json.loads((scene / "gt" / "coco.json").read_text())
-    frames = {k for k in pred} | {
-        (im["camera"], int(im["frame"])) for im in json.loads(
-            (export / "subjects.coco.json").read_text())["images"]}
-    gt = {k: v for k, v in _by_image(gt_coco).items() if k in frames}
-    ious, bfs = [], []
-    for key, truths in gt.items():
-        truths = [t for t in truths if t.sum() >= min_area]
-        preds = pred.get(key, [])
-        iou = np.zeros((len(truths), len(preds)))
-        for i, t in enumerate(truths):
-            for j, p in enumerate(preds):
-                iou[i, j] = (t & p).sum() / max((t | p).sum(), 1)
-        got = dict(zip(*linear_sum_assignment(-iou), strict=True)) if iou.size else {}
-        for i, t in enumerate(truths):
-            j = got.get(i)
-            ious.append(iou[i, j] if j is not None else 0.0)
-            bfs.append(_boundary_f(t, preds[j]) if j is not None else 0.0)
-    return {"miou": float(np.mean(ious)), "boundary_f": float(np.mean(bfs)),
-            "instances": len(ious)}
 
 
 def main() -> None:
@@ -108,7 +54,10 @@ def main() -> None:
                        check=True, capture_output=True)
         seconds = time.perf_counter() - t0
         manifest = json.loads((out / "manifest.json").read_text())
-        rows.append({"masks": label, **score(out, scene),
+        m = export_mask_scores(out, scene)
+        rows.append({"masks": label, "miou": m["native_miou"],
+                     "boundary_f": m["native_boundary_f"],
+                     "instances": int(m["native_instances"]),
                      "native_size": "x".join(map(str, next(iter(
                          manifest["scene"]["native_sizes"].values())))),
                      "train_size": "x".join(map(str, manifest["checkpoint"]["image_size"])),

@@ -13,6 +13,7 @@ from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import ConfigError
 from nsd.core.threads import set_threads
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
+from nsd.evaluation.export_masks import export_mask_scores
 from nsd.evaluation.labelled import LABEL_METRICS, score_labels
 from nsd.evaluation.tracking import tracking_metrics
 from nsd.inference.multiview import InferenceSettings
@@ -45,6 +46,7 @@ def _hydra_main(cfg: DictConfig) -> float:
         if cfg.export and GroundTruth.exists(scene):
             tracks = tracking_metrics(cfg.export, scene)
             metrics.update({f"tracking_{k}": v for k, v in tracks.items()})
+            metrics.update(export_mask_scores(cfg.export, scene))  # at native resolution
         if labels is not None:
             row_ids = None
             if cfg.identities:
@@ -71,12 +73,18 @@ def _labels(cfg: DictConfig, scene: Path) -> Labels2D | None:
 
 
 def _labels_table(metrics: dict[str, float]) -> str:
-    if "labels_keypoints_in_mask" not in metrics:
-        return ""
-    rows = ["", "Against the labelled keypoints (nsd/evaluation/labelled.py):", "",
-            "| metric | value |", "|---|---|"]
-    rows += [f"| {k} | {metrics[f'labels_{k}']:.4g} |" for k in LABEL_METRICS]
-    return "\n".join(rows) + "\n"
+    """The export's own figures: masks at native resolution, labelled keypoints."""
+    rows = []
+    if "native_miou" in metrics:
+        rows += ["", "The export's masks at native resolution (nsd/evaluation/export_masks.py):",
+                 "", "| metric | value |", "|---|---|"]
+        rows += [f"| {k} | {metrics[k]:.4g} |"
+                 for k in ("native_miou", "native_boundary_f", "native_instances")]
+    if "labels_keypoints_in_mask" in metrics:
+        rows += ["", "Against the labelled keypoints (nsd/evaluation/labelled.py):", "",
+                 "| metric | value |", "|---|---|"]
+        rows += [f"| {k} | {metrics[f'labels_{k}']:.4g} |" for k in LABEL_METRICS]
+    return "\n".join(rows) + "\n" if rows else ""
 
 
 def main() -> None:
