@@ -37,7 +37,7 @@ from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embeddings import read_embeddings
 from nsd.io.ground_truth import GroundTruth
-from nsd.io.identities import read_identities, write_identities
+from nsd.io.identities import identity_by_row, write_identities
 from nsd.io.mot import write_identity_tracks
 from nsd.io.scene_check import check_scene, scene_fingerprint
 from nsd.io.scenes import resolve_scene
@@ -386,8 +386,7 @@ def formats_stage(cfg: DictConfig, have_identities: bool, have_keypoints: bool) 
         rig = read_calibration(scene, cfg.train.data.units)
         row_ids = positions = None
         if have_identities:
-            ids = read_identities(up["identities"].folder / "identities.csv")
-            row_ids = dict(zip(ids["id"].tolist(), ids["identity"].tolist(), strict=True))
+            row_ids = identity_by_row(up["identities"].folder / "identities.csv")
             positions = read_positions(up["identities"].folder / "positions.csv")
         else:
             positions = triangulate_positions(export, rig)
@@ -410,8 +409,7 @@ def overlays_stage(cfg: DictConfig, have_identities: bool) -> Stage:
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         row_ids = None
         if have_identities:
-            ids = read_identities(up["identities"].folder / "identities.csv")
-            row_ids = dict(zip(ids["id"].tolist(), ids["identity"].tolist(), strict=True))
+            row_ids = identity_by_row(up["identities"].folder / "identities.csv")
         return write_overlay_videos(up["export"].folder, up["scene"].summary["path"], out,
                                     row_ids, int(o.size), float(o.fps))
 

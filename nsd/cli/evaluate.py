@@ -19,7 +19,7 @@ from nsd.evaluation.tracking import tracking_metrics
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.footage import MultiViewFootage
 from nsd.io.ground_truth import GroundTruth
-from nsd.io.identities import read_identities
+from nsd.io.identities import identity_by_row
 from nsd.io.labels import Labels2D, read_labels_2d
 from nsd.io.scenes import resolve_scene
 from nsd.model.checkpoint import load_decomposition
@@ -35,8 +35,11 @@ def _hydra_main(cfg: DictConfig) -> float:
         set_threads(int(cfg.threads))
         frames = cfg.frames if isinstance(cfg.frames, str) else list(cfg.frames)
         settings = InferenceSettings.from_config(cfg.inference)
-        scene = resolve_scene(cfg.scene or load_decomposition(cfg.checkpoint).config.data.scene)
-        labels = _labels(cfg, scene)  # read and checked before any work
+        labels, scene = None, None
+        if cfg.export or cfg.labels:  # the scene of an export (the checkpoint's by default)
+            scene = resolve_scene(
+                cfg.scene or load_decomposition(cfg.checkpoint).config.data.scene)
+            labels = _labels(cfg, scene)  # read and checked before any work
         metrics: dict[str, float] = {}
         if labels is None or GroundTruth.exists(scene):  # real footage: the labels alone
             metrics = evaluate_checkpoint(
@@ -48,16 +51,13 @@ def _hydra_main(cfg: DictConfig) -> float:
             metrics.update({f"tracking_{k}": v for k, v in tracks.items()})
             metrics.update(export_mask_scores(cfg.export, scene))  # at native resolution
         if labels is not None:
-            row_ids = None
-            if cfg.identities:
-                ids = read_identities(Path(cfg.identities))
-                row_ids = dict(zip(ids["id"].tolist(), ids["identity"].tolist(), strict=True))
+            row_ids = identity_by_row(Path(cfg.identities)) if cfg.identities else None
             scores = score_labels(cfg.export, labels, row_ids)
             metrics.update({f"labels_{k}": v for k, v in scores.items()})
         ckpt = Path(cfg.checkpoint)
         out = Path(cfg.out) if cfg.out else (ckpt if ckpt.is_dir() else ckpt.parent)
         atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
-        table = markdown_table(metrics) + _labels_table(metrics)
+        table = markdown_table(metrics) + _export_tables(metrics)
         atomic_write_text(out / "eval.md", table)
         print(table)
         return float(metrics.get("mask_miou", float("nan")))
@@ -72,7 +72,7 @@ def _labels(cfg: DictConfig, scene: Path) -> Labels2D | None:
     return read_labels_2d(cfg.labels, MultiViewFootage(scene).calibration_names)
 
 
-def _labels_table(metrics: dict[str, float]) -> str:
+def _export_tables(metrics: dict[str, float]) -> str:
     """The export's own figures: masks at native resolution, labelled keypoints."""
     rows = []
     if "native_miou" in metrics:

@@ -38,7 +38,7 @@ from sleap_io.io import nwb_predictions
 
 from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_write_text
-from nsd.export.positions import mask_centroids
+from nsd.export.positions import mask_centroid
 from nsd.io.footage import ImageFolderSource, find_source
 
 __all__ = ["POSE_TOOL_FORMATS", "read_trc", "write_c3d", "write_pose_tool_files", "write_trc"]
@@ -95,7 +95,6 @@ def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int
     cameras = _cameras(coco, rig)
     videos = {c: _video(scene, c) for c in cameras}
     tracks = {i: sio.Track(name=f"id{i}") for i in sorted(set(row_ids.values())) if i >= 0}
-    centroids = mask_centroids(coco) if not n_kp else {}
     frames: dict[tuple[str, int], sio.LabeledFrame] = {}
     for a in coco["annotations"]:
         aid, ident = int(a["id"]), row_ids.get(int(a["id"]), -1)
@@ -106,20 +105,20 @@ def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int
         if lf is None:
             lf = frames[key] = sio.LabeledFrame(video=videos[key[0]], frame_idx=key[1])
         track, score = tracks[ident], float(a.get("score", 1.0))
+        mask = mask_utils.decode(a["segmentation"]).astype(bool)  # decoded once per row
         if n_kp and aid in keypoints:
             uv, z = rig[key[0]].project(keypoints[aid])
             points = np.where((z > 0)[:, None], uv, np.nan)
-        elif aid in centroids:
-            points = centroids[aid][None]
+        elif not n_kp and (centroid := mask_centroid(mask)) is not None:
+            points = centroid[None]
         else:
             continue
         inst = sio.PredictedInstance.from_numpy(points, skeleton=skeleton, score=score,
                                                 point_scores=np.full(len(points), score),
                                                 track=track)
         lf.instances.append(inst)
-        seg = a["segmentation"]
         lf.masks.append(sio.PredictedSegmentationMask.from_numpy(
-            mask_utils.decode(seg).astype(bool), score=score, track=track, instance=inst))
+            mask, score=score, track=track, instance=inst))
         x, y, w, h = (float(v) for v in a["bbox"])
         lf.bboxes.append(sio.PredictedBoundingBox.from_xywh(x, y, w, h, score=score,
                                                             track=track, instance=inst))

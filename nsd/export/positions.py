@@ -27,21 +27,26 @@ from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_write_text
 from nsd.cues.triangulation import nearest_point_to_rays
 
-__all__ = ["POSITION_COLUMNS", "mask_centroids", "read_positions", "triangulate_positions",
-           "write_positions"]
+__all__ = ["POSITION_COLUMNS", "mask_centroid", "mask_centroids", "read_positions",
+           "triangulate_positions", "write_positions"]
 
 POSITION_COLUMNS = ("frame", "identity", "x", "y", "z", "views")
 
 
+def mask_centroid(mask: np.ndarray) -> np.ndarray | None:
+    """Centroid (x, y) of an (H, W) mask in pixels (pixel centres at integers); None if empty."""
+    ys, xs = np.nonzero(mask)
+    return np.array([xs.mean(), ys.mean()]) if len(xs) else None
+
+
 def mask_centroids(coco: dict) -> dict[int, np.ndarray]:
-    """Annotation id -> centroid (x, y) of its visible mask in native pixels (pixel centres
-    at integers); rows with an empty mask are left out."""
+    """Annotation id -> centroid (x, y) of its visible mask in native pixels; rows with an
+    empty mask are left out."""
     out = {}
     for a in coco["annotations"]:
-        m = mask_utils.decode(a["segmentation"])
-        ys, xs = np.nonzero(m)
-        if len(xs):
-            out[int(a["id"])] = np.array([xs.mean(), ys.mean()])
+        c = mask_centroid(mask_utils.decode(a["segmentation"]))
+        if c is not None:
+            out[int(a["id"])] = c
     return out
 
 

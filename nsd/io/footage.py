@@ -383,7 +383,7 @@ class MultiViewFootage:
         """
         return np.stack(
             [
-                self._resize(self._native_background(v, num_samples), v)
+                self._resize(self.native_background(v, num_samples), v)
                 for v in range(self.num_views)
             ]
         )
@@ -418,9 +418,6 @@ class MultiViewFootage:
     def native_background(self, v: int, num_samples: int = BACKGROUND_SAMPLES) -> np.ndarray:
         """Camera ``v``'s background at the footage's native resolution, uint8 (H, W, 3)
         (the plate or the median of :meth:`background`, from the same disk cache)."""
-        return self._native_background(v, num_samples)
-
-    def _native_background(self, v: int, num_samples: int) -> np.ndarray:
         plate = self.plate(v)
         src = self.sources[v] if plate is None else plate
         key = hashlib.sha1(f"{src.signature()}:{num_samples}".encode()).hexdigest()[:16]

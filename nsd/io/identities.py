@@ -16,7 +16,7 @@ import numpy as np
 
 from nsd.core.atomic import atomic_write_text
 
-__all__ = ["COLUMNS", "read_identities", "write_identities"]
+__all__ = ["COLUMNS", "identity_by_row", "read_identities", "write_identities"]
 
 COLUMNS = ("id", "camera", "frame", "subject_id", "identity")
 _INT = {"id", "frame", "subject_id", "identity"}
@@ -37,3 +37,9 @@ def read_identities(path: Path) -> dict[str, np.ndarray]:
         rows = list(csv.DictReader(f))
     return {c: np.array([r[c] for r in rows], dtype=np.int64 if c in _INT else object)
             for c in COLUMNS}
+
+
+def identity_by_row(path: Path) -> dict[int, int]:
+    """Export annotation id -> identity (-1: none) of an ``identities.csv``."""
+    ids = read_identities(path)
+    return dict(zip(ids["id"].tolist(), ids["identity"].tolist(), strict=True))

@@ -25,7 +25,6 @@ from nsd.export.positions import (
     write_positions,
 )
 from nsd.io.mot import read_mot, write_identity_tracks
-from nsd.synth.scene import tiny_config, write_scene
 
 
 def _square(uv: np.ndarray, size: tuple[int, int], half: int = 2) -> dict:
@@ -69,28 +68,18 @@ def test_known_positions_are_triangulated_back(random_cameras, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def gt_export(tmp_path_factory):
-    """An export whose rows are a synthetic scene's ground truth (masks, boxes, identities),
-    so that every file can be checked against known values."""
-    root = tmp_path_factory.mktemp("formats")
-    scene = write_scene(tiny_config(image_size=[64, 64], rig={
-        "kind": "ring", "count": 3, "radius": 4.0, "height": 2.0, "fov_deg": 50.0,
-        "start_deg": 30.0}), root / "scene")
-    coco = json.loads((scene / "gt" / "coco.json").read_text())
-    images = {im["id"]: im for im in coco["images"]}
-    for a in coco["annotations"]:
-        im = images[a["image_id"]]
-        a.update(camera=im["camera"], frame=im["frame"], subject_id=a["identity_id"] + 1,
-                 score=0.9)
-    export = root / "export"
-    export.mkdir()
-    (export / "subjects.coco.json").write_text(json.dumps(coco))
+def gt_export(world, tmp_path_factory):
+    """The shared synthetic world's ground truth as an export (masks, boxes, identities)
+    written in every pose-tool format, so that every file can be checked against known
+    values."""
+    scene, export, coco = world["scene"], world["export"], world["coco"]
+    out = tmp_path_factory.mktemp("formats") / "formats"
     rig = read_calibration(scene)
     row_ids = {a["id"]: a["identity_id"] for a in coco["annotations"]}
     positions = triangulate_positions(export, rig, row_ids)
-    summary = write_pose_tool_files(export, scene, rig, root / "formats", row_ids, positions)
+    summary = write_pose_tool_files(export, scene, rig, out, row_ids, positions)
     return {"scene": scene, "export": export, "coco": coco, "rig": rig, "row_ids": row_ids,
-            "positions": positions, "out": root / "formats", "summary": summary}
+            "positions": positions, "out": out, "summary": summary}
 
 
 def test_positions_of_the_ground_truth_are_near_the_bodies(gt_export):
