@@ -7,9 +7,9 @@
 # torch is installed FIRST, as torch==$NSD_TORCH_VERSION (default 2.13.0, the tested release),
 # unless the venv already holds a torch that the toolkit's range accepts (then it is kept).
 # Where that release comes from is pip's business: its default index serves a CUDA build on
-# Linux (several GB; the toolkit runs on the CPU with it too, and does not use a GPU yet). For
-# the small CPU-only build, point NSD_TORCH_INDEX at PyTorch's CPU wheel index (the address
-# is on PyTorch's installation page):
+# Linux (several GB), which the toolkit uses on a machine with an NVIDIA GPU (every command's
+# `device: auto`) and which runs on the CPU elsewhere. For the small CPU-only build, point
+# NSD_TORCH_INDEX at PyTorch's CPU wheel index (the address is on PyTorch's installation page):
 #
 #   NSD_TORCH_INDEX=<PyTorch's CPU wheel index> bash tools/setup.sh
 set -euo pipefail
@@ -50,6 +50,7 @@ import torch
 import nsd
 
 build = f"CUDA {torch.version.cuda} build" if torch.version.cuda else "CPU build"
-gpu = "an NVIDIA GPU is available" if torch.cuda.is_available() else "runs on the CPU"
+gpu = ("device=auto uses the CUDA GPU" if torch.cuda.is_available()
+       else "device=auto runs on the CPU")
 print(f"set-up done: nsd-netepu {nsd.__version__}, torch {torch.__version__} ({build}; {gpu})")
 PY

@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from netepu.geometry.stage import build_geometry_stage
 from netepu.texture.stage import build_texture_stage
 from nsd.core.app import check_command_line, reported
+from nsd.core.device import resolve_device
 from nsd.core.errors import ConfigError
 from nsd.core.run_folder import RunFolder
 from nsd.core.threads import set_threads
@@ -48,6 +49,7 @@ STAGES: dict[str, Callable[[DictConfig], tuple[Any, dict[str, Any]]]] = {
 def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     """Train ``cfg.stage`` into ``out_dir``; returns the final evaluation metrics."""
     set_threads(int(cfg.threads))
+    device = resolve_device(cfg.device)
     if cfg.stage not in STAGES:
         raise ConfigError(f"stage must be one of {sorted(STAGES)}, got {cfg.stage!r}")
     tcfg = TrainerConfig.from_config(OmegaConf.to_container(cfg.trainer, resolve=True))
@@ -63,6 +65,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     if "model" in found:  # a stage built on a checkpoint (texture) records its geometry model
         config["netepu"]["model"] = found.pop("model")
     config["netepu"]["data"].update(found)
+    task.to(device)  # after the weights of init_from; optimisers keep their parameters
+    log.info("models run on %s", device)
     trainer = Trainer(task, tcfg, out_dir, config)
     metrics = trainer.fit()
     metrics["iterations_per_second"] = trainer.throughput()

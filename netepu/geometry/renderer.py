@@ -45,6 +45,7 @@ __all__ = [
     "RenderContext",
     "RenderHead",
     "ViewFrame",
+    "check_in_front",
     "to_frame",
     "view_frame",
 ]
@@ -75,6 +76,14 @@ class ViewFrame:
     positions: Tensor
 
 
+def check_in_front(depth_ref: Tensor) -> None:
+    """Raise ValueError naming the batch items whose keypoints' mean depth (B,) is not in
+    front of their camera (a data-dependent check: it waits for a GPU)."""
+    if not torch.all(depth_ref > MIN_DEPTH):
+        bad = torch.nonzero(depth_ref <= MIN_DEPTH).flatten().tolist()
+        raise ValueError(f"keypoints of batch items {bad} lie behind their camera")
+
+
 def view_frame(keypoints: Tensor, camera: CameraBatch, radius: float) -> ViewFrame:
     """Project keypoints and build the view frame (see the module docstring).
 
@@ -93,9 +102,7 @@ def view_frame(keypoints: Tensor, camera: CameraBatch, radius: float) -> ViewFra
     camera = CameraBatch.from_mapping(camera)
     uv, Z = project_points(keypoints, camera.K, camera.R, camera.t, camera.dist)
     depth_ref = Z.mean(dim=1)
-    if not torch.all(depth_ref > MIN_DEPTH):
-        bad = torch.nonzero(depth_ref <= MIN_DEPTH).flatten().tolist()
-        raise ValueError(f"keypoints of batch items {bad} lie behind their camera")
+    check_in_front(depth_ref)
     K = camera.K
     focal = torch.sqrt(K[..., 0, 0] * K[..., 1, 1])
     scale = focal * radius / depth_ref

@@ -39,6 +39,7 @@ from netepu.geometry.losses import (
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import GeometryModel, build_geometry_model
 from nsd.core.config import ConfigSection
+from nsd.core.device import move, on_cpu
 from nsd.core.errors import ConfigError
 
 __all__ = ["GeometryStageConfig", "GeometryTask", "build_geometry_stage"]
@@ -118,6 +119,14 @@ class GeometryTask:
                                                                  cfg.lr_decay)
                            for name, o in self.opts.items()}
 
+    device = torch.device("cpu")  # where training steps run (:meth:`to`)
+
+    def to(self, device: torch.device) -> GeometryTask:
+        """Train on ``device`` (evaluation and grids stay on the CPU)."""
+        self.device = device
+        self.model.to(device)
+        return self
+
     def modules(self) -> dict[str, nn.Module]:
         return {"geometry": self.model}
 
@@ -160,7 +169,7 @@ class GeometryTask:
     def training_step(self, step: int, rng: np.random.Generator) -> dict[str, Tensor]:
         c = self.cfg
         batch = sample_batch(self.data, rng, c.batch_size, c.near, c.far, c.foreground)
-        return self.losses(batch, rng)
+        return self.losses(move(batch, self.device), rng)
 
     def _eval_sets(self):
         for name, views in self.data.evaluation.items():
@@ -170,17 +179,19 @@ class GeometryTask:
 
     def evaluate(self, step: int) -> dict[str, float]:
         out: dict[str, float] = {}
-        for name, views in self._eval_sets():
-            out.update(evaluate_views(self.model, views, self.render, prefix=f"{name}/"))
+        with on_cpu(self.model):
+            for name, views in self._eval_sets():
+                out.update(evaluate_views(self.model, views, self.render, prefix=f"{name}/"))
         return out
 
     def image_grids(self, step: int) -> dict[str, np.ndarray]:
         grids = {}
         self.model.eval()
-        for name, views in self._eval_sets():
-            sub = views.subset(list(range(min(4, len(views)))))
-            grids[f"geometry_{name}"] = comparison_grid(
-                render_view_set(self.model, sub, self.render), sub)
+        with on_cpu(self.model):
+            for name, views in self._eval_sets():
+                sub = views.subset(list(range(min(4, len(views)))))
+                grids[f"geometry_{name}"] = comparison_grid(
+                    render_view_set(self.model, sub, self.render), sub)
         self.model.train()
         return grids
 

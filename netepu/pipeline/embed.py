@@ -45,6 +45,7 @@ from netepu.texture.model import load_texture_model
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_save_npz, atomic_write_bytes
+from nsd.core.device import call_on_device, resolve_device
 from nsd.core.errors import ConfigError, NSDError
 from nsd.core.threads import set_threads
 from nsd.io.crops import read_crop_index, read_crops
@@ -83,12 +84,14 @@ def embed_export(
     column: str = "texture",
     batch_size: int = 64,
     maps: str | os.PathLike | None = None,
+    device: str = "cpu",
 ) -> dict[str, Any]:
     """Append texture codes to an export's embedding table (see the module docstring).
 
     Args:
         maps: also write what the encoder read for every coded row to this ``.npz``
             (:func:`write_surface_maps`), and a grid image next to it.
+        device: where the models run (a ``device`` setting, :mod:`nsd.core.device`).
 
     Returns:
         ``rows``, ``encoded`` (rows with a code), ``path`` of the table.
@@ -102,6 +105,9 @@ def embed_export(
             f"export: {crops / 'index.csv'} does not exist (not an nsd-export folder with crops)"
         )
     texture, geometry, _ = load_texture_model(checkpoint)
+    on = resolve_device(device)
+    texture.to(on)
+    geometry.to(on)
     kps, rig = _surface_inputs(texture, geometry, keypoints, calibration)
     index = {r["id"]: r for r in read_crop_index(crops)}
     row_ids = read_embeddings(table, columns=["id"])["id"].astype(np.int64)
@@ -131,7 +137,7 @@ def embed_export(
             read["inside"].append(inside.numpy())
             if surface is not None:
                 read["surface"].append(surface.numpy())
-        reid[rows] = texture.reid_embedding(mu, rgb, inside).numpy()
+        reid[rows] = call_on_device(texture, texture.reid_embedding, mu, rgb, inside).numpy()
     valid = ~np.isnan(codes).any(1)
     if maps is not None:
         write_surface_maps(Path(maps), read, texture.cfg.crop_size)
@@ -190,7 +196,9 @@ class _Batcher:
                 ) from e
             cam = self.cams[ci]
             kp = torch.from_numpy(np.stack([self.kps[i] for i in ids])).float()
-        mu, rgb, inside, surface = texture_codes(
+        mu, rgb, inside, surface = call_on_device(
+            self.texture,
+            texture_codes,
             self.texture,
             self.geometry,
             torch.from_numpy(images[keep]),
@@ -244,6 +252,7 @@ def embed_into_copy(
     keypoints: str | os.PathLike | None = None,
     calibration: str | os.PathLike | None = None,
     maps: str | os.PathLike | None = None,
+    device: str = "cpu",
 ) -> dict[str, Any]:
     """:func:`embed_export` into a copy of the export's embedding table in folder ``out``.
 
@@ -257,7 +266,7 @@ def embed_into_copy(
     shutil.copyfile(table, out / table.name)
     (out / "crops").symlink_to((export / "crops").resolve())
     try:
-        return embed_export(out, checkpoint, keypoints, calibration, maps=maps)
+        return embed_export(out, checkpoint, keypoints, calibration, maps=maps, device=device)
     finally:
         (out / "crops").unlink()
 
@@ -268,7 +277,7 @@ def _hydra_main(cfg: DictConfig) -> None:
     with reported(PROG):
         try:
             out = embed_export(cfg.export, cfg.checkpoint, cfg.keypoints, cfg.calibration,
-                               cfg.column, int(cfg.batch_size), cfg.get("maps"))
+                               cfg.column, int(cfg.batch_size), cfg.get("maps"), cfg.device)
         except (KeyError, ValueError) as e:  # a table or keypoint file of another layout
             if isinstance(e, NSDError):
                 raise

@@ -57,6 +57,7 @@ from netepu.reid.identities import IDENTITY_METHODS
 from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_write_text
 from nsd.core.config import compose_app
+from nsd.core.device import resolve_device
 from nsd.core.errors import ConfigError
 from nsd.core.run_folder import RunFolder
 from nsd.core.stages import Stage, StageResult, StageRunner
@@ -168,6 +169,7 @@ def _hydra_main(cfg: DictConfig) -> None:
             if isinstance(logger, logging.Logger):  # disabled the loggers that existed before it
                 logger.disabled = False
         log.info("torch uses %d CPU threads", set_threads(int(cfg.threads)))
+        log.info("models run on %s", resolve_device(cfg.device))  # a wrong device fails here
         results = run_pipeline(cfg)
         print(_report(folder.folder, results))
 

@@ -128,7 +128,7 @@ def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         c = tcfg.copy()
         c.data.scene = up["scene"].summary["path"]
-        c.threads = cfg.threads  # nsd-run's threads: one setting for every stage
+        c.threads, c.device = cfg.threads, cfg.device  # nsd-run's: one setting for all stages
         # trained in a work folder that survives an interruption (exact resume), moved at the end
         work = out.parent / f".train-work-{config_hash(_container(c))}"
         for stale in out.parent.glob(".train-work-*"):  # of other settings: never resumed
@@ -148,7 +148,8 @@ def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
             "metrics": {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)},
         }
 
-    settings = {k: v for k, v in _container(tcfg).items() if k != "threads"}  # not a result
+    # where and on how many threads it runs is not a result
+    settings = {k: v for k, v in _container(tcfg).items() if k not in ("threads", "device")}
     return Stage("train", run, settings, needs=("scene",))
 
 
@@ -182,6 +183,7 @@ def evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
             str(e.refine),
             InferenceSettings.from_config(inference),
             baseline=bool(e.baseline),
+            device=cfg.device,
         )
         metrics = {k: float(v) for k, v in metrics.items()}
         atomic_write_text(out / "eval.json", json.dumps(metrics, indent=2))
@@ -213,8 +215,9 @@ def export_stage(cfg: DictConfig) -> Stage:
         ecfg.scene = up["scene"].summary["path"]
         ecfg.out = str(out)  # the export is built atomically and replaces the stage's folder
         ecfg.overwrite = True
-        if "threads" not in cfg.export:  # nsd-run's threads unless +export.threads says else
-            ecfg.threads = cfg.threads
+        for key in ("threads", "device"):  # nsd-run's unless +export.<key> says else
+            if key not in cfg.export:
+                ecfg[key] = cfg[key]
         s = export_subjects(ecfg)
         return {
             "frames": s.frames,
@@ -292,6 +295,7 @@ def _regress_keypoints(
     c.data.scene = scene
     c.trainer.progress = bool(cfg.train.trainer.progress)
     c.stage, c.init_from = "pose", str(checkpoint)
+    c.threads, c.device = cfg.threads, cfg.device
     c.pose.label_fraction = float(k.label_fraction)
     c.pose.labels = k.get("labels")  # a user's labels instead of the scene's gt/
     c.trainer.max_steps, c.trainer.max_minutes = int(k.regressor_steps), 0.0
@@ -314,7 +318,7 @@ def texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
         kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
         res = embed_into_copy(
             up["export"].folder, out, n.texture, kp, up["scene"].summary["path"],
-            maps=out / "nnopcs.npz",
+            maps=out / "nnopcs.npz", device=cfg.device,
         )  # fmt: skip
         return {
             "table": Path(res["path"]).name,

@@ -42,6 +42,7 @@ def crop_windows(mask: Tensor, margin: float) -> Tensor:
     return torch.tensor(
         [square_crop_box([b[0], b[1], b[2] - b[0], b[3] - b[1]], margin) for b in boxes.tolist()],
         dtype=torch.float64,
+        device=mask.device,
     )
 
 
@@ -58,7 +59,7 @@ def crop_grid(window: Tensor, size: int) -> Tensor:
     Returns:
         (B, S, S, 2) ``(x, y)`` pixel coordinates, float64.
     """
-    t = (torch.arange(size, dtype=torch.float64) + 0.5) / size
+    t = (torch.arange(size, dtype=torch.float64, device=window.device) + 0.5) / size
     x = window[:, None, 0] + t[None] * window[:, None, 2] - 0.5  # (B, S)
     y = window[:, None, 1] + t[None] * window[:, None, 2] - 0.5
     return torch.stack(torch.broadcast_tensors(x[:, None, :], y[:, :, None]), -1)
@@ -107,7 +108,7 @@ def query_masked(query: Callable[[Tensor], Tensor], uv: Tensor, keep: Tensor) ->
     order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :n]  # kept first
     pts = torch.gather(uv, 1, order[..., None].expand(B, n, 2))
     vals = query(pts)
-    valid = torch.arange(n)[None] < counts[:, None]
+    valid = torch.arange(n, device=keep.device)[None] < counts[:, None]
     vals = vals * valid[..., None]
     out = vals.new_zeros(B, N, vals.shape[-1])
     return out.scatter(1, order[..., None].expand(B, n, vals.shape[-1]), vals)

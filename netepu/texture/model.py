@@ -128,8 +128,10 @@ class TextureModel(nn.Module):
 
         See :func:`netepu.texture.embedding.within_class_whitening`.
         """
-        m = torch.as_tensor(mean, dtype=self.reid_mean.dtype)
-        p = torch.as_tensor(projection, dtype=self.reid_projection.dtype)
+        m = torch.as_tensor(mean, dtype=self.reid_mean.dtype, device=self.reid_mean.device)
+        p = torch.as_tensor(
+            projection, dtype=self.reid_projection.dtype, device=self.reid_projection.device
+        )
         if m.shape != self.reid_mean.shape or p.shape != self.reid_projection.shape:
             raise ValueError(
                 f"reid whitening: want shapes {tuple(self.reid_mean.shape)} and "

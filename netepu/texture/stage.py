@@ -71,6 +71,7 @@ from netepu.texture.losses import code_contrast_loss, reparameterise, texture_lo
 from netepu.texture.model import TextureModel, build_texture_model
 from nsd.core.atomic import atomic_save_npz, atomic_save_torch
 from nsd.core.config import ConfigSection
+from nsd.core.device import move, on_cpu
 from nsd.core.errors import ConfigError
 from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.reid import reid_metrics
@@ -191,6 +192,16 @@ class TextureTask:
             else {}
         )
 
+    device = torch.device("cpu")  # where training steps run (:meth:`to`)
+
+    def to(self, device: torch.device) -> TextureTask:
+        """Train on ``device`` (evaluation, grids and the whitening fit stay on the CPU)."""
+        self.device = device
+        self.texture.to(device)
+        self.geometry.to(device)
+        self.geo_z, self.geo_f = self.geo_z.to(device), self.geo_f.to(device)
+        return self
+
     def modules(self) -> dict[str, nn.Module]:
         return {"texture": self.texture, "geometry": self.geometry}
 
@@ -277,9 +288,9 @@ class TextureTask:
         return out
 
     def training_step(self, step: int, rng: np.random.Generator) -> dict[str, Tensor]:
-        b = self.batch(rng)
+        b = move(self.batch(rng), self.device)
         mu, logvar = self.texture.encode(b["x"])
-        noise = torch.from_numpy(rng.standard_normal(mu.shape).astype(np.float32))
+        noise = torch.from_numpy(rng.standard_normal(mu.shape).astype(np.float32)).to(mu)
         z = reparameterise(mu, logvar, noise)
         v = b["view"]
         ctx = self.texture.prepare(z, self.geo_z[v], self.geo_f[v], b["keypoints"], b["camera"])
@@ -363,9 +374,14 @@ class TextureTask:
     def finish(self, step: int) -> None:
         """After the last step (before the final checkpoint): fit the whitening if enabled."""
         if self.cfg.reid_whitening_samples > 0:
-            self.fit_reid_whitening()
+            with on_cpu(self.texture, self.geometry):
+                self.fit_reid_whitening()
 
     def evaluate(self, step: int) -> dict[str, float]:
+        with on_cpu(self.texture, self.geometry):
+            return self._evaluate()
+
+    def _evaluate(self) -> dict[str, float]:
         codes = self.codes()
         out = evaluate_colour(
             self.texture, self.geometry, self.data, codes, max_views=self.cfg.eval_views
@@ -379,7 +395,11 @@ class TextureTask:
         return out
 
     def image_grids(self, step: int) -> dict[str, np.ndarray]:
-        codes = self.codes()
+        with on_cpu(self.texture, self.geometry):
+            codes = self.codes()
+            return self._grids(codes)
+
+    def _grids(self, codes: np.ndarray) -> dict[str, np.ndarray]:
         return {
             f"texture_{'heldout_cameras' if held else 'heldout_poses'}": synthesis_grid(
                 self.texture,

@@ -44,7 +44,7 @@ def _hydra_main(cfg: DictConfig) -> float:
         if labels is None or GroundTruth.exists(scene):  # real footage: the labels alone
             metrics = evaluate_checkpoint(
                 cfg.checkpoint, cfg.scene, frames, cfg.max_frames, cfg.refine, settings,
-                baseline=bool(cfg.baseline),
+                baseline=bool(cfg.baseline), device=cfg.device,
             )
         if cfg.export and GroundTruth.exists(scene):
             tracks = tracking_metrics(cfg.export, scene)

@@ -48,6 +48,7 @@ from tqdm import tqdm
 from nsd.core import distributed
 from nsd.core.atomic import atomic_save_torch
 from nsd.core.config import ConfigSection
+from nsd.core.device import move
 from nsd.core.errors import CheckpointError, ConfigError, NonFiniteError
 
 __all__ = [
@@ -147,6 +148,7 @@ def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
         "numpy_global": legacy,
         "python": random.getstate(),
         "torch": torch.get_rng_state(),
+        "torch_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
     }
 
 
@@ -160,6 +162,9 @@ def _set_rng_state(rng: np.random.Generator, state: Mapping[str, Any]) -> None:
     np.random.set_state(legacy)  # noqa: NPY002
     random.setstate(state["python"])
     torch.set_rng_state(state["torch"])
+    cuda = state.get("torch_cuda", [])
+    if cuda and torch.cuda.is_available() and len(cuda) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(cuda)
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
@@ -271,8 +276,10 @@ class Trainer:
             "step": self.step,
             "train_seconds": self.train_seconds,
             "evals_done": sorted(self._evals_done),
-            "modules": {k: m.state_dict() for k, m in self.task.modules().items()},
-            "optimizers": {k: o.state_dict() for k, o in self.task.optimizers().items()},
+            # CPU tensors: a checkpoint written on a GPU loads on any machine
+            "modules": {k: move(m.state_dict(), "cpu") for k, m in self.task.modules().items()},
+            "optimizers": {k: move(o.state_dict(), "cpu")
+                           for k, o in self.task.optimizers().items()},
             "schedulers": {k: s.state_dict() for k, s in schedulers.items()},
             "rng": _rng_state(self.rng),
             "task": task_extra() if task_extra else {},
@@ -408,7 +415,7 @@ class Trainer:
         names = sorted(losses)
         clock = self._own_seconds + time.perf_counter() - t0 if self.main else 0.0
         extra = torch.stack(
-            [*(torch.as_tensor(losses[k]).detach().double().reshape(()) for k in names),
+            [*(torch.as_tensor(losses[k]).detach().double().reshape(()).cpu() for k in names),
              torch.tensor(clock, dtype=torch.float64)]
         )
         params = {id(p): p for o in self.task.optimizers().values()

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -29,6 +30,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from nsd.core.config import compose_app
+from nsd.core.device import DEVICE_PATTERN
 from nsd.core.errors import ConfigError
 
 __all__ = ["RULES", "Rule", "check_config", "leaves"]
@@ -49,6 +51,7 @@ class Rule:
         length: exact list length.
         odd: an odd integer.
         allow: extra values allowed besides the kind (e.g. ``auto`` for a boolean).
+        pattern: a regular expression a string must match (kind str), said as ``words``.
     """
 
     kind: str
@@ -60,11 +63,15 @@ class Rule:
     length: int | None = None
     odd: bool = False
     allow: tuple[Any, ...] = ()
+    pattern: re.Pattern[str] | None = None
+    words: str = ""  # how a pattern's values are said to a user
 
     def describe(self) -> str:
         """The allowed range in words, e.g. ``an integer >= 1``."""
         if self.kind == "str" and self.choices:
             words = "one of " + ", ".join(self.choices)
+        elif self.kind == "str" and self.pattern is not None:
+            words = self.words or "a string matching " + self.pattern.pattern
         elif self.kind == "strs":
             words = "a list of any of " + ", ".join(self.choices)
         else:
@@ -113,7 +120,8 @@ class Rule:
         if self.kind == "bool":
             return isinstance(value, bool)
         if self.kind == "str":
-            return isinstance(value, str) and (not self.choices or value in self.choices)
+            return (isinstance(value, str) and (not self.choices or value in self.choices)
+                    and (self.pattern is None or bool(self.pattern.match(value))))
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             return False
         if self.kind == "int" and not isinstance(value, int):
@@ -141,6 +149,7 @@ WIDTHS = _r("ints", low=1)
 NULL_TEXT = _r("str", null=True)  # a path, a name or null
 UNITS = _r("str", choices=("auto", "m", "cm", "mm"))  # nsd.cameras.units.UNITS and auto
 ALWAYS = _r("any")
+DEVICE = _r("str", pattern=DEVICE_PATTERN, words="one of auto, cpu, cuda, cuda:N, mps")
 
 # Per config group (conf/<group>/*.yaml, or the app's own top-level keys): the rules that
 # the shipped default does not imply. Keys are paths inside the group.
@@ -188,12 +197,13 @@ RULES: dict[str, dict[str, Rule]] = {
                   "window_blend": FRACTION, "depth": _r("str", choices=("hull", "detector")),
                   "resolution": _r("int", low=8)},
     "train": {  # conf/train.yaml's own keys
+        "device": DEVICE,
         "stage": _r("str", choices=("decomposition", "pose")), "batch_size": POS,
         "eval_frames": POS, "init_from": NULL_TEXT, "pose.label_fraction": _r(
             "number", above=0, high=1), "pose.hidden": POS,
         "pose.dropout": _r("number", low=0, high=0.99), "pose.lr": RATE, "pose.labels": NULL_TEXT,
     },
-    "run": {
+    "run": {"device": DEVICE,
         "scene": NULL_TEXT, "out": NULL_TEXT, "checkpoint": NULL_TEXT,
         "evaluate.frames": ALWAYS, "evaluate.refine": _r("str", choices=("residual", "none")),
         "netepu.geometry": NULL_TEXT, "netepu.texture": NULL_TEXT,
@@ -208,10 +218,10 @@ RULES: dict[str, dict[str, Rule]] = {
         "formats.which": _r("strs", choices=("slp", "nwb", "dlc", "trc", "c3d")),
         "formats.fps": _r("number", above=0, null=True),
     },
-    "eval": {"checkpoint": _r("str"), "scene": NULL_TEXT, "frames": ALWAYS, "out": NULL_TEXT,
-             "export": NULL_TEXT, "labels": NULL_TEXT, "identities": NULL_TEXT,
+    "eval": {"device": DEVICE, "checkpoint": _r("str"), "scene": NULL_TEXT, "frames": ALWAYS,
+             "out": NULL_TEXT, "export": NULL_TEXT, "labels": NULL_TEXT, "identities": NULL_TEXT,
              "refine": _r("str", choices=("residual", "none"))},
-    "export": {
+    "export": {"device": DEVICE,
         "checkpoint": _r("str"), "scene": NULL_TEXT, "out": NULL_TEXT, "cameras": ALWAYS,
         "frames": ALWAYS, "batch_size": POS, "threshold": _r("number", above=0, high=0.999),
         "refine": _r("str", choices=("residual", "none")),
@@ -234,7 +244,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "motion.area_radius": RATE, "backdrop.wall_radius": RATE, "backdrop.tile": RATE,
         "light.direction": VEC3, "light.ambient": FRACTION, "preview.zoom": POS,
     },
-    "netepu_train": {"stage": _r("str", choices=("geometry", "texture")),
+    "netepu_train": {"device": DEVICE, "stage": _r("str", choices=("geometry", "texture")),
                      "init_from": NULL_TEXT, "objective": _r("str")},
     "netepu": {  # netepu-train's netepu.* (conf/netepu/...)
         "optim.batch_size": POS, "optim.lr": RATE, "optim.lr_decay": _r(
@@ -255,8 +265,9 @@ RULES: dict[str, dict[str, Rule]] = {
     "calib": {"calibration": _r("str"), "units": UNITS, "convert": NULL_TEXT, "preview": NULL_TEXT,
               "format": _r("str", choices=("auto", "anipose", "caliscope", "opencv", "panoptic",
                                            "colmap", "colmap_bin", "dlt"))},
-    "netepu_embed": {"export": _r("str"), "checkpoint": _r("str"), "keypoints": NULL_TEXT,
-                     "calibration": NULL_TEXT, "maps": NULL_TEXT, "batch_size": POS,
+    "netepu_embed": {"device": DEVICE, "export": _r("str"), "checkpoint": _r("str"),
+                     "keypoints": NULL_TEXT, "calibration": NULL_TEXT, "maps": NULL_TEXT,
+                     "batch_size": POS,
                      "column": _r("str")},
 }
 

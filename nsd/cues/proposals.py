@@ -111,8 +111,8 @@ def match_proposals(
     if active is not None:
         c = c + OFF_WINDOW_COST * (~active)[:, :, None].to(c.dtype)
     c = c * valid[:, None, :]
-    perms = torch.tensor(list(itertools.permutations(range(N))))  # (N!, N)
-    total = c[:, torch.arange(N)[None], perms].sum(-1)  # (B, N!)
+    perms = torch.tensor(list(itertools.permutations(range(N))), device=c.device)  # (N!, N)
+    total = c[:, torch.arange(N, device=c.device)[None], perms].sum(-1)  # (B, N!)
     return perms[total.argmin(1)]
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nsd.core.device import resolve_device
 from nsd.core.errors import ConfigError, FootageError
 from nsd.evaluation.contact import PARTS
 from nsd.evaluation.decomposition import evaluate_model
@@ -72,14 +73,15 @@ def markdown_table(metrics: dict[str, float]) -> str:
 def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
                         frames: str | list[int] = "val", max_frames: int = 0,
                         refine: str = "residual", inference=None,
-                        baseline: bool = True) -> dict[str, float]:
+                        baseline: bool = True, device: str = "cpu") -> dict[str, float]:
     """Evaluate a checkpoint on a scene (default: its training scene).
 
     ``inference``: :class:`nsd.inference.multiview.InferenceSettings` (None: the defaults).
     ``baseline``: also score the hull-only decomposition with the checkpoint's number of
     windows on the same frames (keys ``hull_<metric>``; scenes of 2 or more cameras).
+    ``device``: where the model runs (a ``device`` setting, :mod:`nsd.core.device`).
     """
-    trained = load_decomposition(checkpoint)
+    trained = load_decomposition(checkpoint, resolve_device(device))
     scene = Path(scene) if scene else Path(trained.config.data.scene or "")
     if not scene or str(scene) in ("", "."):
         scene = resolve_scene(None)

@@ -47,6 +47,7 @@ from pycocotools.cocoeval import COCOeval
 from sklearn.metrics import adjusted_rand_score
 from torch import Tensor
 
+from nsd.core.device import call_on_device
 from nsd.evaluation.contact import MIN_OVERLAP, PARTS, touches
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
@@ -347,8 +348,8 @@ def _novel_view_scores(model, data, views: Tensor, bgs: Tensor) -> tuple[float, 
     """Novel-view PSNR and SSIM of one instant: every view re-synthesised from the next."""
     V = data.num_views
     w_idx = (torch.arange(V) + 1) % V
-    rv, _, _, _ = model(
-        views, views[w_idx], bgs, bgs[w_idx], data.rotations[torch.arange(V), w_idx]
+    rv, _, _, _ = call_on_device(
+        model, model, views, views[w_idx], bgs, bgs[w_idx], data.rotations[torch.arange(V), w_idx]
     )
     psnr = kornia.metrics.psnr(rv.image.clamp(0, 1), views, 1.0).item()
     ssim = kornia.metrics.ssim(rv.image.clamp(0, 1), views, 7).mean().item()

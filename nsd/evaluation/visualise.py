@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nsd.core.device import call_on_device
 from nsd.inference.single import decompose
 
 __all__ = [
@@ -133,7 +134,9 @@ def training_grid(model, data, frames: Sequence[int]) -> np.ndarray:
         for t in frames:
             views, bgs = data.views(int(t))
             v, w = 0, 1 % data.num_views
-            rv, _, _, _ = model(
+            rv, _, _, _ = call_on_device(
+                model,
+                model,
                 views[v : v + 1],
                 views[w : w + 1],
                 bgs[v : v + 1],

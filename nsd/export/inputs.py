@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsd.cameras.batch import CameraBatch
 from nsd.cameras.calibration_io import read_calibration
+from nsd.core.device import resolve_device
 from nsd.core.errors import FootageError
 from nsd.io.footage import ImageFolderSource, MultiViewFootage
 from nsd.io.frame_selection import select_frames
@@ -95,7 +96,7 @@ class ImageEntries:
 
 
 def prepare_inputs(cfg: DictConfig) -> ExportInputs:
-    trained = load_decomposition(cfg.checkpoint)
+    trained = load_decomposition(cfg.checkpoint, resolve_device(cfg.device))
     scene = cfg.scene or trained.config.data.get("scene")
     if not scene:
         scene = resolve_scene(None)

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 import torch
 
 from nsd.cameras.batch import CameraBatch
+from nsd.core.device import call_on_device
 
 __all__ = ["association_scores"]
 
@@ -37,14 +38,14 @@ def association_scores(
         slot_bonus: added where both windows were fused with the same visual-hull
             individual (``dec.slots``, multi-view inference, :mod:`nsd.inference.multiview`).
     """
-    cost = model.geometry_cost(
-        dec.windows[v][None],
-        dec.windows[w][None],
-        cameras[v],
-        cameras[w],
-        tuple(image_size),
+    def scores(win_v, win_w, cam_v, cam_w, app_v, app_w):
+        cost = model.geometry_cost(win_v, win_w, cam_v, cam_w, tuple(image_size))
+        return model.association_score(app_v, app_w, cost)[0]
+
+    score = call_on_device(
+        model, scores, dec.windows[v][None], dec.windows[w][None], cameras[v], cameras[w],
+        dec.app[v][None], dec.app[w][None],
     )
-    score = model.association_score(dec.app[v][None], dec.app[w][None], cost)[0]
     slots = getattr(dec, "slots", None)
     if slots is not None and slot_bonus > 0:
         a, b = slots[v], slots[w]

@@ -36,6 +36,7 @@ from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
 from nsd.core.config import ConfigSection
+from nsd.core.device import model_device, move
 from nsd.core.errors import ConfigError
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals, voxel_grid
@@ -200,7 +201,8 @@ def decompose_views(
     was = model.training
     model.eval()
     try:
-        det = model.detector(images, backgrounds)
+        dev = model_device(model)
+        det = move(model.detector(images.to(dev), backgrounds.to(dev)), images.device)
     finally:
         model.train(was)
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)

@@ -43,6 +43,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 
+from nsd.core.device import model_device, move
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.model.association import appearance_similarity
 from nsd.model.bi_nvs import BiNVS
@@ -147,11 +148,14 @@ def decompose(
     """
     was_training = model.training
     model.eval()
+    dev = model_device(model)  # the model runs on its device, the rest on the CPU
     try:
-        win = model.windows(images, backgrounds, presence_threshold, detections)
+        on_dev = move((images, backgrounds, detections), dev)
+        win = model.windows(*on_dev[:2], presence_threshold, on_dev[2])
         B = images.shape[0]
-        eye = torch.eye(3, dtype=images.dtype).expand(B, 3, 3)
-        r = model.render(win, win, eye, backgrounds, hard=True, associate=False)
+        eye = torch.eye(3, dtype=images.dtype, device=dev).expand(B, 3, 3)
+        r = model.render(win, win, eye, on_dev[1], hard=True, associate=False)
+        win, r = move((win, r), images.device)
     finally:
         model.train(was_training)
     raw = r.composite.weights

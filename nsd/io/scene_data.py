@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -67,6 +67,14 @@ class PairBatch:
     count_w: Tensor | None = None
     owners_v: Tensor | None = None
     owners_w: Tensor | None = None
+
+    def to(self, device: torch.device | str) -> PairBatch:
+        """The batch with every tensor on ``device`` (the model's, :mod:`nsd.core.device`)."""
+        moved = {
+            f.name: None if (x := getattr(self, f.name)) is None else x.to(device)
+            for f in fields(self)
+        }
+        return PairBatch(**moved)
 
 
 def split_frames(num_frames: int, val_fraction: float) -> tuple[np.ndarray, np.ndarray]:

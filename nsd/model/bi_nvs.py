@@ -362,7 +362,7 @@ class BiNVS(nn.Module):
             for s in (slice(0, B), slice(B, 2 * B))
         )
         if self.cfg.mode == "autoencoder":
-            eye = torch.eye(3, dtype=image_v.dtype).expand(B, 3, 3)
+            eye = torch.eye(3, dtype=image_v.dtype, device=image_v.device).expand(B, 3, 3)
             return (
                 self.render(win_v, win_v, eye, background_v, associate=False),
                 self.render(win_w, win_w, eye, background_w, associate=False),

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from nsd.core.errors import CheckpointError
@@ -53,8 +54,11 @@ class TrainedDecomposition:
             )
 
 
-def load_decomposition(path: str | os.PathLike) -> TrainedDecomposition:
-    """Rebuild the trained BiNVS of an ``nsd-train`` checkpoint (a file or its run folder)."""
+def load_decomposition(
+    path: str | os.PathLike, device: torch.device | str = "cpu"
+) -> TrainedDecomposition:
+    """Rebuild the trained BiNVS of an ``nsd-train`` checkpoint (a file or its run folder)
+    on ``device`` (:mod:`nsd.core.device`; the checkpoint itself holds CPU tensors)."""
 
     path = Path(path)
     if path.is_dir():
@@ -69,7 +73,7 @@ def load_decomposition(path: str | os.PathLike) -> TrainedDecomposition:
         model.load_state_dict(state["modules"]["model"])
     except RuntimeError as e:
         raise CheckpointError(f"{path}: weights do not match its config: {e}") from e
-    model.eval()
+    model.to(device).eval()
     task = state.get("task", {})
     if task.get("stage2_started") is False:
         model.cfg.depth = False

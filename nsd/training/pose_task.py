@@ -22,6 +22,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from torch import Tensor, nn
 
+from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.evaluation.pose import mpjpe
 from nsd.inference.multiview import InferenceSettings, decompose_views
@@ -45,14 +46,15 @@ def label_frames(train_frames: np.ndarray, fraction: float, seed: int = 0) -> np
 class PoseTask:
     """Stage 3 (implements nsd.core.trainer.TrainTask)."""
 
-    def __init__(self, cfg, data, gt) -> None:
+    def __init__(self, cfg, data, gt, device: torch.device | None = None) -> None:
         if gt is None:
             raise ConfigError("stage=pose needs 3D keypoints: a scene with ground truth (gt/) "
                               "or pose.labels=<anipose pose-3d CSV>")
         if not cfg.init_from:
             raise ConfigError("stage=pose needs init_from=<decomposition checkpoint.pt>")
         self.cfg, self.data, self.gt = cfg, data, gt
-        self.model = build_model(cfg.model)
+        self.device = torch.device("cpu") if device is None else device
+        self.model = build_model(cfg.model).to(self.device)
         for p in self.model.parameters():
             p.requires_grad_(False)
         if hasattr(gt, "frames"):  # a user's labels: every labelled training frame
@@ -81,7 +83,7 @@ class PoseTask:
         K = self.gt.num_keypoints
         self.regressor = PoseRegressor(
             self.model.encoder.points, K, self.cfg.pose.hidden, self.cfg.pose.dropout
-        )
+        ).to(self.device)
         self.opt = torch.optim.Adam(self.regressor.parameters(), lr=self.cfg.pose.lr)
 
     # ------------------------------------------------------------------ samples
@@ -131,7 +133,7 @@ class PoseTask:
 
     def _cached(self, name: str, frames: np.ndarray) -> tuple[Tensor, Tensor]:
         if name not in self._latents:
-            self._latents[name] = self.samples(frames)
+            self._latents[name] = move(self.samples(frames), self.device)
         return self._latents[name]
 
     # ------------------------------------------------------------------ TrainTask
@@ -150,7 +152,7 @@ class PoseTask:
 
     def training_step(self, step: int, rng: np.random.Generator) -> dict[str, Tensor]:
         lat, tgt = self._cached("train", self.labelled)
-        idx = torch.as_tensor(rng.integers(0, len(lat), size=min(64, len(lat))))
+        idx = torch.as_tensor(rng.integers(0, len(lat), size=min(64, len(lat))), device=self.device)
         pred = self.regressor(lat[idx])
         loss = (pred - tgt[idx]).pow(2).mean()
         return {"loss": loss, "mpjpe": mpjpe(pred.detach(), tgt[idx]) * 1000}

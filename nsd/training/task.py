@@ -96,9 +96,13 @@ def _reset(module: nn.Module) -> None:
 class NSDTask:
     """Bi-NVS training on a scene (implements nsd.core.trainer.TrainTask)."""
 
-    def __init__(self, cfg: DictConfig, data: SceneData, gt: Any = None) -> None:
+    def __init__(
+        self, cfg: DictConfig, data: SceneData, gt: Any = None, device: torch.device | None = None
+    ) -> None:
         self.cfg, self.data, self.gt = cfg, data, gt
-        self.model = build_model(OmegaConf.to_container(cfg.model, resolve=True))
+        self.device = torch.device("cpu") if device is None else device
+        self.cameras = data.cameras.to(self.device)
+        self.model = build_model(OmegaConf.to_container(cfg.model, resolve=True)).to(self.device)
         self.depth_from = int(cfg.model.depth_from_step)
         self.reinit = bool(cfg.model.reinit_at_depth)
         self.use_depth = bool(cfg.model.depth)
@@ -260,7 +264,7 @@ class NSDTask:
         where configured ``presence_target``, ``prior_proposal``, the marginal presence
         target, ``prior_depth`` and ``prior_association``.
         """
-        cams = self.data.cameras
+        cams = self.cameras
         rv, rw, wv, ww = self.model(
             batch.image_v,
             batch.image_w,
@@ -290,7 +294,7 @@ class NSDTask:
         if self.cfg.prior_mask.weight > 0:
             out["prior_mask"] = self._mask_term(batch, rv, rw, matching, valid)
         weights = self.term_weights()
-        total = torch.zeros(())
+        total = torch.zeros((), device=self.device)
         for k, v in out.items():
             total = total + weights[k] * v
         out["loss"] = total
@@ -430,7 +434,7 @@ class NSDTask:
         ``evidence``: the two views' foreground evidence (B, H, W), ``size``: (H, W),
         ``caps``: per view (B,) the most windows that may be on, or None."""
         pp = self.cfg.prior_presence
-        loss, on = torch.zeros(()), torch.zeros(())
+        loss, on = torch.zeros((), device=self.device), torch.zeros((), device=self.device)
         for r, win, ev, cap in ((rv, wv, evidence[0], caps[0]), (rw, ww, evidence[1], caps[1])):
             if self.presence_normalise == "box":
                 area = window_area(win.det.boxes, size)
@@ -445,9 +449,9 @@ class NSDTask:
 
     def _depth_prior(self, batch, rv, rw, wv, ww) -> torch.Tensor:
         """Triangulated relative-depth consistency for both directions (nsd.cues.triangulation)."""
-        cams = self.data.cameras
+        cams = self.cameras
         H, W = batch.image_v.shape[-2:]
-        total = torch.zeros(())
+        total = torch.zeros((), device=self.device)
         for r, tgt, src, vt, vs in (
             (rv, wv, ww, batch.view_v, batch.view_w),
             (rw, ww, wv, batch.view_w, batch.view_v),
@@ -478,7 +482,8 @@ class NSDTask:
         self._update_stage(step)
         self._update_presence(step)
         same = float(self.cfg.data.same_view)
-        return self.losses(self.data.sample(rng, self.cfg.batch_size, same_view=same))
+        batch = self.data.sample(rng, self.cfg.batch_size, same_view=same)
+        return self.losses(batch.to(self.device))
 
     def evaluate(self, step: int) -> dict[str, float]:
         """Metrics with the configured inference; with ground truth and multi-view

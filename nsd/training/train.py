@@ -9,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nsd.cameras.calibration_io import read_calibration
 from nsd.cameras.units import file_units
+from nsd.core.device import resolve_device
 from nsd.core.errors import ConfigError
 from nsd.core.threads import set_threads
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
@@ -27,6 +28,8 @@ log = logging.getLogger(__name__)
 def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     """Train according to ``cfg`` into ``out_dir``; returns the final metrics."""
     log.info("torch uses %d CPU threads", set_threads(int(cfg.threads)))
+    device = resolve_device(cfg.device)
+    log.info("models run on %s", device)
     scene = resolve_scene(cfg.data.scene)
     data = SceneData(
         scene, cfg.data.image_size, cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames,
@@ -40,9 +43,9 @@ def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     tcfg = TrainerConfig.from_config(OmegaConf.to_container(cfg.trainer, resolve=True))
     seed_everything(tcfg.seed)  # model initialisation is part of the seeded train
     if cfg.stage == "pose":
-        task = PoseTask(cfg, data, gt)
+        task = PoseTask(cfg, data, gt, device)
     elif cfg.stage == "decomposition":
-        task = NSDTask(cfg, data, gt)
+        task = NSDTask(cfg, data, gt, device)
     else:
         raise ConfigError(f"stage must be 'decomposition' or 'pose', got {cfg.stage!r}")
     if cfg.init_from:

@@ -8,7 +8,7 @@ import pytest
 
 from nsd.core.config import compose_app
 from nsd.core.errors import ConfigError
-from nsd.core.validation import RULES, Rule, check_config, leaves
+from nsd.core.validation import DEVICE, RULES, Rule, check_config, leaves
 
 APPS = ["train", "run", "eval", "export", "synth", "netepu_train", "netepu_embed", "check",
         "calib"]
@@ -51,6 +51,8 @@ def test_every_shipped_group_option_passes(group, option):
         ("train", "trainer.resume=maybe", "trainer.resume = 'maybe': must be true or false"),
         ("train", "loss.ssim_window=6", "loss.ssim_window = 6: must be an integer >= 3, odd"),
         ("run", "threads=-2", "threads = -2: must be an integer >= 0"),
+        ("run", "device=gpu", "device = 'gpu': must be one of auto, cpu, cuda, cuda:N, mps"),
+        ("netepu_embed", "device=cuda0", "device = 'cuda0': must be one of auto, cpu, cuda"),
         ("run", "train.model.crop_size=2", "train.model.crop_size = 2"),
         ("run", "+export.batch_size=0", "export.batch_size = 0"),
         ("run", "+export.nonsense=1", "export.nonsense: nsd-export has no such key"),
@@ -88,6 +90,8 @@ def test_min_scale_above_max_scale_is_refused():
         (Rule("ints", low=1, length=2), [[1, 2]], [[1], [0, 1], [1.5, 2], "12"]),
         (Rule("bool", allow=("auto",)), [True, "auto"], ["yes", 1]),
         (Rule("str", null=True), [None, "x"], [3]),
+        (DEVICE, ["auto", "cpu", "cuda", "cuda:0", "cuda:12", "mps"],
+         ["gpu", "cuda:", "cuda:a", "CUDA", " cpu", 0, None]),
     ],
 )
 def test_rules_accept_and_refuse(rule, good, bad):
