@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
+from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import multiview_proposals, voxel_grid
@@ -70,11 +71,7 @@ class PairBatch:
 
     def to(self, device: torch.device | str) -> PairBatch:
         """The batch with every tensor on ``device`` (the model's, :mod:`nsd.core.device`)."""
-        moved = {
-            f.name: None if (x := getattr(self, f.name)) is None else x.to(device)
-            for f in fields(self)
-        }
-        return PairBatch(**moved)
+        return move(self, device)
 
 
 def split_frames(num_frames: int, val_fraction: float) -> tuple[np.ndarray, np.ndarray]:
