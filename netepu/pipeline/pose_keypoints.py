@@ -149,7 +149,7 @@ def _as_exported(export, scene, d) -> tuple[SceneData, InferenceSettings, dict[s
     )
     cams = ecfg.get("cameras") or d.get("cameras")
     data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0),
-                     d.get("units", "auto"))
+                     d.get("units", "auto"), background=d.get("background", "median"))
     shipped = load_export_config()  # what an export that records no setting used
     decompose_kw = {
         "mask_threshold": float(ecfg.get("threshold", shipped.threshold)),

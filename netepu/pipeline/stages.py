@@ -35,6 +35,7 @@ from nsd.export.pose_tools import write_pose_tool_files
 from nsd.export.positions import read_positions, triangulate_positions, write_positions
 from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
+from nsd.io.background_report import write_background_report
 from nsd.io.embeddings import read_embeddings
 from nsd.io.ground_truth import GroundTruth
 from nsd.io.identities import identity_by_row, write_identities
@@ -69,8 +70,9 @@ def _container(node: Any) -> Any:
 # ------------------------------------------------------------------ stages
 def scene_stage(cfg: DictConfig) -> Stage:
     """The scene folder, checked before any long work (:func:`nsd.io.scene_check.check_scene`:
-    errors stop the run, warnings are logged and kept in ``scene.json``); keyed by the
-    folder's content, so replacing a video or the calibration re-runs every stage."""
+    errors stop the run, warnings are logged and kept in ``scene.json``) and its background
+    report (``background/``, :mod:`nsd.io.background_report`); keyed by the folder's content,
+    so replacing a video or the calibration re-runs every stage."""
     spec = str(Path(cfg.scene).expanduser().resolve()) if cfg.scene else DEFAULT_SCENE
     path = resolve_scene(None if spec == DEFAULT_SCENE else spec)
     if not path.is_dir():
@@ -79,14 +81,18 @@ def scene_stage(cfg: DictConfig) -> Stage:
     cameras = list(cameras) if cameras else None
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        check = check_scene(path, cameras, units=cfg.train.data.units)
+        check = check_scene(path, cameras, units=cfg.train.data.units,
+                            background=cfg.train.data.background)
+        write_background_report(path, cameras, out / "background", cfg.train.data.units,
+                                cfg.train.data.background)
         summary = {"path": str(path.resolve()), **check.summary(),
                    "ground_truth": GroundTruth.exists(path)}
         atomic_write_text(out / "scene.json", json.dumps(summary, indent=2))
         return summary
 
     return Stage("scene", run, {"scene": spec, "cameras": cameras,
-                                "content": scene_fingerprint(path)})
+                                "content": scene_fingerprint(path),
+                                "background": cfg.train.data.background})
 
 
 def _train_config(cfg: DictConfig) -> DictConfig:

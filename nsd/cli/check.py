@@ -26,11 +26,13 @@ def _hydra_main(cfg: DictConfig) -> None:
     with reported(PROG):
         scene = resolve_scene(cfg.scene)
         check = check_scene(scene, list(cfg.cameras) if cfg.cameras else None,
-                            units=cfg.units)
+                            units=cfg.units, background=cfg.background)
         sizes = ", ".join(f"{k} {w}x{h}" for k, (w, h) in check.sizes.items())
         print(f"{PROG}: {scene}: {len(check.cameras)} cameras ({sizes}), {check.frames} frames, "
               f"cameras a median {check.camera_spacing:.2f} m apart; "
               f"{len(check.warnings)} warning(s)")
+        for w in check.warnings:  # Hydra's logging set-up silences the module loggers here
+            print(f"  warning: {w}")
 
 
 def main() -> None:

@@ -39,7 +39,8 @@ def _hydra_main(cfg: DictConfig) -> float:
                 report.attach(folder)
                 cameras = list(cfg.data.cameras) if cfg.data.cameras else None
                 # before any long work
-                check_scene(resolve_scene(cfg.data.scene), cameras, units=cfg.data.units)
+                check_scene(resolve_scene(cfg.data.scene), cameras, units=cfg.data.units,
+                            background=cfg.data.background)
             metrics = train(cfg, out_dir)
             value = metrics.get(cfg.objective, float("nan"))
             log.info("final metrics: %s", metrics)

@@ -149,6 +149,7 @@ WIDTHS = _r("ints", low=1)
 NULL_TEXT = _r("str", null=True)  # a path, a name or null
 UNITS = _r("str", choices=("auto", "m", "cm", "mm"))  # nsd.cameras.units.UNITS and auto
 ALWAYS = _r("any")
+BACKGROUND = _r("str", choices=("median", "modes"))  # nsd.cues.background.BACKGROUND_METHODS
 DEVICE = _r("str", pattern=DEVICE_PATTERN, words="one of auto, cpu, cuda, cuda:N, mps")
 
 # Per config group (conf/<group>/*.yaml, or the app's own top-level keys): the rules that
@@ -156,7 +157,7 @@ DEVICE = _r("str", pattern=DEVICE_PATTERN, words="one of auto, cpu, cuda, cuda:N
 RULES: dict[str, dict[str, Rule]] = {
     "data": {"image_size": SIZE2, "val_fraction": _r("number", low=0, high=0.99),
              "cameras": _r("any"), "scene": NULL_TEXT, "same_view": FRACTION, "units": UNITS,
-             "frame_stride": POS},
+             "frame_stride": POS, "background": BACKGROUND},
     "model": {
         "num_windows": POS, "crop_size": _r("int", low=4), "mode": _r(
             "str", choices=("bi_nvs", "autoencoder")),
@@ -261,7 +262,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "texture.model.crop_size": _r("int", low=8), "texture.model.widths": WIDTHS,
         "texture.optim.contrast_temperature": RATE,
     },
-    "check": {"scene": NULL_TEXT, "cameras": ALWAYS, "units": UNITS},
+    "check": {"scene": NULL_TEXT, "cameras": ALWAYS, "units": UNITS, "background": BACKGROUND},
     "calib": {"calibration": _r("str"), "units": UNITS, "convert": NULL_TEXT, "preview": NULL_TEXT,
               "format": _r("str", choices=("auto", "anipose", "caliscope", "opencv", "panoptic",
                                            "colmap", "colmap_bin", "dlt"))},

@@ -92,7 +92,8 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
     H, W = trained.frame_hw
     cfg = trained.config
     data = SceneData(scene, (W, H), cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames,
-                     cfg.data.get("units", "auto"), cfg.data.get("frame_stride", 1))
+                     cfg.data.get("units", "auto"), cfg.data.get("frame_stride", 1),
+                     cfg.data.get("background", "median"))  # as trained; older: the median
     trained.check_cameras(data.rig.names, scene)
     if frames == "val":
         idx = np.asarray(data.heldout_frames)

@@ -107,7 +107,9 @@ def prepare_inputs(cfg: DictConfig) -> ExportInputs:
     calibration = read_calibration(scene, units) if scene.is_dir() else None  # read once
     if cameras is None and calibration is not None:
         trained.check_cameras(calibration.names, scene)
-    footage = MultiViewFootage(scene, cameras=cameras, image_size=(W, H), calibration=calibration)
+    footage = MultiViewFootage(  # the background as trained (checkpoints before it: median)
+        scene, cameras=cameras, image_size=(W, H), calibration=calibration,
+        background=trained.config.data.get("background", "median"))
     trained.check_cameras(footage.camera_names, scene)
     frames = select_frames(
         OmegaConf.to_object(cfg.frames) if OmegaConf.is_config(cfg.frames) else cfg.frames,

@@ -30,7 +30,8 @@ import numpy as np
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_bytes, atomic_write_text
-from nsd.core.errors import CalibrationError, FootageError
+from nsd.core.errors import CalibrationError, ConfigError, FootageError
+from nsd.cues.background import BACKGROUND_METHODS, BackgroundEstimate, estimate_background
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -245,6 +246,8 @@ class MultiViewFootage:
             (default: read from the scene folder).
         units: the calibration file's length unit when it is read here
             (:mod:`nsd.cameras.units`).
+        background: how a camera without a plate gets its background, one of
+            :data:`nsd.cues.background.BACKGROUND_METHODS` (``data.background``).
 
     Attributes:
         calibration_names: every camera of the calibration file, in its order (the
@@ -265,7 +268,13 @@ class MultiViewFootage:
         cache_dir: str | os.PathLike | None = None,
         calibration: CameraRig | None = None,
         units: str = "auto",
+        background: str = "median",
     ) -> None:
+        if background not in BACKGROUND_METHODS:
+            raise ConfigError(
+                f"data.background must be one of {', '.join(BACKGROUND_METHODS)}, "
+                f"got {background!r}")
+        self.background_method = background
         self.scene = Path(scene)
         if not self.scene.is_dir():
             raise FootageError(f"scene folder {self.scene} does not exist")
@@ -373,13 +382,14 @@ class MultiViewFootage:
 
     # ------------------------------------------------------------------ background
     def background(self, num_samples: int = BACKGROUND_SAMPLES) -> np.ndarray:
-        """Per-camera median background: uint8 (V, H, W, 3), cached on disk.
+        """Per-camera background: uint8 (V, H, W, 3), cached on disk.
 
         A background plate (:meth:`plate`) replaces the footage where the scene has one:
-        then the median of the plate's frames. Otherwise the median of ``num_samples``
-        frames spread evenly over the sequence,
-        computed at the native resolution and then resized. The cache is keyed by
-        the footage's signature, so changed footage is recomputed.
+        then the median of the plate's frames. Otherwise the estimate of the footage's
+        ``background`` method (:meth:`background_estimate`) from ``num_samples`` frames
+        spread evenly over the sequence, computed at the native resolution and then
+        resized. The cache is keyed by the footage's signature, so changed footage is
+        recomputed.
         """
         return np.stack(
             [
@@ -417,26 +427,52 @@ class MultiViewFootage:
 
     def native_background(self, v: int, num_samples: int = BACKGROUND_SAMPLES) -> np.ndarray:
         """Camera ``v``'s background at the footage's native resolution, uint8 (H, W, 3)
-        (the plate or the median of :meth:`background`, from the same disk cache)."""
+        (the plate or the estimate of :meth:`background_estimate`)."""
+        return self.background_estimate(v, num_samples).image
+
+    def background_estimate(
+        self, v: int, num_samples: int = BACKGROUND_SAMPLES
+    ) -> BackgroundEstimate:
+        """Camera ``v``'s background and its uncertain pixels at native resolution, cached
+        on disk (keyed by the footage's signature and the method).
+
+        With a plate (:meth:`plate`): the median of the plate's frames, nothing uncertain.
+        Otherwise :func:`nsd.cues.background.estimate_background` with this footage's
+        ``background`` method over ``num_samples`` frames spread evenly over the sequence.
+        """
         plate = self.plate(v)
         src = self.sources[v] if plate is None else plate
-        key = hashlib.sha1(f"{src.signature()}:{num_samples}".encode()).hexdigest()[:16]
+        method = "median" if plate is not None else self.background_method
+        key = hashlib.sha1(f"{src.signature()}:{num_samples}:{method}".encode()).hexdigest()[:16]
         path = self.cache_dir / "background" / f"{src.camera}.{key}.png"
-        if path.is_file():
+        mask_path = path.with_suffix(".uncertain.png")
+        meta_path = path.with_suffix(".json")
+        if path.is_file() and mask_path.is_file() and meta_path.is_file():
             img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-            if img is not None:
-                return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+            mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+            try:
+                meta = json.loads(meta_path.read_text())
+            except (OSError, ValueError):
+                meta = None
+            if img is not None and mask is not None and meta is not None:
+                return BackgroundEstimate(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), mask >= 128,
+                                          mask == 255, int(meta.get("samples", 0)))
         idx = np.unique(np.linspace(0, src.num_frames - 1, num_samples).round().astype(int))
         stack = np.stack([src.read(int(t)) for t in idx])
-        med = np.median(stack, axis=0).round().astype(np.uint8)
+        est = estimate_background(stack, method)
+        if plate is not None:
+            est.uncertain[:] = False
         try:
-            ok, buf = cv2.imencode(".png", cv2.cvtColor(med, cv2.COLOR_RGB2BGR))
-            if ok:
+            ok, buf = cv2.imencode(".png", cv2.cvtColor(est.image, cv2.COLOR_RGB2BGR))
+            # 255: uncertain, second colour taken; 192: uncertain, first colour kept
+            mask = (est.uncertain * 192 + est.replaced * 63).astype(np.uint8)
+            ok_mask, buf_mask = cv2.imencode(".png", mask)
+            if ok and ok_mask:
                 atomic_write_bytes(path, buf.tobytes())
-                atomic_write_text(
-                    path.with_suffix(".json"),
-                    json.dumps({"source": str(src.path), "frames": idx.tolist()}),
-                )
+                atomic_write_bytes(mask_path, buf_mask.tobytes())
+                atomic_write_text(meta_path, json.dumps({
+                    "source": str(src.path), "frames": idx.tolist(), "method": method,
+                    "samples": est.samples}))
         except OSError:
             pass  # read-only scene folder: work without the cache
-        return med
+        return est

@@ -17,6 +17,10 @@ Warnings (what to do included) for what runs but may mislead:
 * footage in which nothing moves (the median background is every frame: no subject);
 * footage too short for a median background (fewer than 20 frames, no plates: subjects
   that do not move away are part of it);
+* a camera whose background shows two stable colours over the recording on more than
+  0.5 % of its pixels (something stayed in place for part of the recording, then left or
+  came: :mod:`nsd.cues.background`), with the share, what was done, and the advice to give
+  a plate;
 * footage folders that the calibration does not name (ignored).
 """
 
@@ -55,6 +59,7 @@ UNIFORM_STD = 2.0  # grey levels: a frame this flat is blank, saturated or a len
 MOTION_LEVEL = 12.0  # grey levels from the median that count as a change
 MOTION_SHARE = 1e-3  # share of pixels that must change in some frame for footage to "move"
 MIN_MEDIAN_FRAMES = 20  # shorter footage without background plates: its median is doubtful
+LINGER_SHARE = 0.005  # a background with two stable colours on more of it is warned about
 RESERVED = {"gt", "calibration", "background", "videos", "images", ".cache"}
 
 
@@ -70,6 +75,9 @@ class SceneCheck:
         camera_spacing: median distance between camera centres, calibration units.
         warnings: one line each, camera and frames named, what to do included.
         plates: camera -> its background plate (``background/``), which replaces the median.
+        background: camera -> ``uncertain`` (share of its background with two stable
+            colours) and ``replaced`` (share where the second colour was taken), cameras
+            without a plate.
     """
 
     scene: Path
@@ -79,13 +87,14 @@ class SceneCheck:
     camera_spacing: float
     warnings: list[str] = field(default_factory=list)
     plates: dict[str, str] = field(default_factory=dict)
+    background: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
         """JSON-serialisable figures (``scene.json`` of nsd-run's scene stage)."""
         return {"cameras": self.cameras, "frames": self.frames,
                 "sizes": {k: list(v) for k, v in self.sizes.items()},
                 "camera_spacing": round(self.camera_spacing, 6), "warnings": self.warnings,
-                "background_plates": self.plates}
+                "background_plates": self.plates, "background": self.background}
 
 
 def _ranges(frames: list[int]) -> str:
@@ -235,8 +244,36 @@ def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str]) -> 
     return warnings
 
 
+def _background(
+    footage: MultiViewFootage, plates: dict[str, str]
+) -> tuple[dict[str, dict[str, float]], list[str]]:
+    """Each plate-less camera's background estimate: its shares, and a warning per camera
+    whose background has two stable colours on more than ``LINGER_SHARE`` of it."""
+    if footage.num_frames < MIN_MEDIAN_FRAMES:
+        return {}, []  # too short for any estimate: said by _content
+    report, warnings = {}, []
+    for v, cam in enumerate(footage.camera_names):
+        if cam in plates:
+            continue
+        est = footage.background_estimate(v)
+        report[cam] = {"uncertain": round(est.uncertain_share, 6),
+                       "replaced": round(float(est.replaced.mean()), 6)}
+        if est.uncertain_share > LINGER_SHARE:
+            done = (f"the colour that continues its surroundings was taken on "
+                    f"{est.replaced.mean() / est.uncertain_share:.0%} of it"
+                    if footage.background_method == "modes" else "the median was kept")
+            warnings.append(
+                f"camera '{cam}': {est.uncertain_share:.1%} of its background shows two "
+                f"stable colours over the recording (something stayed in place for part of "
+                f"it, then left or came); {done}. Where a subject stays, it may be missed: "
+                f"give a background plate ({footage.scene / 'background' / cam}.png, the "
+                f"empty arena) or footage in which it moves away")
+    return report, warnings
+
+
 def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
-                sample: int = SAMPLE_FRAMES, units: str = "auto") -> SceneCheck:
+                sample: int = SAMPLE_FRAMES, units: str = "auto",
+                background: str = "median") -> SceneCheck:
     """Check a scene folder; warnings are logged and returned.
 
     Args:
@@ -244,6 +281,8 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
         cameras: the cameras to use (default: every camera of the calibration).
         sample: frames per camera decoded for the content checks.
         units: the calibration's length unit (:mod:`nsd.cameras.units`).
+        background: the background method (``data.background``), whose estimates are
+            made here (and cached for training) to report their uncertain pixels.
 
     Raises:
         NSDError: what cannot give a meaningful result (see the module docstring).
@@ -252,7 +291,7 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
     if not scene.is_dir():
         raise FootageError(f"scene: {scene} is not a folder (give scene=<scene folder>)")
     rig = read_calibration(scene, units)
-    footage = MultiViewFootage(scene, cameras, calibration=rig)
+    footage = MultiViewFootage(scene, cameras, calibration=rig, background=background)
     if footage.num_views < 2:
         raise SceneError(
             f"scene {scene}: {footage.num_views} camera ({footage.camera_names}); the "
@@ -266,10 +305,12 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
               if (plate := footage.plate(v)) is not None}  # a plate of another size raises
     warnings = ([rig.units_note] if rig.units_note else []) + _unnamed_footage(
         scene, rig.names) + _content(footage, sample, plates)
+    report, lingering = _background(footage, plates)
+    warnings += lingering
     for w in warnings:
         log.warning("scene %s: %s", scene.name, w)
     return SceneCheck(scene, footage.camera_names, footage.num_frames, sizes, spacing,
-                      warnings, plates)
+                      warnings, plates, report)
 
 
 def scene_fingerprint(scene: str | os.PathLike) -> str:

@@ -106,6 +106,8 @@ class SceneData:
         units: the calibration file's length unit (:mod:`nsd.cameras.units`).
         frame_stride: keep every this many frames (hours of footage); indices ``t`` of
             this object are positions, footage frame :meth:`frame_index` ``(t)``.
+        background: how cameras without a plate get their background
+            (:data:`nsd.cues.background.BACKGROUND_METHODS`, ``data.background``).
     """
 
     def __init__(
@@ -117,9 +119,10 @@ class SceneData:
         max_frames: int = 0,
         units: str = "auto",
         frame_stride: int = 1,
+        background: str = "median",
     ) -> None:
         self.footage = MultiViewFootage(scene, cameras=cameras, image_size=tuple(image_size),
-                                        units=units)
+                                        units=units, background=background)
         stop = (
             self.footage.num_frames if max_frames <= 0 else min(max_frames, self.footage.num_frames)
         )

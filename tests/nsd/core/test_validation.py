@@ -112,3 +112,9 @@ def test_every_rule_names_a_key_that_exists():
     for table, rules in RULES.items():
         for key in rules:
             assert key in known, f"RULES[{table!r}][{key!r}] names no config key"
+
+
+def test_background_rule_lists_every_method():
+    from nsd.cues.background import BACKGROUND_METHODS
+
+    assert RULES["data"]["background"].choices == BACKGROUND_METHODS

@@ -66,7 +66,8 @@ def _reference(ckpt, scene):
 
     trained = load_decomposition(ckpt)
     H, W = trained.frame_hw
-    data = SceneData(scene, (W, H), val_fraction=0.0)
+    data = SceneData(scene, (W, H), val_fraction=0.0,
+                     background=trained.config.data.background)  # as the export
     st = InferenceSettings.defaults()
     grid = st.grid(data.rig, data.frame_hw)
     V = data.num_views

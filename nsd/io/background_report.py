@@ -1,0 +1,87 @@
+"""The background report of a run: what each camera's background is and where it is unsure.
+
+For every camera, ``<camera>.png`` (the background the decomposition compares frames
+with), ``<camera>.uncertain.png`` (the frame at half brightness, pixels with two stable
+colours over the recording in red, those where the second colour was taken in yellow),
+and one ``report.json`` with the shares (:class:`nsd.cues.background.BackgroundEstimate`).
+A large uncertain share means a subject stayed in place for part of the recording: the
+scene check warns about it by camera (:mod:`nsd.io.scene_check`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from nsd.core.atomic import atomic_write_bytes, atomic_write_text
+from nsd.io.footage import MultiViewFootage
+
+__all__ = ["uncertainty_image", "write_background_report"]
+
+UNCERTAIN = (255, 40, 40)  # RGB of pixels with two stable colours, the first kept
+REPLACED = (255, 220, 0)  # RGB of those where the second colour was taken
+
+
+def uncertainty_image(background: np.ndarray, uncertain: np.ndarray,
+                      replaced: np.ndarray) -> np.ndarray:
+    """The background at half brightness with its uncertain pixels coloured: (H, W, 3) uint8.
+
+    Example:
+        >>> img = uncertainty_image(np.full((1, 2, 3), 100, np.uint8),
+        ...                         np.array([[True, False]]), np.array([[False, False]]))
+        >>> img[0].tolist()
+        [[255, 40, 40], [50, 50, 50]]
+    """
+    out = background // 2
+    out[uncertain & ~replaced] = UNCERTAIN
+    out[replaced] = REPLACED
+    return out
+
+
+def _png(path: Path, rgb: np.ndarray) -> None:
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OSError(f"cannot encode {path}")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def write_background_report(
+    scene: str | os.PathLike,
+    cameras: list[str] | None,
+    out: str | os.PathLike,
+    units: str = "auto",
+    background: str = "median",
+) -> dict[str, Any]:
+    """Write the background report of a scene's cameras into folder ``out``.
+
+    Args:
+        scene: the scene folder; cameras: the cameras (None: all).
+        units: the calibration's unit; background: the method (``data.background``).
+
+    Returns:
+        what ``report.json`` holds: per camera ``plate`` (its file or None),
+        ``uncertain`` and ``replaced`` shares.
+    """
+    footage = MultiViewFootage(scene, cameras, units=units, background=background)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict[str, Any] = {"method": background, "cameras": {}}
+    for v, cam in enumerate(footage.camera_names):
+        plate = footage.plate(v)
+        est = footage.background_estimate(v)
+        _png(out / f"{cam}.png", est.image)
+        _png(out / f"{cam}.uncertain.png",
+             uncertainty_image(est.image, est.uncertain, est.replaced))
+        report["cameras"][cam] = {
+            "plate": None if plate is None else str(plate.path),
+            "uncertain": round(est.uncertain_share, 6),
+            "replaced": round(float(est.replaced.mean()), 6),
+            "samples": est.samples,
+        }
+    atomic_write_text(out / "report.json", json.dumps(report, indent=2))
+    return report

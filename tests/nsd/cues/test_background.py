@@ -1,0 +1,148 @@
+"""Backgrounds when subjects linger (nsd.cues.background), their cache, report and warning."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from nsd.cues.background import _step, estimate_background
+from nsd.io.background_report import write_background_report
+from nsd.io.footage import MultiViewFootage
+from nsd.io.scene_check import check_scene
+
+H = W = 64
+N = 50
+TOL = 24
+
+
+def _floor(seed: int = 0) -> np.ndarray:
+    """A checkered, noisy floor (H, W, 3) uint8."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:H, :W]
+    floor = np.stack([100 + 30 * (((yy // 8) + (xx // 8)) % 2)] * 3, -1)
+    return np.clip(floor + rng.integers(-5, 6, floor.shape), 0, 255).astype(np.uint8)
+
+
+def _recording(stay: range | None, walkers: bool = True, seed: int = 0):
+    """N frames of the floor with a red subject standing in a box during ``stay`` and
+    walkers of random colours crossing; returns (stack, floor, subject mask)."""
+    rng = np.random.default_rng(seed)
+    floor = _floor(seed)
+    yy, xx = np.mgrid[:H, :W]
+    subject = (abs(yy - 30) < 10) & (abs(xx - 20) < 6)
+    stack = np.repeat(floor[None], N, 0).copy()
+    for t in stay or ():
+        stack[t][subject] = (200, 60, 40)
+    if walkers:
+        for t in range(N):
+            walk = (abs(yy - 50) < 6) & (abs(xx - int(t * W / N)) < 4)
+            stack[t][walk] = rng.integers(0, 255, 3)
+    stack = np.clip(stack.astype(int) + rng.integers(-3, 4, stack.shape), 0, 255)
+    return stack.astype(np.uint8), floor, subject
+
+
+def _wrong(image: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    return np.abs(image.astype(int) - floor).max(-1) > TOL
+
+
+@pytest.mark.parametrize("stay", [range(0, 35), range(15, 50)], ids=["left", "came"])
+def test_a_subject_that_stayed_most_of_the_time_is_replaced_by_the_floor(stay):
+    stack, floor, subject = _recording(stay)
+    median = estimate_background(stack, "median")
+    assert _wrong(median.image, floor).sum() == subject.sum()  # the median holds it
+    assert (median.uncertain == subject).all() and not median.replaced.any()
+    modes = estimate_background(stack, "modes")
+    assert not _wrong(modes.image, floor).any()
+    assert (modes.uncertain == subject).all() and (modes.replaced == subject).all()
+    assert modes.uncertain_share == pytest.approx(subject.mean())
+
+
+def test_walkers_alone_leave_nothing_uncertain():
+    stack, floor, _ = _recording(None)
+    est = estimate_background(stack, "modes")
+    assert not est.uncertain.any() and not _wrong(est.image, floor).any()
+
+
+def test_a_short_stay_is_reported_and_the_floor_kept():
+    stack, floor, subject = _recording(range(0, 12))  # 24 % of the frames, then it left
+    est = estimate_background(stack, "modes")
+    assert not _wrong(est.image, floor).any()
+    assert (est.uncertain == subject).all() and not est.replaced.any()
+    # a stay in the middle is no step: the floor before and after, nothing to report
+    stack, floor, _ = _recording(range(20, 32))
+    est = estimate_background(stack, "modes")
+    assert not _wrong(est.image, floor).any() and not est.uncertain.any()
+
+
+def test_a_subject_that_never_moves_cannot_be_found():
+    """The limit, said in the docs: one stable colour, the subject's; only a plate helps."""
+    stack, floor, subject = _recording(range(N))
+    est = estimate_background(stack, "modes")
+    assert _wrong(est.image, floor).sum() == subject.sum() and not est.uncertain.any()
+
+
+def test_step_finds_the_split_and_the_other_part():
+    members = np.array([[1] * 35 + [0, 1] + [0] * 13, [1, 0] * 25]).T.astype(bool)  # (N, 2)
+    found, part = _step(members, 8)
+    assert found.tolist() == [True, False]
+    # the purest split is after frame 36 (36 of 37 before, 13 of 13 after)
+    assert part[:, 0].nonzero()[0].tolist() == list(range(37, 50))
+    assert not part[:, 1].any()
+
+
+def test_unknown_method_is_refused():
+    with pytest.raises(ValueError, match=r"background method must be one of \('median', 'modes'\)"):
+        estimate_background(np.zeros((3, 2, 2, 3), np.uint8), "mean")
+
+
+def _scene(tiny_scene, stay: range):
+    """The tiny scene's two cameras (32 x 24) showing the lingering recording, N frames."""
+    shutil.rmtree(tiny_scene / ".cache", ignore_errors=True)  # caches of the fixture's frames
+    for cam in ("left", "right"):
+        shutil.rmtree(tiny_scene / cam)
+        (tiny_scene / cam).mkdir()
+        stack, _, _ = _recording(stay, seed=1 if cam == "left" else 2)
+        for t, frame in enumerate(stack):
+            small = cv2.resize(frame, (32, 24), interpolation=cv2.INTER_NEAREST)
+            cv2.imwrite(str(tiny_scene / cam / f"{t:06d}.png"), cv2.cvtColor(small,
+                                                                             cv2.COLOR_RGB2BGR))
+    return tiny_scene
+
+
+def test_estimates_are_cached_with_their_masks(tiny_scene):
+    scene = _scene(tiny_scene, range(0, 35))
+    first = MultiViewFootage(scene, background="modes").background_estimate(0)
+    again = MultiViewFootage(scene, background="modes").background_estimate(0)  # from disk
+    assert len(list((scene / ".cache" / "background").glob("left.*.uncertain.png"))) == 1
+    assert np.array_equal(first.image, again.image)
+    assert np.array_equal(first.uncertain, again.uncertain) and first.uncertain.any()
+    assert np.array_equal(first.replaced, again.replaced) and first.replaced.any()
+    median = MultiViewFootage(scene, background="median").background_estimate(0)
+    assert not median.replaced.any()  # another method, another cache entry
+
+
+def test_scene_check_warns_by_camera_and_the_report_is_written(tiny_scene, tmp_path):
+    scene = _scene(tiny_scene, range(0, 35))
+    check = check_scene(scene, background="modes")
+    lingering = [w for w in check.warnings if "two stable colours" in w]
+    assert len(lingering) == 2 and "camera 'left'" in lingering[0]
+    assert "background plate" in lingering[0] and str(scene / "background" / "left") in lingering[0]
+    assert check.background["left"]["uncertain"] > 0.03
+    report = write_background_report(scene, None, tmp_path / "bg", background="modes")
+    assert json.loads((tmp_path / "bg" / "report.json").read_text()) == report
+    assert report["cameras"]["left"]["replaced"] == pytest.approx(
+        report["cameras"]["left"]["uncertain"])
+    img = cv2.imread(str(tmp_path / "bg" / "left.uncertain.png"))
+    assert img.shape == (24, 32, 3)
+    # a plate ends the warning for its camera
+    (scene / "background").mkdir()
+    cv2.imwrite(str(scene / "background" / "left.png"), cv2.cvtColor(
+        cv2.resize(_floor(1), (32, 24), interpolation=cv2.INTER_NEAREST), cv2.COLOR_RGB2BGR))
+    check = check_scene(scene, background="modes")
+    lingering = [w for w in check.warnings if "two stable colours" in w]
+    assert len(lingering) == 1 and lingering[0].startswith("camera 'right'")
+    assert "left" not in check.background
