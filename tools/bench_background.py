@@ -87,7 +87,7 @@ def main() -> None:
     for name, overrides, linger in SCENES:
         scene = resolve_scene(None) if overrides is None else _synth(root, overrides)
         gt = GroundTruth.load(scene)
-        k = int(json.loads((scene / "gt" / "scene.json").read_text())["num_individuals"])
+        k = len(json.loads((scene / "gt" / "scene.json").read_text())["individuals"])
         for method in ("median", "modes", "plate"):
             where = _with_plates(scene, root) if method == "plate" else scene
             t0 = time.perf_counter()
