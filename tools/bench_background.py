@@ -81,6 +81,27 @@ def _bg_wrong(data: SceneData, scene: Path) -> float:
     return float(np.mean(shares))
 
 
+def _cost() -> dict[str, float]:
+    """Seconds of one camera's estimate by method and frame size (median of 3 runs)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from nsd.cues.background import estimate_background
+    from tests.nsd.cues.test_background import _recording
+
+    stack, _, _ = _recording(range(0, 35))
+    out = {}
+    for side in (128, 512):
+        big = np.stack([cv2.resize(f, (side, side), interpolation=cv2.INTER_NEAREST)
+                        for f in stack])
+        for method in ("median", "modes"):
+            runs = []
+            for _ in range(3):
+                t0 = time.perf_counter()
+                estimate_background(big, method)
+                runs.append(time.perf_counter() - t0)
+            out[f"{method}_{side}x{side}"] = round(float(np.median(runs)), 3)
+    return out
+
+
 def main() -> None:
     root = Path(tempfile.mkdtemp(prefix="bench-background-"))
     rows = []
@@ -90,10 +111,8 @@ def main() -> None:
         k = len(json.loads((scene / "gt" / "scene.json").read_text())["individuals"])
         for method in ("median", "modes", "plate"):
             where = _with_plates(scene, root) if method == "plate" else scene
-            t0 = time.perf_counter()
             data = SceneData(where, (128, 128), val_fraction=0.0,
                              background="median" if method == "plate" else method)
-            seconds = time.perf_counter() - t0
             fp = data.footage
             uncertain = float(np.mean([fp.background_estimate(v).uncertain_share
                                        for v in range(fp.num_views)]))
@@ -103,7 +122,7 @@ def main() -> None:
             parts = {"lingering": range(0, split, STEP), "after": range(split, T, STEP)}
             row = {"scene": name, "background": method,
                    "bg_wrong": round(_bg_wrong(data, scene), 4),
-                   "uncertain": round(uncertain, 4), "seconds": round(seconds, 1)}
+                   "uncertain": round(uncertain, 4)}
             for part, frames in parts.items():
                 if not len(frames):
                     continue
@@ -118,11 +137,13 @@ def main() -> None:
         "(the scene check warns above 0.5 %). Detection and mIoU: the hull-only "
         "decomposition (no learning; every 3rd frame), split into the frames while the "
         "first individual lingers and after it left. `plate`: each camera's true empty "
-        "backdrop given as `scene/background/<camera>.png`, the upper bound. `seconds`: "
-        "building the training data (frame cache and backgrounds; the first method of a "
-        "scene also decodes its frames)."
+        "backdrop given as `scene/background/<camera>.png`, the upper bound. Cost: "
+        "`estimate_seconds` (median of 3) of one camera's estimate from 50 frames that "
+        "hold a subject lingering 70 % of the time and walkers (the frames of "
+        "`tests/nsd/cues/test_background.py`, scaled), by method and size."
     )
-    write_report("background", "Backgrounds when a subject lingers", rows, notes)
+    write_report("background", "Backgrounds when a subject lingers", rows, notes,
+                 extra={"estimate_seconds": _cost()})
 
 
 if __name__ == "__main__":
