@@ -143,7 +143,7 @@ def main() -> None:
         "`tests/nsd/cues/test_background.py`, scaled), by method and size."
     )
     write_report("background", "Backgrounds when a subject lingers", rows, notes,
-                 extra={"estimate_seconds": _cost()})
+                 extra={f"estimate_seconds_{k}": v for k, v in _cost().items()})
 
 
 if __name__ == "__main__":
