@@ -3,23 +3,26 @@
 The temporal median of a pixel is its background when the pixel shows the background in
 most frames. A subject that stays in place for most of the recording (an animal asleep
 in a corner, a person at a bench) turns that around: the median holds the subject, and
-the background shows only in the frames after it left (or before it came). Such a pixel
-has **two stable colours** over time: the median, and a second mode that the frames
-away from the median agree on. Subjects walking past give no second mode: the colours
-they leave on a pixel scatter.
+the background shows only in the frames before it came or after it left. Such a pixel
+has **two stable colours** over time, in a telling order: its most frequent colour (the
+densest cluster of its frames' colours) holds for one stretch of the recording, and
+another colour holds most of the frames outside the stretch. Subjects walking past give
+no such pattern: the colours they leave on a pixel are short and scattered.
 
 Which of the two is the background is decided per region of such pixels by **continuity
 with its surroundings**: the background continues the background around the region,
 while a subject ends at its silhouette. Each colour of the region is extrapolated a few
 pixels outwards (a normalised convolution over the region) and compared, along the
-region's border, with the median background extrapolated inwards from outside; the
-second mode replaces the median where it continues the surroundings clearly better.
+region's border, with the background extrapolated inwards from outside; the second colour
+replaces the first where it continues the surroundings clearly better.
 
-Every pixel with two stable colours is reported as uncertain (whichever colour was
-kept): the share of such pixels per camera is what the scene check and the background
-report (:mod:`nsd.io.background_report`) tell a user, with the advice to give a
-background plate. A subject that never moves in the whole recording leaves a single
-stable colour, its own: nothing label-free finds it, and only a plate helps.
+Reported as uncertain (the scene check and the background report,
+:mod:`nsd.io.background_report`, tell a user per camera, with the advice to give a
+background plate): the pixels where the second colour was taken, the clear cases where
+it was not (a stretch from the start or to the end of the recording, the other colour
+holding ``STEP_PURITY`` of the rest), and those where no colour holds half of the frames.
+A subject that never moves in the whole recording leaves a single stable colour, its own:
+nothing label-free finds it, and only a plate helps.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ BACKGROUND_METHODS = ("median", "modes")  # the `data.background` values
 MODE_TOLERANCE = 24  # grey levels (largest over the channels): a sample belongs to a colour
 MIN_SECOND_SHARE = 0.15  # each colour of a step spans at least this share of the frames
 STEP_PURITY = 0.7  # and shows its colour in at least this share of its part
+MIN_OTHER = 0.4  # the second colour holds this share of the other part's frames at least
 BORDER = 3  # pixels on each side of a region's border where continuity is compared
 MIN_REGION = 1e-4  # smallest region, a share of the image (smaller ones keep the median)
 SWITCH_MARGIN = 0.8  # the second colour must continue the surroundings this much better
@@ -90,52 +94,61 @@ def _densest(samples: np.ndarray, allowed: np.ndarray) -> tuple[np.ndarray, np.n
     return colour, members.sum(0), members
 
 
-def _step(members: np.ndarray, need: int) -> tuple[np.ndarray, np.ndarray]:
-    """Where a pixel's most frequent colour holds for one part of the recording and not
-    the other: a subject that stayed, then left (or came, then stayed).
+def _step(
+    members: np.ndarray, need: int, ends_only: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where a pixel's most frequent colour holds for one stretch of the recording and not
+    outside it: a subject that came, stayed and left (the stretch may start or end the
+    recording).
 
     Args:
         members: (N, K) bool, the frames (in time order) showing the pixel's first colour.
-        need: frames each part must span.
+        need: frames the stretch and the rest must each span.
+        ends_only: the stretch starts or ends the recording (a subject that was there
+            from the start, or stayed to the end).
 
     Returns:
-        (K,) bool, a step was found (each part at least ``STEP_PURITY`` pure), and (N, K)
-        bool, the frames of the other part that do not show the first colour.
+        (K,) bool, a stretch was found (it and the rest each at least ``STEP_PURITY`` pure),
+        and (N, K) bool, the frames outside it that do not show the first colour.
     """
     N, K = members.shape
-    inside = np.cumsum(members, 0)  # first-colour frames among the first tau + 1
-    total = inside[-1]
-    tau = np.arange(need, N - need + 1)  # the split: frames [0, tau) and [tau, N)
-    if not len(tau):
+    cums = np.concatenate([np.zeros((1, K), np.int64), np.cumsum(members, 0)])  # (N + 1, K)
+    a, b = np.triu_indices(N + 1, 1)  # the stretch [a, b)
+    keep = ((b - a) >= need) & ((N - (b - a)) >= need)
+    if ends_only:
+        keep &= (a == 0) | (b == N)
+    a, b = a[keep], b[keep]
+    if not len(a):
         return np.zeros(K, bool), np.zeros_like(members)
-    before = inside[tau - 1]  # (S, K)
-    after = total[None] - before
-    n_before, n_after = tau[:, None], (N - tau)[:, None]
-    first_then_other = np.minimum(before / n_before, 1 - after / n_after)  # purity of both
-    other_then_first = np.minimum(1 - before / n_before, after / n_after)
-    purity = np.maximum(first_then_other, other_then_first)
+    inside = cums[b] - cums[a]  # (S, K) first-colour frames in the stretch
+    length = (b - a)[:, None]
+    outside_other = (N - length) - (cums[-1][None] - inside)
+    purity = np.minimum(inside / length, outside_other / (N - length))
     best = purity.argmax(0)
-    found = purity[best, np.arange(K)] >= STEP_PURITY
-    split = tau[best]
-    late = first_then_other[best, np.arange(K)] >= other_then_first[best, np.arange(K)]
+    k = np.arange(K)
+    found = purity[best, k] >= STEP_PURITY
     t = np.arange(N)[:, None]
-    part = np.where(late[None], t >= split[None], t < split[None])  # the other colour's part
-    return found, part & ~members & found[None]
+    outside = (t < a[best][None]) | (t >= b[best][None])
+    return found, outside & ~members & found[None]
 
 
 def _two_colours(stack: np.ndarray, median: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Each pixel's most frequent colour and, where the recording steps from one stable
-    colour to another (a subject stayed, then left), the other one.
+    """Each pixel's most frequent colour and, where it holds for one stretch of the
+    recording and another stable colour for most of the rest (a subject came, stayed,
+    left), the other one.
 
     Returns:
         first, second: (H, W, 3) uint8 colours (the median where there is none);
-        step: (H, W) bool, the pixels with a step between two stable colours;
+        step: (H, W) bool, the pixels with such a second colour (candidates);
+        stay: (H, W) bool, the clear cases that are reported: the stretch starts or ends
+            the recording and the other colour holds ``STEP_PURITY`` of the rest;
         no_majority: (H, W) bool, no colour holds half of the frames.
     """
     N = stack.shape[0]
     need = max(2, int(np.ceil(MIN_SECOND_SHARE * N)))
     first, second = median.copy(), median.copy()
     step = np.zeros(median.shape[:2], bool)
+    stay = np.zeros(median.shape[:2], bool)
     no_majority = np.zeros(median.shape[:2], bool)
     off = np.abs(stack.astype(np.int16) - median.astype(np.int16)).max(-1) > MODE_TOLERANCE
     ys, xs = np.nonzero(off.sum(0) >= need)  # elsewhere the median is the one colour
@@ -149,10 +162,16 @@ def _two_colours(stack: np.ndarray, median: np.ndarray) -> tuple[np.ndarray, ...
         no_majority[y, x] = n1 < N / 2
         found, part = _step(m1, need)
         c2, n2, _ = _densest(samples, part)  # the other part's stable colour
-        ok = found & has1 & (n2 >= STEP_PURITY * part.sum(0).clip(min=1)) & (n2 >= need)
+        # the other colour: most of the rest (a subject walking off passes there too)
+        ok = found & has1 & (n2 >= np.maximum(3, MIN_OTHER * part.sum(0)))
         second[y[ok], x[ok]] = np.round(c2[ok]).astype(np.uint8)
+        # reported: a stay from the start or to the end, the other colour holding the rest
+        found, part = _step(m1, need, ends_only=True)
+        _, n2, _ = _densest(samples, part)
+        sure = found & has1 & (n2 >= np.maximum(need, STEP_PURITY * part.sum(0)))
         step[y[ok], x[ok]] = True
-    return first, second, step, no_majority
+        stay[y[sure], x[sure]] = True
+    return first, second, step, stay, no_majority
 
 
 def _spread(image: np.ndarray, region: np.ndarray, sigma: float) -> np.ndarray:
@@ -212,12 +231,13 @@ def estimate_background(stack: np.ndarray, method: str = "modes") -> BackgroundE
     if method not in BACKGROUND_METHODS:
         raise ValueError(f"background method must be one of {BACKGROUND_METHODS}, got {method!r}")
     median = np.median(stack, axis=0).round().astype(np.uint8)
-    first, second, bimodal, no_majority = _two_colours(stack, median)
-    replaced = np.zeros_like(bimodal)
+    first, second, step, stay, no_majority = _two_colours(stack, median)
+    replaced = np.zeros_like(step)
     image = median
     if method == "modes":
         image = first  # the most frequent colour where the median is none of the frames'
-        if bimodal.any():
-            replaced = _continuity_choice(first, second, bimodal)
+        if step.any():
+            replaced = _continuity_choice(first, second, step)
             image = np.where(replaced[..., None], second, first)
-    return BackgroundEstimate(image, bimodal | no_majority, replaced, int(stack.shape[0]))
+    return BackgroundEstimate(image, stay | replaced | no_majority, replaced,
+                              int(stack.shape[0]))

@@ -49,12 +49,15 @@ def _wrong(image: np.ndarray, floor: np.ndarray) -> np.ndarray:
     return np.abs(image.astype(int) - floor).max(-1) > TOL
 
 
-@pytest.mark.parametrize("stay", [range(0, 35), range(15, 50)], ids=["left", "came"])
+@pytest.mark.parametrize("stay", [range(0, 35), range(15, 50), range(8, 44)],
+                         ids=["left", "came", "came and left"])
 def test_a_subject_that_stayed_most_of_the_time_is_replaced_by_the_floor(stay):
     stack, floor, subject = _recording(stay)
     median = estimate_background(stack, "median")
     assert _wrong(median.image, floor).sum() == subject.sum()  # the median holds it
-    assert (median.uncertain == subject).all() and not median.replaced.any()
+    assert not median.replaced.any()
+    if stay.start == 0 or stay.stop == N:  # the clear cases are reported by either method
+        assert (median.uncertain == subject).all()
     modes = estimate_background(stack, "modes")
     assert not _wrong(modes.image, floor).any()
     assert (modes.uncertain == subject).all() and (modes.replaced == subject).all()
