@@ -11,7 +11,6 @@ from netepu.pipeline.pose_keypoints import world_keypoints
 from netepu.pipeline.run import run_pipeline
 from nsd.core.errors import ConfigError
 from nsd.cues.triangulation import nearest_point_to_rays
-from tests.conftest import FIXTURES
 from tests.netepu.pipeline.test_run import _cfg
 
 
@@ -113,13 +112,13 @@ def test_pipeline_regresses_keypoints_where_3d_labels_exist(regressor_run):
             np.testing.assert_allclose(kp.mean(0), point, atol=1e-4)
 
 
-def test_regressor_source_needs_3d_labels_and_fails_before_training(tmp_path):
+def test_regressor_source_needs_3d_labels_and_fails_before_training(tiny_scene, tmp_path):
     with pytest.raises(ConfigError, match="no gt/"):
-        run_pipeline(_cfg(FIXTURES / "tiny_scene", tmp_path / "run",
+        run_pipeline(_cfg(tiny_scene, tmp_path / "run",  # a copy: the scene stage caches
                           "netepu.keypoints.source=regressor"))  # fmt: skip
     assert not (tmp_path / "run" / "train").exists()
     with pytest.raises(ConfigError, match=r"netepu\.keypoints\.source must be one of"):
-        run_pipeline(_cfg(FIXTURES / "tiny_scene", tmp_path / "run2",
+        run_pipeline(_cfg(tiny_scene, tmp_path / "run2",
                           "netepu.keypoints.source=oracle"))  # fmt: skip
 
 

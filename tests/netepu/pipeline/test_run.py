@@ -122,11 +122,11 @@ def test_missing_scene_is_a_clear_error(tmp_path):
         run_pipeline(_cfg(tmp_path / "nope", tmp_path / "run"))
 
 
-def test_unknown_identity_method_fails_before_any_stage(tmp_path):
+def test_unknown_identity_method_fails_before_any_stage(tiny_scene, tmp_path):
     from nsd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"netepu\.identities\.method"):
-        run_pipeline(_cfg(FIXTURES / "tiny_scene", tmp_path / "run", "netepu.identities.method=x"))
+        run_pipeline(_cfg(tiny_scene, tmp_path / "run", "netepu.identities.method=x"))
     assert not (tmp_path / "run").exists()
 
 
