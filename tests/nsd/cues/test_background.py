@@ -81,6 +81,17 @@ def test_a_short_stay_is_reported_and_the_floor_kept():
     assert not _wrong(est.image, floor).any() and not est.uncertain.any()
 
 
+def test_a_pixel_occupied_in_every_frame_by_others_is_reported():
+    """A crowded spot: someone different stands there in every frame (random colours), so
+    no colour holds half of the frames: uncertain, whatever the estimate."""
+    stack, floor, subject = _recording(None, walkers=False)
+    rng = np.random.default_rng(5)
+    for t in range(N):
+        stack[t][subject] = rng.integers(0, 255, 3)
+    for method in ("median", "modes"):
+        assert (estimate_background(stack, method).uncertain == subject).all()
+
+
 def test_a_subject_that_never_moves_cannot_be_found():
     """The limit, said in the docs: one stable colour, the subject's; only a plate helps."""
     stack, floor, subject = _recording(range(N))
