@@ -46,6 +46,7 @@ STEP_PURITY = 0.7  # and shows its colour in at least this share of its part
 MIN_OTHER = 0.4  # the second colour holds this share of the other part's frames at least
 BORDER = 3  # pixels on each side of a region's border where continuity is compared
 MIN_REGION = 1e-4  # smallest region, a share of the image (smaller ones keep the median)
+MAX_PIXELS = 512 * 512  # larger frames are analysed at about this size (then upsampled)
 SWITCH_MARGIN = 0.8  # the second colour must continue the surroundings this much better
 
 
@@ -211,7 +212,9 @@ def _continuity_choice(first: np.ndarray, second: np.ndarray, two: np.ndarray) -
     return switch[labels]
 
 
-def estimate_background(stack: np.ndarray, method: str = "modes") -> BackgroundEstimate:
+def estimate_background(
+    stack: np.ndarray, method: str = "modes", max_pixels: int = MAX_PIXELS
+) -> BackgroundEstimate:
     """A camera's background from frames spread over its recording.
 
     Args:
@@ -219,6 +222,9 @@ def estimate_background(stack: np.ndarray, method: str = "modes") -> BackgroundE
         method: ``median`` (the temporal median; pixels with two stable colours are still
             reported) or ``modes`` (the second colour replaces the median where it
             continues the surroundings, see the module docstring).
+        max_pixels: frames larger than this are analysed at a size of about this many
+            pixels (area-averaged); the background is the native median except where
+            the analysis changed it, there its colour upsampled, and the masks upsampled.
 
     Returns:
         :class:`BackgroundEstimate`.
@@ -230,7 +236,22 @@ def estimate_background(stack: np.ndarray, method: str = "modes") -> BackgroundE
     """
     if method not in BACKGROUND_METHODS:
         raise ValueError(f"background method must be one of {BACKGROUND_METHODS}, got {method!r}")
+    N, H, W = stack.shape[:3]
     median = np.median(stack, axis=0).round().astype(np.uint8)
+    if H * W > max_pixels:  # HD footage: the analysis at a working size, then upsampled
+        f = (H * W / max_pixels) ** 0.5
+        size = (max(1, round(W / f)), max(1, round(H / f)))
+        small = np.stack([cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in stack])
+        low = estimate_background(small, method, max_pixels)
+        low_median = np.median(small, axis=0).round().astype(np.uint8)
+        changed = np.abs(low.image.astype(np.int16) - low_median).max(-1) > MODE_TOLERANCE
+
+        def up(mask: np.ndarray) -> np.ndarray:
+            return cv2.resize(mask.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
+
+        colour = cv2.resize(low.image, (W, H), interpolation=cv2.INTER_LINEAR)
+        image = np.where(up(changed)[..., None], colour, median)
+        return BackgroundEstimate(image, up(low.uncertain), up(low.replaced), int(N))
     first, second, step, stay, no_majority = _two_colours(stack, median)
     replaced = np.zeros_like(step)
     image = median
@@ -239,5 +260,4 @@ def estimate_background(stack: np.ndarray, method: str = "modes") -> BackgroundE
         if step.any():
             replaced = _continuity_choice(first, second, step)
             image = np.where(replaced[..., None], second, first)
-    return BackgroundEstimate(image, stay | replaced | no_majority, replaced,
-                              int(stack.shape[0]))
+    return BackgroundEstimate(image, stay | replaced | no_majority, replaced, int(N))

@@ -17,10 +17,10 @@ Warnings (what to do included) for what runs but may mislead:
 * footage in which nothing moves (the median background is every frame: no subject);
 * footage too short for a median background (fewer than 20 frames, no plates: subjects
   that do not move away are part of it);
-* a camera whose background shows two stable colours over the recording on more than
-  0.5 % of its pixels (something stayed in place for part of the recording, then left or
-  came: :mod:`nsd.cues.background`), with the share, what was done, and the advice to give
-  a plate;
+* a camera whose background is uncertain on more than 0.5 % of its pixels (two stable
+  colours over the recording, or no colour in most frames: something stayed in place for
+  part of it, or moved there most of the time; :mod:`nsd.cues.background`), with the
+  share, what was done, and the advice to give a plate;
 * footage folders that the calibration does not name (ignored).
 """
 
@@ -263,9 +263,10 @@ def _background(
                     f"{est.replaced.mean() / est.uncertain_share:.0%} of it"
                     if footage.background_method == "modes" else "the median was kept")
             warnings.append(
-                f"camera '{cam}': {est.uncertain_share:.1%} of its background shows two "
-                f"stable colours over the recording (something stayed in place for part of "
-                f"it, then left or came); {done}. Where a subject stays, it may be missed: "
+                f"camera '{cam}': {est.uncertain_share:.1%} of its background is uncertain "
+                f"(two stable colours over the recording, or none in most frames: something "
+                f"stayed in place for part of it, or moved there most of the time); {done}. "
+                f"Where a subject stays, it may be missed: "
                 f"give a background plate ({footage.scene / 'background' / cam}.png, the "
                 f"empty arena) or footage in which it moves away")
     return report, warnings

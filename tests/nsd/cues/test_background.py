@@ -64,6 +64,20 @@ def test_a_subject_that_stayed_most_of_the_time_is_replaced_by_the_floor(stay):
     assert modes.uncertain_share == pytest.approx(subject.mean())
 
 
+def test_large_frames_are_analysed_smaller_and_upsampled():
+    """A 64 x 64 recording analysed at 32 x 32: the same subject found and replaced by the
+    floor (its colour from the working size), the floor elsewhere the native median."""
+    stack, floor, subject = _recording(range(0, 35))
+    est = estimate_background(stack, "modes", max_pixels=32 * 32)
+    assert est.image.shape == floor.shape and est.uncertain.shape == subject.shape
+    inner = cv2.erode(subject.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert est.replaced[inner].all() and not est.replaced[~cv2.dilate(
+        subject.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)].any()
+    assert _wrong(est.image, floor).mean() < 0.01  # the checker's edges blur a little
+    median = estimate_background(stack, "median")
+    assert np.array_equal(est.image[~est.replaced], median.image[~est.replaced])
+
+
 def test_walkers_alone_leave_nothing_uncertain():
     stack, floor, _ = _recording(None)
     est = estimate_background(stack, "modes")
@@ -84,7 +98,7 @@ def test_a_short_stay_is_reported_and_the_floor_kept():
 def test_a_pixel_occupied_in_every_frame_by_others_is_reported():
     """A crowded spot: someone different stands there in every frame (random colours), so
     no colour holds half of the frames: uncertain, whatever the estimate."""
-    stack, floor, subject = _recording(None, walkers=False)
+    stack, _, subject = _recording(None, walkers=False)
     rng = np.random.default_rng(5)
     for t in range(N):
         stack[t][subject] = rng.integers(0, 255, 3)
@@ -142,7 +156,7 @@ def test_estimates_are_cached_with_their_masks(tiny_scene):
 def test_scene_check_warns_by_camera_and_the_report_is_written(tiny_scene, tmp_path):
     scene = _scene(tiny_scene, range(0, 35))
     check = check_scene(scene, background="modes")
-    lingering = [w for w in check.warnings if "two stable colours" in w]
+    lingering = [w for w in check.warnings if "background is uncertain" in w]
     assert len(lingering) == 2 and "camera 'left'" in lingering[0]
     assert "background plate" in lingering[0] and str(scene / "background" / "left") in lingering[0]
     assert check.background["left"]["uncertain"] > 0.03
@@ -157,6 +171,6 @@ def test_scene_check_warns_by_camera_and_the_report_is_written(tiny_scene, tmp_p
     cv2.imwrite(str(scene / "background" / "left.png"), cv2.cvtColor(
         cv2.resize(_floor(1), (32, 24), interpolation=cv2.INTER_NEAREST), cv2.COLOR_RGB2BGR))
     check = check_scene(scene, background="modes")
-    lingering = [w for w in check.warnings if "two stable colours" in w]
+    lingering = [w for w in check.warnings if "background is uncertain" in w]
     assert len(lingering) == 1 and lingering[0].startswith("camera 'right'")
     assert "left" not in check.background
