@@ -41,8 +41,8 @@ __all__ = [
 
 BACKGROUND_METHODS = ("median", "modes")  # the `data.background` values
 MODE_TOLERANCE = 24  # grey levels (largest over the channels): a sample belongs to a colour
-MIN_SECOND_SHARE = 0.15  # each colour of a step spans at least this share of the frames
-STEP_PURITY = 0.7  # and shows its colour in at least this share of its part
+MIN_SECOND_SHARE = 0.15  # the stretch and the rest each span at least this share of frames
+STEP_PURITY = 0.7  # the stretch shows the first colour in this share of its frames at least
 MIN_OTHER = 0.4  # the second colour holds this share of the other part's frames at least
 BORDER = 3  # pixels on each side of a region's border where continuity is compared
 MIN_REGION = 1e-4  # smallest region, a share of the image (smaller ones keep the median)
@@ -56,8 +56,9 @@ class BackgroundEstimate:
 
     Attributes:
         image: the background, (H, W, 3) uint8 RGB.
-        uncertain: (H, W) bool, pixels with two stable colours over the samples.
-        replaced: (H, W) bool, where the second colour was taken instead of the median.
+        uncertain: (H, W) bool, the reported pixels: the second colour taken, a clear stay
+            kept, or no colour in half of the frames (see the module docstring).
+        replaced: (H, W) bool, where the second colour was taken instead of the first.
         samples: how many frames the estimate read.
     """
 
