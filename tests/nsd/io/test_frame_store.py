@@ -61,3 +61,22 @@ def test_a_frame_stride_keeps_every_kth_frame(tiny_scene):
     assert len(data.frames) == 2 and [data.frame_index(t) for t in (0, 1)] == [0, 2]
     assert torch.equal(data.frames[1], torch.from_numpy(frames[2]).permute(0, 3, 1, 2))
     assert list(data.train_frames) == [0, 1]
+
+
+def test_streamed_and_in_memory_training_draw_the_same_batches(tiny_scene, tmp_path):
+    """The frames behind a memory map (the default) and held in the process (an unwritable
+    cache) give bit-identical training batches for the same seed."""
+    from nsd.io.scene_data import SceneData
+
+    streamed = SceneData(tiny_scene, (16, 12), val_fraction=0.0)
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    in_memory = SceneData(tiny_scene, (16, 12), val_fraction=0.0)
+    in_memory.footage.cache_dir = blocked  # as an unwritable scene folder
+    in_memory.frames = FrameStore(in_memory.footage, len(streamed.frames))
+    assert isinstance(streamed.frames._array, np.memmap)
+    assert not isinstance(in_memory.frames._array, np.memmap)  # held in the process
+    a = streamed.sample(np.random.default_rng(7), 6)
+    b = in_memory.sample(np.random.default_rng(7), 6)
+    for name in ("image_v", "image_w", "background_v", "frame", "view_v", "view_w"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
