@@ -83,7 +83,7 @@ def scene_stage(cfg: DictConfig) -> Stage:
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         check = check_scene(path, cameras, units=cfg.train.data.units,
                             background=cfg.train.data.background)
-        write_background_report(path, cameras, out / "background", cfg.train.data.units,
+        write_background_report(check.estimates, check.plates, out / "background",
                                 cfg.train.data.background)
         summary = {"path": str(path.resolve()), **check.summary(),
                    "ground_truth": GroundTruth.exists(path)}

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ import cv2
 import numpy as np
 
 from nsd.core.atomic import atomic_write_bytes, atomic_write_text
-from nsd.io.footage import MultiViewFootage
+from nsd.cues.background import BackgroundEstimate
 
 __all__ = ["uncertainty_image", "write_background_report"]
 
@@ -51,34 +52,30 @@ def _png(path: Path, rgb: np.ndarray) -> None:
 
 
 def write_background_report(
-    scene: str | os.PathLike,
-    cameras: list[str] | None,
+    estimates: Mapping[str, BackgroundEstimate],
+    plates: Mapping[str, str],
     out: str | os.PathLike,
-    units: str = "auto",
-    background: str = "median",
+    method: str,
 ) -> dict[str, Any]:
     """Write the background report of a scene's cameras into folder ``out``.
 
     Args:
-        scene: the scene folder; cameras: the cameras (None: all).
-        units: the calibration's unit; background: the method (``data.background``).
+        estimates: camera -> its background estimate (:class:`nsd.io.scene_check.SceneCheck`
+            holds them); plates: camera -> its plate file; method: ``data.background``.
 
     Returns:
         what ``report.json`` holds: per camera ``plate`` (its file or None),
         ``uncertain`` and ``replaced`` shares.
     """
-    footage = MultiViewFootage(scene, cameras, units=units, background=background)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    report: dict[str, Any] = {"method": background, "cameras": {}}
-    for v, cam in enumerate(footage.camera_names):
-        plate = footage.plate(v)
-        est = footage.background_estimate(v)
+    report: dict[str, Any] = {"method": method, "cameras": {}}
+    for cam, est in estimates.items():
         _png(out / f"{cam}.png", est.image)
         _png(out / f"{cam}.uncertain.png",
              uncertainty_image(est.image, est.uncertain, est.replaced))
         report["cameras"][cam] = {
-            "plate": None if plate is None else str(plate.path),
+            "plate": plates.get(cam),
             "uncertain": round(est.uncertain_share, 6),
             "replaced": round(float(est.replaced.mean()), 6),
             "samples": est.samples,

@@ -42,6 +42,7 @@ from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_io import read_calibration
 from nsd.cameras.units import camera_spacing
 from nsd.core.errors import CalibrationError, FootageError, SceneError
+from nsd.cues.background import BackgroundEstimate
 from nsd.io.footage import (
     IMAGE_EXTENSIONS,
     VIDEO_EXTENSIONS,
@@ -78,6 +79,8 @@ class SceneCheck:
         background: camera -> ``uncertain`` (share of its background with two stable
             colours) and ``replaced`` (share where the second colour was taken), cameras
             without a plate.
+        estimates: camera -> its background estimate (what training compares frames with;
+            :func:`nsd.io.background_report.write_background_report` draws them).
     """
 
     scene: Path
@@ -88,6 +91,7 @@ class SceneCheck:
     warnings: list[str] = field(default_factory=list)
     plates: dict[str, str] = field(default_factory=dict)
     background: dict[str, dict[str, float]] = field(default_factory=dict)
+    estimates: dict[str, BackgroundEstimate] = field(default_factory=dict, repr=False)
 
     def summary(self) -> dict[str, Any]:
         """JSON-serialisable figures (``scene.json`` of nsd-run's scene stage)."""
@@ -246,16 +250,16 @@ def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str]) -> 
 
 def _background(
     footage: MultiViewFootage, plates: dict[str, str]
-) -> tuple[dict[str, dict[str, float]], list[str]]:
-    """Each plate-less camera's background estimate: its shares, and a warning per camera
-    whose background has two stable colours on more than ``LINGER_SHARE`` of it."""
-    if footage.num_frames < MIN_MEDIAN_FRAMES:
-        return {}, []  # too short for any estimate: said by _content
+) -> tuple[dict[str, BackgroundEstimate], dict[str, dict[str, float]], list[str]]:
+    """Every camera's background estimate (a plate's median where there is one), the
+    shares of the plate-less ones, and a warning per plate-less camera whose background is
+    uncertain on more than ``LINGER_SHARE`` of it (footage long enough for an estimate)."""
+    estimates = {cam: footage.background_estimate(v)
+                 for v, cam in enumerate(footage.camera_names)}
     report, warnings = {}, []
-    for v, cam in enumerate(footage.camera_names):
-        if cam in plates:
-            continue
-        est = footage.background_estimate(v)
+    for cam, est in estimates.items():
+        if cam in plates or footage.num_frames < MIN_MEDIAN_FRAMES:
+            continue  # a plate is the background; too short footage is said by _content
         report[cam] = {"uncertain": round(est.uncertain_share, 6),
                        "replaced": round(float(est.replaced.mean()), 6)}
         if est.uncertain_share > LINGER_SHARE:
@@ -269,7 +273,7 @@ def _background(
                 f"Where a subject stays, it may be missed: "
                 f"give a background plate ({footage.scene / 'background' / cam}.png, the "
                 f"empty arena) or footage in which it moves away")
-    return report, warnings
+    return estimates, report, warnings
 
 
 def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
@@ -306,12 +310,12 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
               if (plate := footage.plate(v)) is not None}  # a plate of another size raises
     warnings = ([rig.units_note] if rig.units_note else []) + _unnamed_footage(
         scene, rig.names) + _content(footage, sample, plates)
-    report, lingering = _background(footage, plates)
+    estimates, report, lingering = _background(footage, plates)
     warnings += lingering
     for w in warnings:
         log.warning("scene %s: %s", scene.name, w)
     return SceneCheck(scene, footage.camera_names, footage.num_frames, sizes, spacing,
-                      warnings, plates, report)
+                      warnings, plates, report, estimates)
 
 
 def scene_fingerprint(scene: str | os.PathLike) -> str:

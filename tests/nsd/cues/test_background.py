@@ -160,7 +160,7 @@ def test_scene_check_warns_by_camera_and_the_report_is_written(tiny_scene, tmp_p
     assert len(lingering) == 2 and "camera 'left'" in lingering[0]
     assert "background plate" in lingering[0] and str(scene / "background" / "left") in lingering[0]
     assert check.background["left"]["uncertain"] > 0.03
-    report = write_background_report(scene, None, tmp_path / "bg", background="modes")
+    report = write_background_report(check.estimates, check.plates, tmp_path / "bg", "modes")
     assert json.loads((tmp_path / "bg" / "report.json").read_text()) == report
     assert report["cameras"]["left"]["replaced"] == pytest.approx(
         report["cameras"]["left"]["uncertain"])
