@@ -15,6 +15,9 @@ is never recomputed, a changed setting re-runs it and everything downstream)::
               netepu.texture)
     identities  an identity for every exported row across cameras and time
               (netepu.identities); MOT metrics and identity tracks (identities/tracks/)
+    quality   a label-free quality report: foreground explained, masks confirmed by the
+              other cameras, identity stability, grids of the worst frames (nsd.evaluation.quality)
+    formats   the export in the pose tools' files (SLEAP, NWB, DeepLabCut, TRC, C3D)
     overlays  a video per camera: masks, boxes, identities, depth order (nsd.export.overlay)
     grids     image grids a person can look at: per frame, every camera's input,
               boxes, visible masks and depth order (coloured by subject id)
@@ -40,6 +43,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from netepu.pipeline.species_models import SpeciesModels, resolve_species_models
 from netepu.pipeline.stages import (
     DEFAULT_SCENE,
     evaluate_stage,
@@ -49,6 +53,7 @@ from netepu.pipeline.stages import (
     identities_stage,
     keypoints_stage,
     overlays_stage,
+    quality_stage,
     scene_stage,
     texture_stage,
     train_stage,
@@ -96,16 +101,23 @@ def _ran(runner: StageRunner, name: str) -> bool:
 
 def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stage]]:
     """Stage factories in order (a factory may read the results of earlier stages)."""
+
+    def models() -> SpeciesModels:  # the NeTePu models of the scene's species (after scene)
+        n = cfg.netepu
+        return resolve_species_models(str(n.species), n.geometry, n.texture,
+                                      runner.results["scene"].summary["path"])
+
     return [
         lambda: scene_stage(cfg),
         lambda: train_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
         lambda: evaluate_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
         lambda: export_stage(cfg),
-        lambda: keypoints_stage(cfg),
-        lambda: texture_stage(cfg, _ran(runner, "keypoints")),
+        lambda: keypoints_stage(cfg, models()),
+        lambda: texture_stage(cfg, models(), _ran(runner, "keypoints")),
         lambda: identities_stage(
             cfg, _ran(runner, "texture"), bool(runner.results["scene"].summary["ground_truth"])
         ),
+        lambda: quality_stage(cfg, _ran(runner, "identities")),
         lambda: formats_stage(cfg, _ran(runner, "identities"), _ran(runner, "keypoints")),
         lambda: overlays_stage(cfg, _ran(runner, "identities")),
         lambda: grids_stage(cfg),

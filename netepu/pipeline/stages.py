@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from netepu.pipeline.embed import embed_into_copy
 from netepu.pipeline.pose_keypoints import regress_export
+from netepu.pipeline.species_models import SpeciesModels
 from netepu.pipeline.subject_keypoints import invert_export
 from netepu.reid.identities import assign_identities
 from nsd.cameras.calibration_io import read_calibration
@@ -27,6 +28,7 @@ from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
 from nsd.evaluation.identity import identity_accuracy_by_contact
 from nsd.evaluation.pose import keypoint_error
+from nsd.evaluation.quality import quality_markdown, quality_report
 from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
 from nsd.export.grids import write_grids
@@ -53,6 +55,7 @@ __all__ = [
     "grids_stage",
     "identities_stage",
     "keypoints_stage",
+    "quality_stage",
     "scene_stage",
     "texture_stage",
     "train_stage",
@@ -257,15 +260,16 @@ def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
         )
 
 
-def keypoints_stage(cfg: DictConfig) -> Stage:
-    n = cfg.netepu
-    k = n.keypoints
+def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
+    """3D keypoints of the exported subjects: NeTePu inverse rendering with ``models.geometry``
+    (label-free), or NSD's pose regressor (``netepu.keypoints.source=regressor``)."""
+    k = cfg.netepu.keypoints
     regress = k.source == "regressor"
     settings = {"source": k.source, **{name: k[name] for name in _INVERSE_KEYS}}
     if regress:  # the regressor is trained on the decomposition of the train stage
         settings |= {"label_fraction": k.label_fraction, "regressor_steps": k.regressor_steps}
     else:
-        settings["geometry"] = n.geometry
+        settings["geometry"] = models.key_geometry
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         scene = up["scene"].summary["path"]
@@ -274,7 +278,7 @@ def keypoints_stage(cfg: DictConfig) -> Stage:
             summary = _regress_keypoints(cfg, scene, _checkpoint(up), export, out)
         else:
             summary = invert_export(
-                export, scene, n.geometry, out, **{name: k[name] for name in _INVERSE_KEYS}
+                export, scene, models.geometry, out, **{name: k[name] for name in _INVERSE_KEYS}
             )
         if up["scene"].summary["ground_truth"]:
             summary["accuracy"] = keypoint_error(export, scene, out / "keypoints3d.npz")
@@ -285,8 +289,8 @@ def keypoints_stage(cfg: DictConfig) -> Stage:
         run,
         settings,
         needs=("scene", "train", "export") if regress else ("scene", "export"),
-        enabled=regress or n.geometry is not None,
-        why_disabled="no geometry model (netepu.geometry=null) and source=inverse",
+        enabled=regress or models.geometry is not None,
+        why_disabled=f"no geometry model ({models.why_geometry}) and source=inverse",
     )
 
 
@@ -317,13 +321,14 @@ def _regress_keypoints(
     return summary
 
 
-def texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
-    n = cfg.netepu
+def texture_stage(cfg: DictConfig, models: SpeciesModels, have_keypoints: bool) -> Stage:
+    """Texture codes, their re-id embeddings and NNOPCS maps of the exported subjects
+    (``models.texture``; netepu.pipeline.embed)."""
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
         res = embed_into_copy(
-            up["export"].folder, out, n.texture, kp, up["scene"].summary["path"],
+            up["export"].folder, out, models.texture, kp, up["scene"].summary["path"],
             maps=out / "nnopcs.npz", device=cfg.device,
         )  # fmt: skip
         return {
@@ -336,10 +341,10 @@ def texture_stage(cfg: DictConfig, have_keypoints: bool) -> Stage:
     return Stage(
         "texture",
         run,
-        {"texture": n.texture},
+        {"texture": models.key_texture},
         needs=("scene", "export", "keypoints"),
-        enabled=n.texture is not None,
-        why_disabled="no texture model (netepu.texture=null)",
+        enabled=models.texture is not None,
+        why_disabled=f"no texture model ({models.why_texture})",
     )
 
 
@@ -409,6 +414,36 @@ def formats_stage(cfg: DictConfig, have_identities: bool, have_keypoints: bool) 
                  needs=("scene", "export", "keypoints", "identities"),
                  enabled=bool(f.enabled) and len(f.which) > 0,
                  why_disabled="formats.enabled=false or formats.which=[]")
+
+
+def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
+    """A label-free quality report of the export (nsd.evaluation.quality): how much of the
+    moving foreground the masks explain, whether the other cameras confirm them, how stable
+    the identities are, with image grids of the worst frames; its warnings go to the log."""
+    q = cfg.quality
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        export, scene = up["export"].folder, up["scene"].summary["path"]
+        ids = identity_by_row(up["identities"].folder / "identities.csv") if have_identities \
+            else None
+        w, h = cfg.train.data.image_size
+        report = quality_report(export, scene, (int(w), int(h)), ids,
+                                str(cfg.train.data.background), str(cfg.train.data.units),
+                                int(q.max_frames))
+        for warning in report.warnings:
+            log.warning("quality: %s", warning)
+        worst = report.worst(int(q.worst))
+        files = write_grids(export, scene, out / "worst", len(worst), int(cfg.grids.size),
+                            only=worst)
+        record = report.to_json()
+        atomic_write_text(out / "quality.json", json.dumps(record, indent=2))
+        atomic_write_text(out / "quality.md", quality_markdown(report, worst))
+        return {"summary": record["summary"], "warnings": report.warnings, "worst": worst,
+                "files": [f.name for f in files]}
+
+    return Stage("quality", run, {**_container(q), "identities": have_identities},
+                 needs=("scene", "export", "identities"), enabled=bool(q.enabled),
+                 why_disabled="quality.enabled=false")
 
 
 def overlays_stage(cfg: DictConfig, have_identities: bool) -> Stage:

@@ -208,6 +208,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "scene": NULL_TEXT, "out": NULL_TEXT, "checkpoint": NULL_TEXT,
         "evaluate.frames": ALWAYS, "evaluate.refine": _r("str", choices=("residual", "none")),
         "netepu.geometry": NULL_TEXT, "netepu.texture": NULL_TEXT,
+        # netepu.pipeline.species_models.SPECIES (a test keeps them equal)
+        "netepu.species": _r("str", choices=("auto", "biped", "quadruped")),
         "netepu.keypoints.frame_step": POS, "netepu.keypoints.min_views": _r("int", low=2),
         "netepu.keypoints.steps": POS, "netepu.keypoints.templates": POS,
         "netepu.keypoints.source": _r("str", choices=("inverse", "regressor")),
@@ -216,6 +218,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.identities.method": _r("str", choices=("rows", "tracks")),
         "netepu.identities.restarts": POS, "grids.size": _r("int", low=16),
         "overlays.size": _r("int", low=16), "overlays.fps": RATE,
+        "quality.max_frames": _r("int", low=0), "quality.worst": _r("int", low=0),
         "formats.which": _r("strs", choices=("slp", "nwb", "dlc", "trc", "c3d")),
         "formats.fps": _r("number", above=0, null=True),
     },

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -17,7 +18,8 @@ __all__ = ["write_grids"]
 
 
 def write_grids(
-    export: str | Path, scene: str | Path, out: str | Path, frames: int, size: int
+    export: str | Path, scene: str | Path, out: str | Path, frames: int, size: int,
+    only: Sequence[int] | None = None,
 ) -> list[Path]:
     """One PNG per frame (``frames`` spread over the export): a row per camera with the input,
     boxes, visible masks and depth order (nearest brightest), coloured by subject id.
@@ -28,6 +30,7 @@ def write_grids(
         out: folder for ``frame_<t>.png``.
         frames: how many frames.
         size: each panel's longer side in pixels.
+        only: these frames instead (e.g. the worst of a quality report).
     """
 
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())
@@ -42,9 +45,10 @@ def write_grids(
         np.unique(np.linspace(0, len(all_frames) - 1, min(frames, len(all_frames))).round()).astype(
             int
         )
-    ]
+    ] if only is None else np.asarray([t for t in only if t in set(all_frames)], int)
     footage = MultiViewFootage(scene)
     out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     written = []
     for t in pick.tolist():
         rows = []

@@ -14,6 +14,7 @@ from pycocotools.coco import COCO
 import netepu.pipeline.stages
 from netepu.pipeline.run import load_run_config, run_pipeline
 from nsd.core.errors import ConfigError
+from nsd.synth import tiny_config, write_scene
 from tests.conftest import FIXTURES
 from tests.nsd.training.test_train import TINY
 
@@ -142,7 +143,6 @@ def test_switched_off_windows_get_no_export_rows(tmp_path):
     from nsd.inference.single import decompose
     from nsd.io.embeddings import read_embeddings
     from nsd.model.checkpoint import load_decomposition
-    from nsd.synth import tiny_config, write_scene
 
     scene = write_scene(tiny_config(num_individuals=1), tmp_path / "scene")
     out = tmp_path / "run"
@@ -193,7 +193,6 @@ def test_netepu_stages_with_tiny_models(tmp_path):
     from netepu.texture.model import build_texture_model
     from nsd.core.atomic import atomic_save_torch
     from nsd.io.embeddings import read_embeddings
-    from nsd.synth import tiny_config, write_scene
     from tests.netepu.texture.test_texture import K_BIPED, R_BIPED, TINY_GEOMETRY_DATA, TINY_TEXTURE
     from tests.netepu_world import TINY_MODEL
 
@@ -366,7 +365,6 @@ def test_identity_accuracy_of_ground_truth_rows(tmp_path):
     that swaps identities in later frames is wrong there in time but not across views;
     only the rows given an identity are scored."""
     from nsd.evaluation.identity import identity_accuracy
-    from nsd.synth import tiny_config, write_scene
 
     scene = write_scene(tiny_config(num_frames=20), tmp_path / "scene")
     gt = json.loads((scene / "gt" / "coco.json").read_text())
@@ -437,3 +435,40 @@ def test_constrained_linkage_never_joins_co_visible_tracks():
     assert constrained_average_linkage(dist, apart, 2).tolist() == [0, 1, 1]
     apart[:] = ~np.eye(3, dtype=bool)  # all seen together: three identities whatever k
     assert constrained_average_linkage(dist, apart, 1).tolist() == [0, 1, 2]
+
+
+def test_default_run_takes_the_builtin_model_of_the_scenes_species(tmp_path, tiny_run):
+    """A scene that declares its species gets keypoints, texture codes and code identities
+    from the shipped model with nsd-run's defaults; footage that does not is told why."""
+    from netepu.pipeline.species_models import MODELS, builtin_models
+
+    scene = write_scene(tiny_config(), tmp_path / "scene")
+    out = tmp_path / "run"
+    res = run_pipeline(_cfg(scene, out, "train.data.image_size=[48,48]", "evaluate.max_frames=2",
+                            "netepu.keypoints.frame_step=3", "netepu.keypoints.steps=4",
+                            "netepu.keypoints.templates=1", "netepu.keypoints.min_area=1"))
+    shipped = f"builtin:{builtin_models()['biped']['sha256']}"
+    record = json.loads((out / "pipeline.json").read_text())
+    assert record["keypoints"]["status"] == record["texture"]["status"] == "ran"
+    marker = json.loads((out / "keypoints" / "stage.json").read_text())
+    assert marker["config"]["geometry"] == shipped
+    assert res["texture"].summary["encoded"] > 0
+    assert res["identities"].summary["column"] == "texture_reid"
+    assert str(MODELS) not in json.dumps(res["keypoints"].summary)  # keyed by hash, not path
+    _, _, results = tiny_run  # the checked-in tiny scene declares no species
+    assert "does not declare its species" in results["keypoints"].summary["disabled"]
+
+
+def test_every_run_writes_a_label_free_quality_report(tiny_run):
+    _, out, results = tiny_run
+    q = results["quality"].summary
+    report = json.loads((out / "quality" / "quality.json").read_text())
+    assert report["summary"] == q["summary"] and report["warnings"] == q["warnings"]
+    assert 0 <= q["summary"]["explained"] <= 1 and 0 <= q["summary"]["spill"] <= 1
+    assert q["summary"]["consistency"] is None  # two cameras: no hull of the others
+    frames = [f["frame"] for f in report["frames"]]
+    worst = sorted(report["frames"], key=lambda f: -f["badness"])[: len(q["worst"])]
+    assert q["worst"] == [f["frame"] for f in worst] and set(q["worst"]) <= set(frames)
+    assert sorted(q["files"]) == sorted(f"frame_{t:06d}.png" for t in q["worst"])
+    assert all(cv2.imread(str(out / "quality" / "worst" / f)) is not None for f in q["files"])
+    assert "| explained |" in (out / "quality" / "quality.md").read_text()

@@ -118,3 +118,9 @@ def test_background_rule_lists_every_method():
     from nsd.cues.background import BACKGROUND_METHODS
 
     assert RULES["data"]["background"].choices == BACKGROUND_METHODS
+
+
+def test_species_rule_lists_every_choice():
+    from netepu.pipeline.species_models import SPECIES
+
+    assert RULES["run"]["netepu.species"].choices == SPECIES

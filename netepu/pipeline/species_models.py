@@ -1,0 +1,119 @@
+"""The built-in NeTePu models: one per species, trained on the synthetic world, shipped as
+package data so that ``nsd-run`` renders, encodes and re-identifies without a model of
+the user's own.
+
+A species model is one ``netepu-train stage=texture`` checkpoint stripped to its weights
+and config (no optimiser or random state): it holds the geometry model the texture model
+was trained on, so it serves as the geometry model of the keypoints stage and the texture
+model of the texture stage. ``models/models.json`` says how each file was made (the
+``netepu-train`` overrides, seed, steps, threads, torch), its SHA-256 and its held-out
+figures; ``tools/train_species_models.py`` makes them (docs/netepu.md, "Built-in models").
+
+``nsd-run``'s ``netepu.geometry`` / ``netepu.texture`` take ``builtin`` (the default: the
+model of ``netepu.species``), a checkpoint path, or null (stage off). ``netepu.species:
+auto`` reads the species the scene declares (``gt/scene.json`` of an ``nsd-synth`` scene);
+footage that does not declare one needs ``netepu.species=biped`` or ``quadruped``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from nsd.core.errors import ConfigError
+
+__all__ = [
+    "BUILTIN",
+    "MODELS",
+    "SPECIES",
+    "SpeciesModels",
+    "builtin_models",
+    "resolve_species_models",
+    "scene_species",
+]
+
+BUILTIN = "builtin"  # the value of netepu.geometry / netepu.texture that picks the shipped model
+SPECIES = ("auto", "biped", "quadruped")  # netepu.species (auto: the scene's own)
+MODELS = Path(__file__).with_name("models")  # package data: <species>.pt and models.json
+
+
+def builtin_models(folder: Path = MODELS) -> dict[str, dict]:
+    """The manifest of the shipped models, ``{species: {"file", "sha256", ...}}`` ({} if none)."""
+    path = folder / "models.json"
+    if not path.is_file():
+        return {}
+    return json.loads(path.read_text())["models"]
+
+
+def scene_species(scene: str | Path) -> list[str]:
+    """The species a scene declares (sorted, distinct): those of the individuals in
+    ``gt/scene.json`` of an ``nsd-synth`` scene; [] for footage that declares none."""
+    path = Path(scene) / "gt" / "scene.json"
+    if not path.is_file():
+        return []
+    try:
+        individuals = json.loads(path.read_text()).get("individuals", [])
+        return sorted({str(i["species"]) for i in individuals})
+    except (ValueError, TypeError, KeyError, AttributeError):  # not an nsd-synth scene file
+        return []
+
+
+@dataclass(frozen=True)
+class SpeciesModels:
+    """The checkpoints the keypoints and texture stages use (None: that stage is off, and
+    ``why`` says why), and the settings that key those stages (a shipped file by its hash)."""
+
+    geometry: str | None
+    texture: str | None
+    why_geometry: str
+    why_texture: str
+    key_geometry: str | None
+    key_texture: str | None
+
+
+def _builtin(species: str, scene: str | Path, folder: Path) -> tuple[dict | None, str]:
+    """(manifest entry, "") of the shipped model to use, or (None, why not)."""
+    if species == "auto":
+        found = scene_species(scene)
+        if not found:
+            return None, ("the scene does not declare its species; set netepu.species=biped or "
+                          "quadruped for the built-in models, or give your own checkpoints")
+        if len(found) > 1:
+            return None, (f"the scene holds {' and '.join(found)}; the built-in models are one "
+                          "per species: set netepu.species")
+        species = found[0]
+    entry = builtin_models(folder).get(species)
+    if entry is None:
+        return None, f"no built-in {species} model is shipped (give netepu.geometry / texture)"
+    return {**entry, "path": str(folder / entry["file"])}, ""
+
+
+def resolve_species_models(
+    species: str, geometry: str | None, texture: str | None, scene: str | Path,
+    folder: Path = MODELS,
+) -> SpeciesModels:
+    """The NeTePu checkpoints of a run from ``netepu.species``, ``netepu.geometry`` and
+    ``netepu.texture`` (each ``builtin``, a path or None).
+
+    Raises:
+        ConfigError: an unknown species.
+    """
+    if species not in SPECIES:
+        raise ConfigError(f"netepu.species must be one of {SPECIES}, got {species!r}")
+    entry, why = _builtin(species, scene, folder)
+    paths, whys, keys = [], [], []
+    for key, value in (("geometry", geometry), ("texture", texture)):
+        if value is None:
+            paths.append(None)
+            whys.append(f"netepu.{key}=null")
+            keys.append(None)
+        elif str(value) == BUILTIN:
+            paths.append(entry["path"] if entry else None)
+            whys.append(f"built-in model: {why}" if not entry else "")
+            keys.append(f"builtin:{entry['sha256']}" if entry else None)
+        else:
+            paths.append(str(value))
+            whys.append("")
+            keys.append(str(value))
+    return SpeciesModels(paths[0], paths[1], whys[0], whys[1], keys[0], keys[1])

@@ -1,0 +1,84 @@
+"""The built-in NeTePu models: which model a run takes, and the shipped files themselves."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from netepu.geometry.model import load_geometry_model
+from netepu.pipeline.species_models import (
+    BUILTIN,
+    MODELS,
+    builtin_models,
+    resolve_species_models,
+    scene_species,
+)
+from netepu.texture.model import load_texture_model
+from nsd.core.errors import ConfigError
+from nsd.synth import tiny_config, write_scene
+
+
+@pytest.fixture(scope="module")
+def synth_scene(tmp_path_factory):
+    return write_scene(tiny_config(), tmp_path_factory.mktemp("species") / "scene")
+
+
+def _folder(tmp_path, species=("biped",)):
+    entries = {s: {"file": f"{s}.pt", "sha256": f"{s}-hash"} for s in species}
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    (tmp_path / "models.json").write_text(json.dumps({"models": entries}))
+    return tmp_path
+
+
+def test_scene_species_reads_what_the_scene_declares(synth_scene, tiny_scene, tmp_path):
+    assert scene_species(synth_scene) == ["biped"]
+    assert scene_species(tiny_scene) == []  # footage without gt/scene.json
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "gt" / "scene.json").write_text("{not json")
+    assert scene_species(tmp_path) == []
+
+
+def test_builtin_takes_the_model_of_the_scenes_species(synth_scene, tmp_path):
+    folder = _folder(tmp_path / "models")
+    m = resolve_species_models("auto", BUILTIN, BUILTIN, synth_scene, folder)
+    assert m.geometry == m.texture == str(folder / "biped.pt")  # one file serves both
+    assert m.key_geometry == m.key_texture == "builtin:biped-hash"  # keyed by content
+    assert m.why_geometry == m.why_texture == ""
+    own = resolve_species_models("auto", "my/geo.pt", None, synth_scene, folder)
+    assert (own.geometry, own.key_geometry, own.texture) == ("my/geo.pt", "my/geo.pt", None)
+    assert own.why_texture == "netepu.texture=null"
+
+
+def test_builtin_says_why_when_no_model_fits(synth_scene, tiny_scene, tmp_path):
+    folder = _folder(tmp_path / "models")
+    m = resolve_species_models("auto", BUILTIN, BUILTIN, tiny_scene, folder)
+    assert m.geometry is None and m.texture is None
+    assert "does not declare its species" in m.why_geometry and "netepu.species" in m.why_texture
+    m = resolve_species_models("quadruped", BUILTIN, BUILTIN, synth_scene, folder)
+    assert m.geometry is None and "no built-in quadruped model" in m.why_geometry
+    m = resolve_species_models("biped", BUILTIN, BUILTIN, tiny_scene, folder)  # the user says
+    assert m.geometry == str(folder / "biped.pt")
+    with pytest.raises(ConfigError, match=r"netepu\.species"):
+        resolve_species_models("cow", BUILTIN, BUILTIN, tiny_scene, folder)
+
+
+def test_two_species_in_one_scene_need_a_choice(tmp_path):
+    scene = write_scene(tiny_config(species=["biped", "quadruped"]), tmp_path / "scene")
+    m = resolve_species_models("auto", BUILTIN, BUILTIN, scene, _folder(tmp_path / "m"))
+    assert m.geometry is None and "biped and quadruped" in m.why_geometry
+
+
+def test_the_shipped_models_are_what_the_manifest_says():
+    shipped = builtin_models()
+    assert "biped" in shipped  # the default scene's species
+    for species, entry in shipped.items():
+        path = MODELS / entry["file"]
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == entry["sha256"], path
+        _, geo, config = load_texture_model(path)  # weights_only=True
+        geo2, _ = load_geometry_model(path)
+        assert config["netepu"]["data"]["species"] == species
+        for k, v in geo.state_dict().items():
+            assert np.array_equal(v.numpy(), geo2.state_dict()[k].numpy())

@@ -1,0 +1,141 @@
+"""Make the built-in NeTePu models that ``nsd-run`` uses (netepu/pipeline/species_models.py).
+
+    .venv/bin/python tools/train_species_models.py biped            # ~45 min on one core
+    .venv/bin/python tools/train_species_models.py biped --check    # retrain, compare SHA-256
+
+For a species: ``netepu-train`` geometry on the synthetic world (``RECIPES``: overrides and
+steps), then the texture stage from that geometry, both with the trainer's fixed seed,
+on ``--threads`` CPU threads and with step budgets (never minutes, which depend on the
+machine). The texture checkpoint (which holds its geometry model) is stripped to its config
+and weights and written to ``netepu/pipeline/models/<species>.pt``; ``models.json`` records
+how it was made, its SHA-256 and the final held-out figures of both stages.
+
+The same torch build, CPU kind and thread count reproduce the file bit for bit: ``--check``
+trains again into a temporary folder and compares the hash with the manifest's (other CPUs
+may round matrix products differently and give a different, equally good file).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import hashlib
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from netepu.cli.train import run  # noqa: E402
+from netepu.pipeline.species_models import MODELS  # noqa: E402
+from nsd.core.atomic import atomic_save_torch, atomic_write_text  # noqa: E402
+from nsd.core.config import compose_app  # noqa: E402
+from nsd.core.trainer import CHECKPOINT_FORMAT, load_checkpoint  # noqa: E402
+from tools.benchlib import git_commit, machine_info  # noqa: E402
+
+# netepu-train overrides and step budgets per species (docs/netepu.md: the biped recipe is the
+# one measured in docs/benchmarks/netepu_geometry.md and netepu_texture.md)
+RECIPES = {
+    "biped": {
+        "geometry": ["netepu/data=biped", "netepu.model.renderer.k=12"],
+        "geometry_steps": 3000,
+        "texture": [],
+        "texture_steps": 2083,
+    },
+    "quadruped": {
+        "geometry": ["netepu/data=quadruped"],
+        "geometry_steps": 3000,
+        "texture": ["netepu.texture.model.renderer.k=20"],
+        "texture_steps": 2083,
+    },
+}
+FIGURES = ("heldout_poses", "heldout_cameras", "reid")  # final evaluations kept in the manifest
+
+
+def _train(overrides: list[str], steps: int, threads: int, out: Path) -> dict[str, float]:
+    cfg = compose_app("netepu_train", [
+        *overrides, f"trainer.max_steps={steps}", "trainer.max_minutes=0",
+        "trainer.progress=false", f"threads={threads}", "device=cpu",
+    ])
+    return run(cfg, out)
+
+
+def _figures(metrics: dict[str, float]) -> dict[str, float]:
+    return {k: round(float(v), 6) for k, v in sorted(metrics.items())
+            if k.split("/")[0] in FIGURES}
+
+
+def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
+                  extra: list[str] | None = None) -> tuple[dict, dict]:
+    """Train ``species``'s geometry then texture model in ``work``; returns (stripped
+    checkpoint, recipe with the figures). ``scale`` shrinks the step budgets and ``extra``
+    adds overrides to both stages (tests: a tiny world)."""
+    recipe = RECIPES[species]
+    extra = list(extra or [])
+    steps = {s: max(1, round(recipe[f"{s}_steps"] * scale)) for s in ("geometry", "texture")}
+    t0 = time.perf_counter()
+    geo = _train([*recipe["geometry"], *extra], steps["geometry"], threads, work / "geometry")
+    t1 = time.perf_counter()
+    tex = _train([*recipe["texture"], *extra, "stage=texture",
+                  f"init_from={work / 'geometry' / 'checkpoint.pt'}"],
+                 steps["texture"], threads, work / "texture")
+    t2 = time.perf_counter()
+    state = load_checkpoint(work / "texture")
+    config = {**state["config"], "init_from": f"{species} geometry of {Path(__file__).name}"}
+    model = {"format": CHECKPOINT_FORMAT, "config": config,  # no path of this machine in it
+             "modules": {k: state["modules"][k] for k in ("geometry", "texture")},
+             "step": int(state["step"])}
+    made = {
+        "species": species, "threads": threads, "steps": steps,
+        "overrides": {"geometry": [*recipe["geometry"], *extra],
+                      "texture": [*recipe["texture"], *extra]},
+        "minutes": {"geometry": round((t1 - t0) / 60, 1), "texture": round((t2 - t1) / 60, 1)},
+        "figures": {"geometry": _figures(geo), "texture": _figures(tex)},
+    }
+    return model, made
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("species", choices=sorted(RECIPES))
+    ap.add_argument("--threads", type=int, default=1, help="CPU threads (part of the recipe)")
+    ap.add_argument("--check", action="store_true",
+                    help="train again and compare the SHA-256 with the shipped file's")
+    ap.add_argument("--out", type=Path, default=MODELS, help="the models folder")
+    ap.add_argument("--work", type=Path, default=None,
+                    help="keep the two training runs here (default: a temporary folder)")
+    args = ap.parse_args(argv)
+    manifest_path = args.out / "models.json"
+    manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {
+        "about": "NeTePu models shipped with the toolkit; made by tools/train_species_models.py",
+        "models": {}}
+    with tempfile.TemporaryDirectory(prefix="species-models-") as tmp:
+        model, made = train_species(args.species, args.work or Path(tmp), args.threads)
+        target = Path(tmp) / f"{args.species}.pt" if args.check else args.out / f"{args.species}.pt"
+        atomic_save_torch(model, target)
+        digest = sha256(target)
+        if args.check:
+            shipped = manifest["models"].get(args.species, {}).get("sha256")
+            same = digest == shipped
+            print(f"{args.species}: retrained {digest}\n{'':>{len(args.species)}}  shipped  "
+                  f"{shipped}\n{'bit for bit the same' if same else 'DIFFERENT'}")
+            return 0 if same else 1
+    manifest["models"][args.species] = {
+        "file": target.name, "sha256": digest, "bytes": target.stat().st_size, **made,
+        "torch": machine_info()["torch"], "machine": machine_info()["cpu"],
+        "commit": git_commit(), "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+    }
+    atomic_write_text(manifest_path, json.dumps(manifest, indent=2) + "\n")
+    print(f"wrote {target} ({target.stat().st_size / 1e6:.1f} MB, sha256 {digest[:16]}...)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
