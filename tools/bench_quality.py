@@ -25,13 +25,16 @@ import sys
 import tempfile
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from nsd.io.scenes import resolve_scene  # noqa: E402
-from tools.benchlib import write_report  # noqa: E402
+from nsd.io.scenes import resolve_scene
+from tools.benchlib import write_report
 
 BIN = Path(sys.executable).parent
-TURN = 0.035  # radians added to one rotation-vector entry of the turned camera (~2 degrees)
+TURN = np.radians(2.0)  # pan of the turned camera
 CASES = [  # name, nsd-synth overrides (None: the default scene), nsd-run overrides, turn cam2
     ("default scene, 1000 steps", None, ["train.trainer.max_steps=1000"], False),
     ("default scene, 300 steps", None, ["train.trainer.max_steps=300"], False),
@@ -47,23 +50,33 @@ TRUTH = {"detection_rate": "detection", "mask_miou": "mask_miou",
          "association_accuracy": "association"}
 
 
+def _vector(tail: str, key: str) -> tuple[re.Match, np.ndarray]:
+    m = re.search(rf"{key} = \[([^\]]*)\]", tail)
+    return m, np.array([float(x) for x in m.group(1).split(",") if x.strip()])
+
+
 def _turn(scene: Path, camera_section: str = "cam_2") -> None:
-    """Add TURN to the first rotation-vector entry of one camera in calibration.toml."""
+    """Pan one camera of calibration.toml by TURN radians about its own vertical axis (centre
+    kept): the calibration then says it looks TURN to the side of where the footage was taken."""
     path = scene / "calibration.toml"
-    text = path.read_text()
-    head, tail = text.split(f"[{camera_section}]", 1)
-    m = re.search(r"rotation = \[\s*([-0-9.e]+),", tail)
-    value = float(m.group(1)) + TURN
-    tail = tail[: m.start(1)] + repr(value) + tail[m.end(1):]
+    head, tail = path.read_text().split(f"[{camera_section}]", 1)
+    c, s = np.cos(TURN), np.sin(TURN)
+    pan = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # about the camera's y axis
+    for key in ("rotation", "translation"):  # x_cam = R X + t becomes pan (R X + t)
+        m, vec = _vector(tail, key)
+        new = (cv2.Rodrigues(pan @ cv2.Rodrigues(vec)[0])[0].ravel() if key == "rotation"
+               else pan @ vec)
+        tail = f"{tail[: m.start(1)]}{', '.join(repr(float(x)) for x in new)}{tail[m.end(1):]}"
     path.write_text(f"{head}[{camera_section}]{tail}")
 
 
 def _scene(root: Path, i: int, synth: list[str] | None, turn: bool) -> Path:
+    scene = root / f"scene{i}"
+    if (scene / "calibration.toml").is_file():  # kept from an earlier run (--keep)
+        return scene
     if synth is None:
-        scene = root / f"scene{i}"
         shutil.copytree(resolve_scene(None), scene, ignore=shutil.ignore_patterns(".cache"))
     else:
-        scene = root / f"scene{i}"
         subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", *synth], check=True,
                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     if turn:
@@ -73,7 +86,8 @@ def _scene(root: Path, i: int, synth: list[str] | None, turn: bool) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--keep", type=Path, default=None, help="keep the runs in this folder")
+    ap.add_argument("--keep", type=Path, default=None,
+                    help="keep the scenes and runs in this folder (a second call resumes them)")
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-quality-") as tmp:

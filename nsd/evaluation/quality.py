@@ -49,9 +49,12 @@ __all__ = ["TRUST_LIMITS", "FrameQuality", "QualityReport", "quality_markdown", 
 
 HULL_RESOLUTION = 96  # voxels per side of the working volume (48: limbs fall between voxels)
 MIN_OTHER_VIEWS = 2  # the hull of the other cameras needs this many of them to see a voxel
-# limits past which the report warns (each a share): the run is then not to be trusted blind
-TRUST_LIMITS = {"explained": 0.8, "spill": 0.2, "consistency": 0.8, "identity_switches": 0.05,
-                "view_agreement": 0.9, "count_changes": 0.1}
+# limits past which the report warns (each a share): the run is then not to be trusted blind.
+# Set between the good and the bad runs of docs/benchmarks/quality.md (a run with identity
+# accuracy 0.98 has 6 % switches and 79 % view agreement; runs at 0.47-0.66 have 20-38 % and
+# 5-20 %); held-out footage may need others.
+TRUST_LIMITS = {"explained": 0.8, "spill": 0.2, "consistency": 0.8, "identity_switches": 0.1,
+                "view_agreement": 0.6, "count_changes": 0.1}
 
 
 @dataclass
