@@ -34,6 +34,7 @@ EVAL_KEYS = (
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("overrides", nargs="*", help="nsd-run overrides (default: none)")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     args = ap.parse_args()
     import logging
 
@@ -42,7 +43,7 @@ def main() -> None:
     from netepu.pipeline.run import load_run_config, run_pipeline
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     root = Path(tempfile.mkdtemp(prefix="nsd-bench-pipeline-"))
     try:
         cfg = load_run_config(
@@ -87,6 +88,13 @@ def main() -> None:
         "training_steps": results["train"].summary.get("steps"),
         **{f"eval_{k}": round(float(ev[k]), 3) for k in EVAL_KEYS if k in ev},
         "identities_column": ident.get("column"),
+        **{f"keypoints_{k}": round(float(v), 3)
+           for k, v in results["keypoints"].summary.get("accuracy", {}).items()
+           if isinstance(v, int | float)},
+        "texture_encoded_rows": results["texture"].summary.get("encoded"),
+        **{f"quality_{k}": round(float(v), 3)
+           for k, v in results["quality"].summary.get("summary", {}).items()
+           if isinstance(v, int | float) and "/" not in k},
         **{f"identities_{k}": round(float(v), 3) for k, v in ident.get("accuracy", {}).items()},
         "export": results["export"].summary,
         "overrides": args.overrides,
@@ -97,10 +105,12 @@ def main() -> None:
         "cache, writing it takes about 7 s more), 10 minutes of NSD training (`train`), "
         "evaluation on 30 held-out frames (`evaluate`), the export of all 300 frames with "
         "crops, Parquet embeddings, MOT tracks, TensorBoard projector and t-SNE (`export`), "
-        "an identity for every exported row from NSD's appearance vectors (no texture model "
-        "configured: "
-        "the NeTePu `keypoints` and `texture` stages are skipped) and 4 image grids (`grids`). "
-        "One process, 2 torch threads, nothing else running."
+        "NeTePu with the built-in biped model (`netepu/pipeline/models/`): label-free 3D "
+        "keypoints by inverse rendering of the subjects of every 25th frame (`keypoints`), "
+        "their texture codes and NNOPCS maps (`texture`), an identity for every exported row "
+        "from the texture codes (`identities`), the label-free quality report (`quality`), "
+        "the pose tools' files (`formats`), a video per camera (`overlays`) and 4 image grids "
+        f"(`grids`). One process, {args.threads} torch thread(s)."
     )
     write_report(
         "pipeline", "nsd-run: wall time of the default pipeline, stage by stage", rows, notes, extra
