@@ -441,7 +441,8 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
         return {"summary": record["summary"], "warnings": report.warnings, "worst": worst,
                 "files": [f.name for f in files]}
 
-    return Stage("quality", run, {**_container(q), "identities": have_identities},
+    return Stage("quality", run, {**_container(q), "identities": have_identities,
+                                  "grid_size": cfg.grids.size},
                  needs=("scene", "export", "identities"), enabled=bool(q.enabled),
                  why_disabled="quality.enabled=false")
 

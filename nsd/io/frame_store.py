@@ -101,4 +101,6 @@ class FrameStore:
             index = (index,)
         index = tuple(i.numpy() if isinstance(i, Tensor) else i for i in index)
         arr = np.ascontiguousarray(self._array[index])  # (..., H, W, 3), read from the file
+        if not arr.flags.writeable:  # a view of the read-only map (basic indexing): a copy, so
+            arr = arr.copy()  # that a caller writing into the tensor cannot touch the file
         return torch.from_numpy(arr).movedim(-1, -3)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 import torch
@@ -21,6 +22,12 @@ def test_store_holds_the_decoded_frames_and_is_reused(tiny_scene):
     assert torch.equal(store[t, v], torch.from_numpy(frames[[3, 0, 3], [1, 0, 0]]).permute(
         0, 3, 1, 2))
     assert torch.equal(store[1:3], torch.from_numpy(frames[1:3]).permute(0, 1, 4, 2, 3))
+    view = store[2]  # basic indexing: a copy, writable, without torch's warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        store[0]
+    view.zero_()
+    assert torch.equal(store[2], torch.from_numpy(frames[2]).permute(0, 3, 1, 2))  # file intact
     stamp = store.path.stat().st_mtime_ns
     again = FrameStore(footage, footage.num_frames)  # the same footage: not decoded again
     assert again.path == store.path and again.path.stat().st_mtime_ns == stamp
