@@ -13,13 +13,14 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from netepu.pipeline.embed import embed_into_copy
 from netepu.pipeline.pose_keypoints import regress_export
 from netepu.pipeline.species_models import SpeciesModels
 from netepu.pipeline.subject_keypoints import invert_export
-from netepu.reid.identities import assign_identities
+from netepu.reid.identities import assign_identities, transfer_identities
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
@@ -357,10 +358,15 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
             log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
         source = up["texture"].folder if have_texture else up["export"].folder
         keys = ["id", "camera", "frame", "subject_id"]
-        table = read_embeddings(source, [*keys, column])  # rows without a code hold NaN
-        identity, summary = assign_identities(
+        fill = column != "app" and str(i.fill) == "app"
+        table = read_embeddings(source, [*keys, column, *(["app"] if fill else [])])
+        identity, summary = assign_identities(  # rows without a code hold NaN
             table, column, int(i.k), str(i.method), int(i.restarts)
         )
+        if fill:  # rows without a code: by their appearance vector, not their track
+            coded = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
+            identity = transfer_identities(table, identity, coded, "app")
+            summary["fill"] = "app: nearest identity by appearance vector"
         write_identities(out / "identities.csv",
                          {**{c: table[c].tolist() for c in keys}, "identity": identity.tolist()})
         by_row = dict(zip(table["id"].tolist(), identity.tolist(), strict=True))

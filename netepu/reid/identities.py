@@ -46,6 +46,7 @@ __all__ = [
     "assign_identities",
     "constrained_average_linkage",
     "constrained_kmeans",
+    "transfer_identities",
 ]
 
 IDENTITY_METHODS = ("rows", "tracks")
@@ -191,6 +192,47 @@ def assign_identities(
         "identities": len(set(identity[valid].tolist())),
         "association": f"rows clustered by {column}",
     }
+
+
+def transfer_identities(
+    table: dict[str, np.ndarray], identity: np.ndarray, coded: np.ndarray, column: str = "app"
+) -> np.ndarray:
+    """Carry the identities of the ``coded`` rows to the others through a second embedding
+    that every row has (NSD's appearance vectors ``app``): each identity's prototype is the
+    normalised mean unit ``column`` vector of its coded rows, and the other rows of each
+    camera-frame take distinct identities by a Hungarian assignment on the cosine distance
+    (rows beyond the number of identities take their nearest).
+
+    Texture codes need keypoints, which the pipeline inverts on every 25th frame only; the
+    tracks between coded frames can swap individuals, so a track's identity is no way to
+    fill the gaps (``assign_identities``' own fill), an appearance vector of the row is.
+
+    Args:
+        table: columns ``camera``, ``frame`` and ``column`` (rows, D).
+        identity: (rows,) from the codes; entries of rows not ``coded`` are replaced.
+        coded: (rows,) bool, the rows whose identity comes from their own code.
+
+    Returns:
+        (rows,) int64.
+    """
+    out = np.asarray(identity, np.int64).copy()
+    ids = sorted({int(i) for i in out[coded] if i >= 0})
+    if not ids:
+        return out
+    unit = unit_vectors(np.asarray(table[column], np.float64), eps=1e-12)
+    proto = np.stack([unit_vectors(unit[coded & (out == i)].mean(0), eps=1e-12) for i in ids])
+    cost = 1 - unit @ proto.T  # (rows, identities)
+    groups: dict[tuple[str, int], list[int]] = defaultdict(list)
+    for r in np.flatnonzero(~coded):
+        groups[(str(table["camera"][r]), int(table["frame"][r]))].append(int(r))
+    for rows in groups.values():
+        c = cost[rows]
+        picked, taken = linear_sum_assignment(c)
+        for a, b in zip(picked.tolist(), taken.tolist(), strict=True):
+            out[rows[a]] = ids[b]
+        for a in sorted(set(range(len(rows))) - set(picked.tolist())):
+            out[rows[a]] = ids[int(np.argmin(c[a]))]
+    return out
 
 
 def _cluster_tracks(

@@ -328,6 +328,28 @@ def test_rows_without_a_code_take_their_tracks_identity():
     assert (identity[table["subject_id"] == 3] == -1).all()  # a track without codes
 
 
+def test_rows_without_a_code_take_the_identity_of_their_appearance():
+    """Codes on every 3rd frame decide who is whom; the tracks swap individuals at frame 5,
+    and the rows between coded frames follow their own appearance vector, not their track;
+    two rows of one camera-frame never share an identity."""
+    from netepu.reid.identities import transfer_identities
+
+    rng = np.random.default_rng(3)
+    frames = np.repeat(np.arange(9), 2)
+    who = np.tile([0, 1], 9)  # the true individual of each row (one camera)
+    subject = np.where(frames < 5, who + 1, 2 - who)  # the tracks swap at frame 5
+    app = np.eye(4)[who] + 0.1 * rng.normal(size=(18, 4))
+    coded = frames % 3 == 0
+    identity = np.where(coded, 1 - who, -1)  # the codes named individual 0 "1"
+    table = {"camera": np.array(["a"] * 18), "frame": frames, "subject_id": subject, "app": app}
+    out = transfer_identities(table, identity, coded)
+    assert np.array_equal(out, 1 - who)  # every row right, the swapped tracks included
+    assert np.array_equal(out[coded], identity[coded])  # the coded rows keep theirs
+    app[2:4] = np.eye(4)[0]  # both rows of frame 1 look like individual 0: still distinct
+    out = transfer_identities(table, identity, coded)
+    assert sorted(out[2:4].tolist()) == [0, 1]
+
+
 def test_constrained_kmeans_against_exhaustive_search():
     """On small problems with separated clusters, the constrained k-means reaches the
     assignment of least total cosine distance among all that keep each group's rows apart."""
