@@ -98,6 +98,13 @@ def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
     return model, made
 
 
+def _manifest(path: Path) -> dict:
+    if path.is_file():
+        return json.loads(path.read_text())
+    return {"about": "NeTePu models shipped with the toolkit; made by "
+                     "tools/train_species_models.py", "models": {}}
+
+
 def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -113,14 +120,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="keep the two training runs here (default: a temporary folder)")
     args = ap.parse_args(argv)
     manifest_path = args.out / "models.json"
-    manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {
-        "about": "NeTePu models shipped with the toolkit; made by tools/train_species_models.py",
-        "models": {}}
     with tempfile.TemporaryDirectory(prefix="species-models-") as tmp:
         model, made = train_species(args.species, args.work or Path(tmp), args.threads)
         target = Path(tmp) / f"{args.species}.pt" if args.check else args.out / f"{args.species}.pt"
         atomic_save_torch(model, target)
         digest = sha256(target)
+        manifest = _manifest(manifest_path)  # read now: another species may have been written
         if args.check:
             shipped = manifest["models"].get(args.species, {}).get("sha256")
             same = digest == shipped
