@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import hashlib
 import json
 import sys
 import tempfile
@@ -34,6 +33,7 @@ from netepu.pipeline.species_models import MODELS  # noqa: E402
 from nsd.core.atomic import atomic_save_torch, atomic_write_text  # noqa: E402
 from nsd.core.config import compose_app  # noqa: E402
 from nsd.core.trainer import CHECKPOINT_FORMAT, load_checkpoint  # noqa: E402
+from nsd.export.manifest import sha256_file  # noqa: E402
 from tools.benchlib import git_commit, machine_info  # noqa: E402
 
 # netepu-train overrides and step budgets per species (docs/netepu.md: the biped recipe is the
@@ -105,10 +105,6 @@ def _manifest(path: Path) -> dict:
                      "tools/train_species_models.py", "models": {}}
 
 
-def sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("species", choices=sorted(RECIPES))
@@ -124,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         model, made = train_species(args.species, args.work or Path(tmp), args.threads)
         target = Path(tmp) / f"{args.species}.pt" if args.check else args.out / f"{args.species}.pt"
         atomic_save_torch(model, target)
-        digest = sha256(target)
+        digest = sha256_file(target)
         manifest = _manifest(manifest_path)  # read now: another species may have been written
         if args.check:
             shipped = manifest["models"].get(args.species, {}).get("sha256")

@@ -102,10 +102,14 @@ def _ran(runner: StageRunner, name: str) -> bool:
 def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stage]]:
     """Stage factories in order (a factory may read the results of earlier stages)."""
 
+    resolved: list[SpeciesModels] = []
+
     def models() -> SpeciesModels:  # the NeTePu models of the scene's species (after scene)
-        n = cfg.netepu
-        return resolve_species_models(str(n.species), n.geometry, n.texture,
-                                      runner.results["scene"].summary["path"])
+        if not resolved:  # once, for the keypoints and the texture stage
+            n = cfg.netepu
+            resolved.append(resolve_species_models(str(n.species), n.geometry, n.texture,
+                                                   runner.results["scene"].summary["path"]))
+        return resolved[0]
 
     return [
         lambda: scene_stage(cfg),

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import hashlib
-
 import torch
 
 from netepu.geometry.model import load_geometry_model
 from netepu.texture.model import load_texture_model
 from nsd.core.atomic import atomic_save_torch
+from nsd.export.manifest import sha256_file
 from tests.netepu.texture.test_texture import TINY_GEOMETRY_DATA, TINY_TEXTURE_SIZES
 from tests.netepu_world import TINY_MODEL
 from tools.train_species_models import train_species
@@ -50,7 +49,7 @@ def test_species_model_is_reproduced_bit_for_bit(tmp_path):
         model, made = train_species("biped", tmp_path / run, threads=1, scale=0.002,
                                     extra=_tiny(tmp_path / "cache"))
         atomic_save_torch(model, tmp_path / f"{run}.pt")
-        digests.append(hashlib.sha256((tmp_path / f"{run}.pt").read_bytes()).hexdigest())
+        digests.append(sha256_file(tmp_path / f"{run}.pt"))
     assert made["steps"] == {"geometry": 6, "texture": 4}
     assert digests[0] == digests[1]
     # the one file serves both stages, as a geometry and as a texture checkpoint

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 
 import numpy as np
@@ -18,6 +17,7 @@ from netepu.pipeline.species_models import (
 )
 from netepu.texture.model import load_texture_model
 from nsd.core.errors import ConfigError
+from nsd.export.manifest import sha256_file
 from nsd.synth import tiny_config, write_scene
 
 
@@ -76,7 +76,7 @@ def test_the_shipped_models_are_what_the_manifest_says():
     assert "biped" in shipped  # the default scene's species
     for species, entry in shipped.items():
         path = MODELS / entry["file"]
-        assert hashlib.sha256(path.read_bytes()).hexdigest() == entry["sha256"], path
+        assert sha256_file(path) == entry["sha256"], path
         _, geo, config = load_texture_model(path)  # weights_only=True
         geo2, _ = load_geometry_model(path)
         assert config["netepu"]["data"]["species"] == species
