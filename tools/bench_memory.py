@@ -1,6 +1,6 @@
-"""Training memory against the recording's length: frames on disk (memory map) or in memory.
+"""Training and export memory against the recording's length: frames on disk or in memory.
 
-    .venv/bin/python tools/bench_memory.py         # ~5 minutes, nothing else running
+    .venv/bin/python tools/bench_memory.py --frames 3000   # ~15 minutes, nothing else running
 
 A synthetic recording of ``--frames`` frames (4 cameras, 128 x 128; the default scene's
 settings otherwise) is written once; for T = 300 .. ``--frames`` frames a fresh process
@@ -9,7 +9,9 @@ does) and runs 20 default training steps. Rows: the process's anonymous memory (
 what cannot be dropped) and its peak resident memory (VmHWM: also file pages the OS may
 drop), with the frames in the disk store (``nsd/io/frame_store.py``, the default) and,
 as the baseline, held in memory (the former behaviour, forced by making the store's file
-unwritable).
+unwritable). Export rows: ``nsd-export`` of the first T frames (every camera) with a
+checkpoint of 20 training steps on the same recording, its peak resident memory
+(``ru_maxrss`` of the export process, alone in a wrapper process).
 
 Writes ``docs/benchmarks/memory.{md,json}``.
 """
@@ -59,6 +61,16 @@ print(json.dumps({"rss_anon_mb": mb("RssAnon"), "peak_rss_mb": mb("VmHWM"),
 """
 
 
+EXPORT = r"""
+import json, resource, subprocess, sys
+nsd_export, checkpoint, scene, frames, out = sys.argv[1:6]
+subprocess.run([nsd_export, f"checkpoint={checkpoint}", f"scene={scene}", f"out={out}",
+                f"frames={{start: 0, stop: {frames}, step: 1}}", "threads=2"],
+               check=True, capture_output=True)
+print(json.dumps({"peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
+"""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=2400, help="length of the long recording")
@@ -78,14 +90,30 @@ def main() -> None:
             frames_mb = T * 4 * 128 * 128 * 3 / 2**20
             rows.append({"frames": store, "T": T, "frame_bytes_mb": frames_mb, **m})
             print(rows[-1], flush=True)
+    bin_dir = Path(sys.executable).parent
+    run = root / "run"
+    subprocess.run([str(bin_dir / "nsd-train"), f"data.scene={scene}", "trainer.max_steps=20",
+                    "trainer.eval_at_minutes=[]", "trainer.progress=false",
+                    f"hydra.run.dir={run}"], check=True, capture_output=True, cwd=ROOT)
+    for T in lengths:
+        out = subprocess.run([sys.executable, "-c", EXPORT, str(bin_dir / "nsd-export"),
+                              str(run / "checkpoint.pt"), str(scene), str(T),
+                              str(root / f"export{T}")],
+                             capture_output=True, text=True, check=True, cwd=ROOT)
+        m = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append({"frames": "export (disk)", "T": T,
+                     "frame_bytes_mb": T * 4 * 128 * 128 * 3 / 2**20, **m})
+        print(rows[-1], flush=True)
     write_report(
-        "memory", "Training memory against the recording's length", rows,
+        "memory", "Training and export memory against the recording's length", rows,
         notes=("A fresh process per row: training data of T frames (4 cameras, 128 x 128, "
                "multi-view proposals) and 20 default training steps; `frames=disk`: the "
                "default store on disk behind a memory map, `memory`: the baseline, frames "
                "held in the process. RssAnon: anonymous memory (cannot be dropped); "
                "RssFile: file pages resident now (the OS drops them under pressure); "
-               "peak_rss_mb: VmHWM, the peak of both. frame_bytes_mb: the frames' size."),
+               "peak_rss_mb: VmHWM, the peak of both. frame_bytes_mb: the frames' size. "
+               "`export (disk)`: nsd-export of the first T frames with a 20-step checkpoint, "
+               "the export process's peak resident memory (ru_maxrss)."),
     )
 
 

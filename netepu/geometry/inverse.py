@@ -6,8 +6,14 @@ decoded keypoints :math:`c + 2r\,\hat x(z)` render silhouettes that match the
 observed ones in every view,
 
 .. math::
-    \min_{z, c}\ \frac{1}{V}\sum_v \mathrm{BCE}\big(\hat s_v(z, c), s_v\big)
-    + \lambda_z \lVert z \rVert_2 .
+    \min_{z, c}\ \frac{1}{V}\sum_v \frac{\sum_p w_{vp}\,\mathrm{BCE}\big(\hat s_v(z, c)_p,
+    s_{vp}\big)}{\sum_p w_{vp}} + \lambda_z \lVert z \rVert_2 ,
+    \qquad w_{vp} = 1 - o_{vp}\,(1 - s_{vp}) .
+
+Occluders ``o`` (other subjects' visible masks, optional) make the loss occlusion-aware:
+where another subject covers a pixel, the observed mask cannot say whether this
+subject is there behind it, so a background label there is not a constraint (weight 0);
+the subject's own visible pixels always count.
 
 The loss is evaluated at points per view and step: half straddling the
 observed silhouette's boundary (:func:`netepu.geometry.sampling.sample_silhouette_points`),
@@ -22,6 +28,13 @@ alike facing left or right)
     template poses (e.g. training poses) turned to ``headings`` directions
     about the world's up axis; all starts are optimised as one batch, the
     worse half is dropped every ``prune_every`` steps, and the best start wins.
+
+Warm starts (a subject followed over frames)
+    Given the result of an earlier frame (``warm``), one start from its code, its
+    translation moved by the change of the triangulated centroid, runs ``warm_steps``
+    steps. If its loss ends above ``warm_tolerance`` times the earlier frame's loss
+    (a fast turn, a wrong earlier fit), the cold multi-start runs as well and the
+    lower loss wins.
 """
 
 from __future__ import annotations
@@ -31,9 +44,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from netepu.geometry.losses import occlusion_aware_silhouette_loss
 from netepu.geometry.maps import BACKGROUND_LOGIT, candidate_region
 from netepu.geometry.model import GeometryModel
 from netepu.geometry.sampling import sample_silhouette_points
@@ -64,6 +77,11 @@ class InverseSettings:
         sigma_near: spread of the near-boundary points, pixels.
         margin: candidate-region margin (the renderer's), body radii.
         up: world up axis.
+        warm_steps: Adam steps of a warm start.
+        warm_tolerance: a warm start whose loss ends above this many times the earlier
+            frame's loss is checked against the cold multi-start.
+        warm_lr: ``lr`` of a warm start (Adam's steps are about ``lr`` per code entry
+            whatever the gradient, so a long warm chain random-walks at a high rate).
     """
 
     steps: int = 120
@@ -75,6 +93,9 @@ class InverseSettings:
     sigma_near: float = 1.5
     margin: float = 0.35
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    warm_steps: int = 40
+    warm_tolerance: float = 1.25
+    warm_lr: float = 0.05
 
 
 @dataclass
@@ -87,6 +108,11 @@ class InverseResult:
         centre: translation, (3,).
         loss: final silhouette loss of the chosen start.
         start_losses: final loss of every start alive at the end, (S,).
+        anchor: the triangulated centroid of the silhouettes, (3,) (warm starts move
+            the translation by its change).
+        history: loss of the best start alive after each step, (steps,).
+        warm: the result comes from the warm start.
+        start_steps: Adam steps summed over starts (the work done).
     """
 
     keypoints: Tensor
@@ -94,6 +120,10 @@ class InverseResult:
     centre: Tensor
     loss: float
     start_losses: Tensor
+    anchor: Tensor
+    history: Tensor
+    warm: bool = False
+    start_steps: int = 0
 
 
 def triangulate_centroids(masks: Tensor, camera: CameraBatch) -> Tensor:
@@ -135,51 +165,69 @@ def rotate_about_up(points: Tensor, angle: float, up: Tensor) -> Tensor:
     return points * c + cross * s + u * (points @ u)[..., None] * (1 - c)
 
 
-def _points(masks: np.ndarray, n: int, rng: np.random.Generator, sigma: float) -> np.ndarray:
-    """Loss points per view: half near the boundary, half in the enlarged silhouette box."""
+def _regions(masks: np.ndarray, ignored: np.ndarray) -> np.ndarray:
+    """Where a view's uniform loss points fall: the silhouette's box enlarged by half its
+    size, without the ignored pixels, (V, H, W) bool."""
     V, H, W = masks.shape
-    out = []
+    out = np.zeros((V, H, W), bool)
     for v in range(V):
         ys, xs = np.nonzero(masks[v])
         x0, x1, y0, y1 = xs.min(), xs.max(), ys.min(), ys.max()
         ex, ey = (x1 - x0) // 2 + 2, (y1 - y0) // 2 + 2
-        box = np.zeros((H, W), bool)
-        box[max(0, y0 - ey):y1 + ey + 1, max(0, x0 - ex):x1 + ex + 1] = True
-        uv, _ = sample_silhouette_points(masks[v], n // 2, n - n // 2, rng, sigma, box)
-        out.append(uv)
-    return np.stack(out)
+        out[v, max(0, y0 - ey):y1 + ey + 1, max(0, x0 - ex):x1 + ex + 1] = True
+    return out & ~ignored
 
 
-def _optimise(model, masks, camera, templates, s: InverseSettings, rng):
-    """The batched multi-start optimisation; returns z (S, d_z), centre (S, 3), losses (S,)."""
-    V, H, W = masks.shape
+def _points(masks: np.ndarray, regions: np.ndarray, n: int, rng: np.random.Generator,
+            sigma: float) -> np.ndarray:
+    """Loss points per view, (V, n, 2): half near the boundary, half in the view's region."""
+    return np.stack([sample_silhouette_points(m, n // 2, n - n // 2, rng, sigma, r)[0]
+                     for m, r in zip(masks, regions, strict=True)])
+
+
+def _code_starts(model, masks, camera, templates, s: InverseSettings, anchor, warm):
+    """Starting codes (S, d_z) and translations (S, 3): the templates turned to every
+    heading at the anchor, or the earlier frame's fit moved with the anchor."""
+    if warm is not None:
+        return warm.z[None].float(), (warm.centre + anchor - warm.anchor)[None].float()
     up = torch.tensor(s.up, dtype=torch.float32)
-    centre0 = triangulate_centroids(masks, camera).float()
     starts = []
     for tpl in templates.float():
         centred = tpl - tpl.mean(0)
         for h in range(s.headings):
             starts.append(rotate_about_up(centred, 2 * math.pi * h / s.headings, up))
     with torch.no_grad():
-        z0 = model.encode(torch.stack(starts) + centre0).z
+        z0 = model.encode(torch.stack(starts) + anchor).z
+    return z0, anchor.expand(len(starts), 3).clone()
+
+
+def _optimise(model, masks, camera, z0, centre0, steps, s: InverseSettings, rng, ignored, lr):
+    """The batched multi-start optimisation from codes ``z0`` (S, d_z) at ``centre0`` (S, 3);
+    returns z (S', d_z), centre (S', 3), losses (S',), the best loss per step (steps,)
+    and the start-steps done."""
+    V, H, W = masks.shape
     sigma = z0.pow(2).mean().sqrt().clamp(min=1e-8)
     w = (z0 / sigma).requires_grad_(True)  # z = sigma w
-    centre = centre0.expand(len(starts), 3).clone().requires_grad_(True)
+    centre = centre0.clone().requires_grad_(True)
 
     def adam(w: Tensor, centre: Tensor) -> torch.optim.Adam:
-        return torch.optim.Adam([{"params": [w], "lr": s.lr},
-                                 {"params": [centre], "lr": s.lr * model.radius}])
+        return torch.optim.Adam([{"params": [w], "lr": lr},
+                                 {"params": [centre], "lr": lr * model.radius}])
 
     opt = adam(w, centre)
     np_masks = masks.numpy()
+    regions = _regions(np_masks, ignored)
     cams = CameraBatch.from_mapping(camera).to(torch.float32)
-    losses = torch.zeros(len(starts))
-    for step in range(s.steps):
+    losses = torch.zeros(len(z0))
+    history, work = [], 0
+    for step in range(steps):
         S = w.shape[0]
+        work += S
         z = sigma * w
-        uv = torch.from_numpy(_points(np_masks, s.points_per_view, rng, s.sigma_near))
+        uv = torch.from_numpy(_points(np_masks, regions, s.points_per_view, rng, s.sigma_near))
         px, py = uv[..., 0].long(), uv[..., 1].long()
         label = masks[torch.arange(V)[:, None], py, px].float()
+        skip = torch.from_numpy(ignored)[torch.arange(V)[:, None], py, px].repeat(S, 1)
         code = model.decode(z, centre)
         rep = cams.repeat(S)
         ctx = model.renderer.prepare(code.keypoints.repeat_interleave(V, 0),
@@ -191,12 +239,13 @@ def _optimise(model, masks, camera, templates, s: InverseSettings, rng):
                 ctx.frame.uv[b], float(ctx.frame.scale[b]), s.margin, (W, H)))[
                 py[b % V], px[b % V]] for b in range(S * V)])
         logit = torch.where(inside, logit, torch.full_like(logit, BACKGROUND_LOGIT))
-        bce = F.binary_cross_entropy_with_logits(logit, label.repeat(S, 1), reduction="none")
-        per_start = bce.mean(1).reshape(S, V).mean(1)
+        per_view = occlusion_aware_silhouette_loss(logit, label.repeat(S, 1), skip)
+        per_start = per_view.reshape(S, V).mean(1)
         opt.zero_grad()
         (per_start + s.latent_weight * z.norm(dim=-1)).sum().backward()
         opt.step()
         losses = per_start.detach()
+        history.append(float(losses.min()))
         if s.prune_every and (step + 1) % s.prune_every == 0 and S > 1:
             keep = losses.argsort()[: max(1, S // 2)]
             state = opt.state_dict()["state"]
@@ -208,7 +257,7 @@ def _optimise(model, masks, camera, templates, s: InverseSettings, rng):
                     opt.state[param] = {k: (v[keep] if torch.is_tensor(v) and v.dim() else v)
                                         for k, v in state[i].items()}
             losses = losses[keep]
-    return (sigma * w).detach(), centre.detach(), losses
+    return (sigma * w).detach(), centre.detach(), losses, torch.tensor(history), work
 
 
 def invert_silhouettes(
@@ -218,6 +267,8 @@ def invert_silhouettes(
     templates: Tensor,
     settings: InverseSettings | None = None,
     rng: np.random.Generator | None = None,
+    occluders: Tensor | None = None,
+    warm: InverseResult | None = None,
 ) -> InverseResult:
     """Recover the keypoints of one individual from its silhouettes in V calibrated views.
 
@@ -229,6 +280,9 @@ def invert_silhouettes(
             matters: they are centred and turned).
         settings: see :class:`InverseSettings`.
         rng: generator of the loss points (default seeded 0).
+        occluders: other subjects' visible masks, (V, H, W) bool: background labels there
+            are ignored (the module docstring's :math:`o`).
+        warm: this individual's result at an earlier frame: start from it (module docstring).
 
     Returns:
         :class:`InverseResult`.
@@ -237,15 +291,35 @@ def invert_silhouettes(
     rng = rng or np.random.default_rng(0)
     if not bool(masks.flatten(1).any(1).all()):
         raise ValueError("invert_silhouettes: every view needs a non-empty silhouette")
+    if occluders is not None and occluders.shape != masks.shape:
+        raise ValueError(f"invert_silhouettes: occluders {tuple(occluders.shape)} and masks "
+                         f"{tuple(masks.shape)} differ")
+    ignored = np.zeros(masks.shape, bool) if occluders is None else (
+        occluders.numpy().astype(bool) & ~masks.numpy())
+    anchor = triangulate_centroids(masks, camera).float()
     flags = [p.requires_grad for p in model.parameters()]
     for p in model.parameters():
         p.requires_grad_(False)
+
+    def run(start: InverseResult | None, steps: int) -> tuple:
+        z0, c0 = _code_starts(model, masks, camera, templates, s, anchor, start)
+        lr = s.warm_lr if start is not None else s.lr
+        return _optimise(model, masks, camera, z0, c0, steps, s, rng, ignored, lr)
+
     try:
-        z, centre, losses = _optimise(model, masks, camera, templates, s, rng)
+        z, centre, losses, history, work = run(warm, s.warm_steps if warm else s.steps)
+        from_warm = warm is not None
+        if from_warm and float(losses.min()) > s.warm_tolerance * warm.loss:
+            cold = run(None, s.steps)
+            work += cold[4]
+            if float(cold[2].min()) < float(losses.min()):
+                z, centre, losses, history, _ = cold
+                from_warm = False
         best = int(losses.argmin())
         with torch.no_grad():
             code = model.decode(z[best:best + 1], centre[best:best + 1])
     finally:
         for p, flag in zip(model.parameters(), flags, strict=True):
             p.requires_grad_(flag)
-    return InverseResult(code.keypoints[0], z[best], centre[best], float(losses[best]), losses)
+    return InverseResult(code.keypoints[0], z[best], centre[best], float(losses[best]), losses,
+                         anchor, history, from_warm, work)

@@ -35,6 +35,7 @@ __all__ = [
     "keypoint_loss",
     "latent_loss",
     "nnopcs_loss",
+    "occlusion_aware_silhouette_loss",
     "silhouette_loss",
 ]
 
@@ -56,6 +57,24 @@ class GeometryLossWeights(ConfigSection):
 def silhouette_loss(logit: Tensor, label: Tensor) -> Tensor:
     """Mean binary cross-entropy of logits (B, S) against labels (B, S) in {0, 1}."""
     return F.binary_cross_entropy_with_logits(logit, label)
+
+
+def occlusion_aware_silhouette_loss(logit: Tensor, label: Tensor, ignored: Tensor) -> Tensor:
+    r"""BCE per row of points where the ``ignored`` points do not count (inverse rendering).
+
+    :math:`\sum_p w_p \mathrm{BCE}_p / \sum_p w_p` with :math:`w_p = 1 - \text{ignored}_p`
+    (a row whose points are all ignored: 0).
+
+    Args:
+        logit, label: (N, P) silhouette logits and {0, 1} labels.
+        ignored: (N, P) bool, points covered by another subject where this one is not seen.
+
+    Returns:
+        (N,) loss per row.
+    """
+    weight = (~ignored).to(logit.dtype)
+    bce = F.binary_cross_entropy_with_logits(logit, label, reduction="none")
+    return (bce * weight).sum(-1) / weight.sum(-1).clamp(min=1)
 
 
 def keypoint_loss(decoded: Tensor, target: Tensor) -> Tensor:

@@ -101,7 +101,9 @@ def resolve_species_models(
     """
     if species not in SPECIES:
         raise ConfigError(f"netepu.species must be one of {SPECIES}, got {species!r}")
-    entry, why = _builtin(species, scene, folder)
+    # the scene's species is read only when a built-in model is asked for
+    entry, why = _builtin(species, scene, folder) if BUILTIN in (
+        str(geometry), str(texture)) else (None, "")
     paths, whys, keys = [], [], []
     for key, value in (("geometry", geometry), ("texture", texture)):
         if value is None:

@@ -243,7 +243,8 @@ def export_stage(cfg: DictConfig) -> Stage:
 KEYPOINT_SOURCES = ("inverse", "regressor")
 
 
-_INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "max_subject_frames")
+_INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "max_subject_frames",
+                 "occlusion", "warm_steps", "smooth_frames")
 
 
 def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:

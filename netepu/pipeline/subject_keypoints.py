@@ -1,4 +1,4 @@
-"""Label-free 3D keypoints of exported subjects: inverse rendering of their multi-view masks.
+r"""Label-free 3D keypoints of exported subjects: inverse rendering of their multi-view masks.
 
 For each selected frame of an ``nsd-export`` folder, the visible masks of one
 subject (one cross-view ``subject_id``) in every camera that shows it go into
@@ -8,18 +8,29 @@ every annotation (camera-frame row) of that subject in that frame, in the
 ``keypoints3d.npz`` format ``netepu-embed`` reads (:mod:`nsd.io.keypoints`;
 ``subject_loss`` is the inversion's final silhouette loss).
 
-Visible masks of an occluded subject are partial; the inversion then fits a
-body to what is visible in each view (the multi-view silhouette loss is a
-per-view mean, so a view where the subject is mostly hidden weighs as much as
-the others). Templates (the inversion's starting poses) are poses of the
-geometry model's own synthetic individual (:func:`template_poses`), so no
-training data is needed at run time.
+Visible masks of an occluded subject are partial. With ``occlusion`` on, the other
+subjects' visible masks of the same camera-frame are the inversion's occluders: the
+render is not penalised where another subject covers the image, only where the
+background is seen (:func:`netepu.geometry.inverse.invert_silhouettes`).
+
+Subjects are followed over the selected frames: a subject's first frame starts cold
+(templates turned to several headings, the best start wins); each later frame starts
+warm from the subject's previous fit (``warm_steps`` Adam steps of one start, checked
+against a cold start when its loss is much worse). ``smooth_frames`` > 0 then
+smooths each subject's keypoints over time with a Gaussian of that standard
+deviation (frames of the footage), weighing each fit by :math:`1/\text{loss}^2` so that a
+failed frame pulls its neighbours little (:func:`smooth_tracks`).
+
+Templates (the inversion's starting poses) are poses of the geometry model's own
+synthetic individual (:func:`template_poses`), so no training data is needed at run time.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import time
+from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +48,7 @@ from nsd.io.keypoints import SubjectKeypoints, subject_groups
 from nsd.synth import make_individual
 from nsd.synth.motion import sample_pose
 
-__all__ = ["invert_export", "template_poses"]
+__all__ = ["invert_export", "smooth_tracks", "template_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +80,10 @@ def invert_export(
     steps: int = 120,
     templates: int = 2,
     max_subject_frames: int = 0,
+    occlusion: bool = True,
+    warm_steps: int = 0,
+    smooth_frames: float = 0.0,
+    inverse: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
 
@@ -83,42 +98,115 @@ def invert_export(
         steps: Adam steps per inversion.
         templates: starting poses (each tried at 4 headings).
         max_subject_frames: stop after this many inversions (0: no limit).
+        occlusion: other subjects' masks are occluders (module docstring).
+        warm_steps: Adam steps of a warm start from the subject's previous fit (0: every
+            frame starts cold).
+        smooth_frames: standard deviation of the temporal smoothing, frames of the
+            footage (0: none).
+        inverse: more :class:`netepu.geometry.inverse.InverseSettings` fields (e.g.
+            ``points_per_view``; benchmarks vary them).
 
     Returns:
-        counts and the mean final silhouette loss.
+        counts, the mean final silhouette loss, seconds per subject-frame and the share
+        of subject-frames fitted from a warm start.
     """
 
     if frame_step < 1 or min_views < 1:
         raise ConfigError(f"frame_step and min_views must be >= 1, got {frame_step}, {min_views}")
+    if warm_steps < 0 or smooth_frames < 0:
+        raise ConfigError(f"warm_steps and smooth_frames must be >= 0, got {warm_steps}, "
+                          f"{smooth_frames}")
     model, config = load_geometry_model(checkpoint)
     net = config["netepu"]
     starts = template_poses(net["data"], templates)
     render = net.get("render") or MapSettings.default_mapping()  # checkpoints before it: defaults
-    settings = InverseSettings(steps=steps, margin=float(render["margin"]))
+    settings = InverseSettings(steps=steps, margin=float(render["margin"]),
+                               warm_steps=warm_steps, **(inverse or {}))
     rig = read_calibration(scene)
     cams = rig.stacked(torch.float32)
     images, groups, n_frames = subject_groups(
         export, frame_step, lambda a, im: a["area"] >= min_area
     )
-    fitted = SubjectKeypoints()
+    in_image: dict[int, list[dict]] = defaultdict(list)  # every kept row, by camera-frame
+    for _, anns in groups:
+        for a in anns:
+            in_image[int(a["image_id"])].append(a)
+    previous: dict[int, Any] = {}  # subject -> its last fit
+    fits: list[tuple[int, int, list[dict], np.ndarray, float]] = []
+    warm_fits, start = 0, time.perf_counter()
     for (t, sid), anns in groups:
         anns = _views_of_one_size(anns, images)
         if len(anns) < min_views:
             continue
-        if max_subject_frames and len(fitted) >= max_subject_frames:
+        if max_subject_frames and len(fits) >= max_subject_frames:
             break
         cam_idx = [rig.index(images[a["image_id"]]["camera"]) for a in anns]
-        masks = np.stack([mask_utils.decode(a["segmentation"]) for a in anns]).astype(bool)
-        rng = np.random.default_rng(t)
-        res = invert_silhouettes(
-            model, torch.from_numpy(masks), cams[cam_idx], starts, settings, rng
-        )
-        fitted.add(t, sid, anns, res.keypoints.float().numpy(), res.loss)
-        log.info(
-            "keypoints: frame %d subject %d from %d views, loss %.3f", t, sid, len(anns), res.loss
-        )
+        masks = torch.from_numpy(np.stack([_decode(a) for a in anns]))
+        occluders = torch.from_numpy(np.stack([_others(a, in_image) for a in anns])) if (
+            occlusion) else None
+        warm = previous.get(sid) if warm_steps else None
+        res = invert_silhouettes(model, masks, cams[cam_idx], starts, settings,
+                                 np.random.default_rng(t), occluders, warm)
+        previous[sid] = res
+        warm_fits += res.warm
+        fits.append((t, sid, anns, res.keypoints.float().numpy(), res.loss))
+        log.info("keypoints: frame %d subject %d from %d views, loss %.3f (%s)",
+                 t, sid, len(anns), res.loss, "warm" if res.warm else "cold")
+    seconds = time.perf_counter() - start
+    smoothed = smooth_tracks([(t, sid, kp, loss) for t, sid, _, kp, loss in fits],
+                             smooth_frames)
+    fitted = SubjectKeypoints()
+    for (t, sid, anns, _, loss), kp in zip(fits, smoothed, strict=True):
+        fitted.add(t, sid, anns, kp, loss)
     fitted.save(Path(out) / "keypoints3d.npz", starts.shape[1])
-    return fitted.summary(n_frames, "mean_loss")
+    return fitted.summary(n_frames, "mean_loss") | {
+        "seconds_per_subject_frame": seconds / len(fits) if fits else None,
+        "warm_share": warm_fits / len(fits) if fits else None,
+    }
+
+
+def smooth_tracks(fits: list[tuple[int, int, np.ndarray, float]], sigma: float) -> list[np.ndarray]:
+    r"""Each subject's keypoints smoothed over its frames (module docstring).
+
+    Args:
+        fits: ``(frame, subject, keypoints (K, 3), loss)`` per subject-frame.
+        sigma: the Gaussian's standard deviation in frames (0: the keypoints unchanged).
+
+    Returns:
+        the smoothed keypoints, in the order of ``fits``: the mean of the subject's fits
+        within 3 sigma, weighted by :math:`e^{-\Delta t^2 / 2\sigma^2} / \text{loss}^2`.
+    """
+    if sigma <= 0:
+        return [np.asarray(kp) for _, _, kp, _ in fits]
+    tracks: dict[int, list[int]] = defaultdict(list)
+    for i, (_, sid, _, _) in enumerate(fits):
+        tracks[sid].append(i)
+    out: list[np.ndarray] = [np.empty(0)] * len(fits)
+    for rows in tracks.values():
+        t = np.array([fits[i][0] for i in rows], np.float64)
+        kp = np.stack([np.asarray(fits[i][2], np.float64) for i in rows])
+        quality = 1.0 / np.maximum([fits[i][3] for i in rows], 1e-6) ** 2
+        for j, i in enumerate(rows):
+            d = t - t[j]
+            w = np.exp(-0.5 * (d / sigma) ** 2) * quality * (np.abs(d) <= 3 * sigma)
+            out[i] = np.tensordot(w / w.sum(), kp, 1)
+    return out
+
+
+def _decode(a: dict) -> np.ndarray:
+    """A row's mask, (H, W) bool."""
+    return mask_utils.decode(a["segmentation"]).astype(bool)
+
+
+def _others(a: dict, in_image: dict[int, list[dict]]) -> np.ndarray:
+    """The union of the other subjects' masks in row ``a``'s camera-frame, (H, W) bool."""
+    out = np.zeros(_decode(a).shape, bool)
+    for b in in_image[int(a["image_id"])]:
+        if b["subject_id"] != a["subject_id"]:
+            m = _decode(b)
+            if m.shape == out.shape:
+                out |= m
+    return out
 
 
 def _views_of_one_size(anns: list[dict], images: dict[int, dict]) -> list[dict]:

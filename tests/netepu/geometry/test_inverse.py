@@ -8,16 +8,21 @@ import numpy as np
 import torch
 
 from netepu.geometry.inverse import (
+    InverseResult,
     InverseSettings,
     invert_silhouettes,
     rotate_about_up,
     triangulate_centroids,
 )
+from netepu.geometry.losses import occlusion_aware_silhouette_loss
 from netepu.geometry.maps import MapSettings, render_maps
+from netepu.geometry.model import load_geometry_model
+from netepu.pipeline.species_models import MODELS
+from netepu.pipeline.subject_keypoints import template_poses
 from nsd.evaluation.maps import silhouette_iou
 from nsd.evaluation.pose import mpjpe
 from tests.base import BaseTester
-from tests.netepu_world import toy_pose, trained_toy
+from tests.netepu_world import ring, toy_pose, trained_toy
 
 
 class TestHelpers(BaseTester):
@@ -113,3 +118,123 @@ def test_recovery_does_not_depend_on_the_scale_of_codes():
         model.encoder, model.decoder = encoder, decoder
     assert small.z.abs().max() < 0.1 * plain.z.abs().max()  # the codes really are smaller
     assert mpjpe(small.keypoints, plain.keypoints) < 0.02
+
+
+def test_occlusion_aware_loss_ignores_covered_points():
+    """Hand-built: logits at ignored points do not change the loss, others do; nothing
+    ignored is the plain mean BCE."""
+    g = torch.Generator().manual_seed(0)
+    logit = torch.randn(3, 10, generator=g, dtype=torch.float64)
+    label = (torch.rand(3, 10, generator=g) > 0.5).double()
+    ignored = torch.zeros(3, 10, dtype=torch.bool)
+    plain = torch.nn.functional.binary_cross_entropy_with_logits(logit, label,
+                                                                 reduction="none").mean(1)
+    torch.testing.assert_close(occlusion_aware_silhouette_loss(logit, label, ignored), plain)
+    ignored[0, :4] = True
+    base = occlusion_aware_silhouette_loss(logit, label, ignored)
+    moved = logit.clone()
+    moved[0, :4] += 5.0  # render the subject where another one covers the image
+    torch.testing.assert_close(occlusion_aware_silhouette_loss(moved, label, ignored), base)
+    moved[0, 5] += 5.0  # and where the background is seen: that counts
+    assert occlusion_aware_silhouette_loss(moved, label, ignored)[0] != base[0]
+    by_hand = torch.nn.functional.binary_cross_entropy_with_logits(logit[0, 4:], label[0, 4:])
+    torch.testing.assert_close(base[0], by_hand)
+    ignored[1] = True  # a row with every point ignored
+    assert occlusion_aware_silhouette_loss(logit, label, ignored)[1] == 0
+
+
+def _own_renders(model, keypoints, cam, size):
+    with torch.no_grad():
+        code = model.encode(keypoints[None])
+        return render_maps(model.query, model.prepare(code, cam), size,
+                           MapSettings.defaults()).silhouette, code
+
+
+def test_occluders_keep_a_partly_hidden_subject_whole():
+    """A band of another subject hides the middle half of the silhouette in every view: with
+    the band as an occluder the recovered pose is the true one (its render fills the hidden
+    part); without, the fit is pulled towards the visible part (more than twice the error)."""
+    model, data, _ = trained_toy()
+    views = data.evaluation["train"]
+    truth, sel = views.keypoints[0], [0, 2, 4]
+    cam = views.camera[sel]
+    whole, code = _own_renders(model, truth, cam, views.size)
+    band = torch.zeros_like(whole)
+    for v in range(3):
+        cols = torch.nonzero(whole[v].any(0))[:, 0]
+        lo, hi = int(cols.min()), int(cols.max())
+        band[v, :, lo + (hi - lo) // 4: lo + 3 * (hi - lo) // 4 + 1] = True
+    visible = whole & ~band
+    template = torch.from_numpy(toy_pose(np.random.default_rng(7))).float()[None]
+    s = InverseSettings(steps=80, points_per_view=256, headings=4)
+    aware = invert_silhouettes(model, visible, cam, template, s, occluders=band)
+    blind = invert_silhouettes(model, visible, cam, template, s)
+
+    def coverage(res):
+        with torch.no_grad():
+            r = render_maps(model.query, model.prepare(model.decode(res.z[None], res.centre[None]),
+                                                       cam), views.size,
+                            MapSettings.defaults()).silhouette
+        return float((r & whole & band).sum() / (whole & band).sum())
+
+    error_aware = mpjpe(aware.keypoints, code.keypoints[0])
+    error_blind = mpjpe(blind.keypoints, code.keypoints[0])
+    assert error_aware < 0.5 * error_blind and error_aware < 0.02, (error_aware, error_blind)
+    assert coverage(aware) > coverage(blind) and coverage(aware) > 0.95
+
+
+def test_warm_starts_converge_in_fewer_steps_on_a_smooth_sequence():
+    """The shipped biped model, a pose moving smoothly (5 cm and 0.1 rad a frame) seen by 4
+    cameras: started from the previous frame's fit, 20 steps of one start render the new
+    frame as well as 60 steps of the cold multi-start (4 starts), far better than 20 cold
+    steps."""
+    model, config = load_geometry_model(MODELS / "biped.pt")
+    net = config["netepu"]
+    starts = template_poses(net["data"], 1)
+    cam = ring(4, size=(128, 128), radius=5.0, f=120.0).stacked(torch.float32)
+    pose0 = template_poses(net["data"], 1, seed=5)[0]
+    centre, up = pose0.mean(0), torch.tensor([0.0, 0.0, 1.0])
+    render = MapSettings.from_config(net["render"])
+
+    def silhouettes(z, c):
+        with torch.no_grad():
+            return render_maps(model.query, model.prepare(model.decode(z, c), cam), (128, 128),
+                               render).silhouette
+
+    def frame(f):
+        pose = rotate_about_up(pose0 - centre, 0.1 * f, up) + centre + torch.tensor(
+            [0.05 * f, 0.0, 0.0])
+        with torch.no_grad():
+            code = model.encode(pose[None])
+        return silhouettes(code.z, code.centre)
+
+    def fit(own, steps, warm=None):
+        s = InverseSettings(steps=steps, points_per_view=192, prune_every=25 if steps > 25 else 0,
+                            warm_steps=steps, warm_tolerance=1e9)
+        res = invert_silhouettes(model, own, cam, starts, s, np.random.default_rng(1), warm=warm)
+        return res, silhouette_iou(silhouettes(res.z[None], res.centre[None]), own).mean().item()
+
+    previous, _ = fit(frame(0), 120)
+    own = frame(1)
+    (_, cold_60), (_, cold_20), (warm, warm_20) = fit(own, 60), fit(own, 20), fit(
+        own, 20, previous)
+    assert warm.warm and warm.start_steps == 20
+    assert warm_20 > cold_60 - 0.01 and warm_20 > cold_20 + 0.1, (warm_20, cold_60, cold_20)
+
+
+def test_a_bad_warm_start_falls_back_to_the_cold_starts():
+    """A warm start from an unrelated fit that ends far above the earlier loss triggers the
+    cold multi-start, whose result is kept."""
+    model, data, _ = trained_toy()
+    views = data.evaluation["train"]
+    truth, sel = views.keypoints[0], [0, 2, 4]
+    cam = views.camera[sel]
+    own, code = _own_renders(model, truth, cam, views.size)
+    template = torch.from_numpy(toy_pose(np.random.default_rng(7))).float()[None]
+    s = InverseSettings(steps=60, points_per_view=256, headings=4, warm_steps=2)
+    good = invert_silhouettes(model, own, cam, template, s)
+    wrong = InverseResult(good.keypoints, -good.z, good.centre + 0.5, 1e-4, good.start_losses,
+                          good.anchor, good.history)  # a wrong code that claimed a tiny loss
+    res = invert_silhouettes(model, own, cam, template, s, warm=wrong)
+    assert not res.warm and res.start_steps > 2
+    assert mpjpe(res.keypoints, code.keypoints[0]) < 0.05

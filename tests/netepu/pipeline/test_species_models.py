@@ -82,3 +82,15 @@ def test_the_shipped_models_are_what_the_manifest_says():
         assert config["netepu"]["data"]["species"] == species
         for k, v in geo.state_dict().items():
             assert np.array_equal(v.numpy(), geo2.state_dict()[k].numpy())
+
+
+def test_explicit_checkpoints_need_no_species(tmp_path, monkeypatch):
+    """Paths (or null) for both models: the scene's species is never read, so a scene of two
+    species (or none) runs with the user's own checkpoints."""
+    import netepu.pipeline.species_models as sm
+
+    scene = write_scene(tiny_config(species=["biped", "quadruped"]), tmp_path / "scene")
+    monkeypatch.setattr(sm, "scene_species", lambda s: pytest.fail("the species was read"))
+    m = resolve_species_models("auto", "my/geometry.pt", None, scene, _folder(tmp_path / "m"))
+    assert m.geometry == "my/geometry.pt" and m.texture is None and m.why_geometry == ""
+    assert m.key_geometry == "my/geometry.pt"

@@ -1,0 +1,194 @@
+"""Label-free keypoints from the pipeline's masks: occluders, warm starts, smoothing, speed.
+
+    .venv/bin/python tools/bench_keypoints.py --run RUN [--work DIR] [--frame-step 10]
+
+``RUN`` is an ``nsd-run`` folder of a synthetic scene (its ``export/`` and the scene named in
+its ``pipeline.json``); the shipped geometry model of the scene's species inverts every
+``frame-step``-th exported frame (:func:`netepu.pipeline.subject_keypoints.invert_export`),
+one variant per fresh process with one torch thread, two at a time on two cores
+(``taskset``). The rows:
+
+* the pipeline's masks with each setting (occluders off/on, warm starts, fewer loss points,
+  earlier pruning of the starts);
+* the same subjects with the ground truth's visible masks and amodal masks instead of the
+  exported ones (the floor that the masks, 4 cameras and the model leave);
+* temporal smoothing of the occlusion-aware fits (``smooth_frames``), applied afterwards.
+
+MPJPE (mm) against the scene's 3D keypoints (:func:`nsd.evaluation.pose.keypoint_error`),
+its percentiles over subject-frames, and seconds per subject-frame. Writes
+``docs/benchmarks/keypoints.{md,json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tools.benchlib import write_report  # noqa: E402
+
+CHILD = r"""
+import json, sys, time
+import torch
+torch.set_num_threads(1)
+from netepu.pipeline.species_models import MODELS
+from netepu.pipeline.subject_keypoints import invert_export
+a = json.loads(sys.argv[1])
+t = time.perf_counter()
+s = invert_export(a["export"], a["scene"], MODELS / a["model"], a["out"], **a["kw"])
+s["seconds"] = time.perf_counter() - t
+print(json.dumps(s))
+"""
+
+VARIANTS = [  # (name, masks, invert_export settings)
+    ("baseline: cold starts, no occluders", "export", {"occlusion": False}),
+    ("occluders (the default)", "export", {}),
+    ("occluders + warm starts (40 steps)", "export", {"warm_steps": 40}),
+    ("warm starts (40 steps), no occluders", "export", {"occlusion": False, "warm_steps": 40}),
+    ("occluders, 192 points per view", "export", {"inverse": {"points_per_view": 192}}),
+    ("occluders, prune every 10 steps", "export", {"inverse": {"prune_every": 10}}),
+    ("ground-truth visible masks + occluders", "visible", {}),
+    ("ground-truth amodal masks", "amodal", {"occlusion": False}),
+]
+SMOOTHING = (5.0, 10.0, 20.0)
+
+
+def truth_export(export: Path, scene: str, out: Path, kind: str) -> None:
+    """A copy of ``export`` whose matched rows carry the ground truth's visible or amodal mask
+    of their individual (unmatched rows dropped)."""
+    from pycocotools import mask as mask_utils
+
+    from nsd.evaluation.identity import ground_truth_identities
+    from nsd.io.ground_truth import GroundTruth
+
+    out.mkdir(parents=True, exist_ok=True)
+    coco = json.loads((export / "subjects.coco.json").read_text())
+    matched = ground_truth_identities(export, scene)
+    gt = GroundTruth.load(scene)
+    kept = []
+    for a in coco["annotations"]:
+        if a["id"] not in matched:
+            continue
+        cam, t, _sid, ident = matched[a["id"]]
+        g = gt.frame(cam, t)
+        mask = (g.visible if kind == "visible" else g.amodal)[list(g.identity).index(ident)]
+        rle = mask_utils.encode(np.asfortranarray(mask.astype(np.uint8)))
+        a["segmentation"] = {"size": rle["size"], "counts": rle["counts"].decode()}
+        a["area"] = float(mask.sum())
+        kept.append(a)
+    coco["annotations"] = kept
+    (out / "subjects.coco.json").write_text(json.dumps(coco))
+
+
+def errors(export: Path, scene: str, keypoints: Path) -> dict[str, float]:
+    """MPJPE summary and its percentiles over subject-frames."""
+    from collections import Counter, defaultdict
+
+    from nsd.evaluation.identity import ground_truth_identities
+    from nsd.evaluation.pose import keypoint_error
+    from nsd.io.ground_truth import GroundTruth
+
+    out = keypoint_error(export, scene, keypoints)
+    truth = GroundTruth.load(scene).scene.keypoints3d
+    votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
+    for _c, t, sid, ident in ground_truth_identities(export, scene).values():
+        votes[(t, sid)][ident] += 1
+    e = []
+    with np.load(keypoints) as z:
+        for t, sid, kp in zip(z["subject_frame"], z["subject_id"], z["subject_keypoints"],
+                              strict=True):
+            v = votes.get((int(t), int(sid)))
+            if v:
+                gt = truth[v.most_common(1)[0][0]][int(t)]
+                e.append(1000 * float(np.linalg.norm(kp - gt, axis=-1).mean()))
+    p25, p75, p90 = np.percentile(e, [25, 75, 90]) if e else (np.nan,) * 3
+    return {"mpjpe_mm": out["mpjpe_mm"], "median_mm": out["mpjpe_mm_median"],
+            "p25_mm": float(p25), "p75_mm": float(p75), "p90_mm": float(p90),
+            "scored": out["scored"]}
+
+
+def smoothed(keypoints: Path, out: Path, sigma: float) -> Path:
+    """``keypoints3d.npz`` with its subject keypoints smoothed over time (sigma in frames)."""
+    from netepu.pipeline.subject_keypoints import smooth_tracks
+
+    with np.load(keypoints) as z:
+        d = dict(z)
+    fits = list(zip(d["subject_frame"].tolist(), d["subject_id"].tolist(),
+                    d["subject_keypoints"], d["subject_loss"].tolist(), strict=True))
+    d["subject_keypoints"] = np.stack(smooth_tracks(fits, sigma)).astype(np.float32)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, **d)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", type=Path, required=True, help="an nsd-run folder (synthetic scene)")
+    ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: temporary)")
+    ap.add_argument("--frame-step", type=int, default=10)
+    args = ap.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench-keypoints-"))
+    pipeline = json.loads((args.run / "pipeline.json").read_text())
+    scene = pipeline["scene"]["summary"]["path"]
+    species = json.loads((Path(scene) / "gt" / "scene.json").read_text())["individuals"][0][
+        "species"]
+    exports = {"export": args.run / "export"}
+    for kind in ("visible", "amodal"):
+        exports[kind] = work / f"truth_{kind}"
+        truth_export(exports["export"], scene, exports[kind], kind)
+    cores = sorted(os.sched_getaffinity(0))
+    jobs, rows = [], []
+    for i, (name, masks, kw) in enumerate(VARIANTS):
+        out = work / f"variant{i}"
+        arg = {"export": str(exports[masks]), "scene": scene, "model": f"{species}.pt",
+               "out": str(out), "kw": {"frame_step": args.frame_step, **kw}}
+        env = dict(os.environ, OMP_NUM_THREADS="1")
+        cpu = str(cores[len(jobs) % len(cores)])
+        jobs.append((name, masks, out, subprocess.Popen(
+            ["taskset", "-c", cpu, sys.executable, "-c", CHILD, json.dumps(arg)],
+            stdout=subprocess.PIPE, text=True, cwd=ROOT, env=env)))
+        if len([j for j in jobs if j[3].returncode is None]) >= len(cores) or i == len(
+                VARIANTS) - 1:
+            for name_, masks_, out_, proc in jobs:
+                if proc.returncode is None:
+                    text, _ = proc.communicate()
+                    if proc.returncode:
+                        raise SystemExit(f"{name_}: the inversion failed")
+                    s = json.loads(text.strip().splitlines()[-1])
+                    rows.append({"variant": name_, **errors(exports[masks_], scene,
+                                                            out_ / "keypoints3d.npz"),
+                                 "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
+                                 "warm_share": s.get("warm_share"),
+                                 "mean_loss": s["mean_loss"]})
+                    print(rows[-1], flush=True)
+    occ = next(j[2] for j in jobs if j[0] == "occluders (the default)")
+    for sigma in SMOOTHING:
+        path = smoothed(occ / "keypoints3d.npz", work / f"smooth{sigma:g}" / "keypoints3d.npz",
+                        sigma)
+        rows.append({"variant": f"occluders, smoothed (sigma {sigma:g} frames)",
+                     **errors(exports["export"], scene, path)})
+    write_report(
+        "keypoints", "Label-free keypoints from the pipeline's masks", rows,
+        notes=(f"Run `{args.run.name}` (scene `{Path(scene).name}`, {species}), every "
+               f"{args.frame_step}th exported frame, every subject seen in >= 2 cameras, the "
+               "shipped geometry model; one process per row, one torch thread (two rows at a "
+               "time on the two cores, so seconds are comparable across rows, not with a "
+               "machine at rest). MPJPE in mm against the scene's 3D keypoints; percentiles "
+               "over subject-frames. Ground-truth rows: the same rows' masks replaced by the "
+               "ground truth's visible (or amodal) masks of their matched individual, the "
+               "floor the masks leave. Smoothing rows: the occlusion-aware fits smoothed "
+               "afterwards (netepu.keypoints.smooth_frames)."),
+    )
+
+
+if __name__ == "__main__":
+    main()
