@@ -91,29 +91,13 @@ def truth_export(export: Path, scene: str, out: Path, kind: str) -> None:
 
 def errors(export: Path, scene: str, keypoints: Path) -> dict[str, float]:
     """MPJPE summary and its percentiles over subject-frames."""
-    from collections import Counter, defaultdict
+    from nsd.evaluation.pose import subject_frame_errors
 
-    from nsd.evaluation.identity import ground_truth_identities
-    from nsd.evaluation.pose import keypoint_error
-    from nsd.io.ground_truth import GroundTruth
-
-    out = keypoint_error(export, scene, keypoints)
-    truth = GroundTruth.load(scene).scene.keypoints3d
-    votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
-    for _c, t, sid, ident in ground_truth_identities(export, scene).values():
-        votes[(t, sid)][ident] += 1
-    e = []
-    with np.load(keypoints) as z:
-        for t, sid, kp in zip(z["subject_frame"], z["subject_id"], z["subject_keypoints"],
-                              strict=True):
-            v = votes.get((int(t), int(sid)))
-            if v:
-                gt = truth[v.most_common(1)[0][0]][int(t)]
-                e.append(1000 * float(np.linalg.norm(kp - gt, axis=-1).mean()))
-    p25, p75, p90 = np.percentile(e, [25, 75, 90]) if e else (np.nan,) * 3
-    return {"mpjpe_mm": out["mpjpe_mm"], "median_mm": out["mpjpe_mm_median"],
-            "p25_mm": float(p25), "p75_mm": float(p75), "p90_mm": float(p90),
-            "scored": out["scored"]}
+    _, e = subject_frame_errors(export, scene, keypoints)
+    mean, median, p25, p75, p90 = ((np.mean(e), *np.percentile(e, [50, 25, 75, 90])) if e
+                                   else (np.nan,) * 5)
+    return {"mpjpe_mm": float(mean), "median_mm": float(median), "p25_mm": float(p25),
+            "p75_mm": float(p75), "p90_mm": float(p90), "scored": float(len(e))}
 
 
 def smoothed(keypoints: Path, out: Path, sigma: float) -> Path:
@@ -146,31 +130,29 @@ def main() -> None:
         exports[kind] = work / f"truth_{kind}"
         truth_export(exports["export"], scene, exports[kind], kind)
     cores = sorted(os.sched_getaffinity(0))
-    jobs, rows = [], []
-    for i, (name, masks, kw) in enumerate(VARIANTS):
-        out = work / f"variant{i}"
-        arg = {"export": str(exports[masks]), "scene": scene, "model": f"{species}.pt",
-               "out": str(out), "kw": {"frame_step": args.frame_step, **kw}}
-        env = dict(os.environ, OMP_NUM_THREADS="1")
-        cpu = str(cores[len(jobs) % len(cores)])
-        jobs.append((name, masks, out, subprocess.Popen(
-            ["taskset", "-c", cpu, sys.executable, "-c", CHILD, json.dumps(arg)],
-            stdout=subprocess.PIPE, text=True, cwd=ROOT, env=env)))
-        if len([j for j in jobs if j[3].returncode is None]) >= len(cores) or i == len(
-                VARIANTS) - 1:
-            for name_, masks_, out_, proc in jobs:
-                if proc.returncode is None:
-                    text, _ = proc.communicate()
-                    if proc.returncode:
-                        raise SystemExit(f"{name_}: the inversion failed")
-                    s = json.loads(text.strip().splitlines()[-1])
-                    rows.append({"variant": name_, **errors(exports[masks_], scene,
-                                                            out_ / "keypoints3d.npz"),
-                                 "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
-                                 "warm_share": s.get("warm_share"),
-                                 "mean_loss": s["mean_loss"]})
-                    print(rows[-1], flush=True)
-    occ = next(j[2] for j in jobs if j[0] == "occluders (the default)")
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    rows, outs = [], {}
+    for first in range(0, len(VARIANTS), len(cores)):  # one variant per core at a time
+        batch = []
+        for cpu, (name, masks, kw) in zip(cores, VARIANTS[first:first + len(cores)],
+                                          strict=False):  # the last batch may be short
+            outs[name] = work / f"variant{len(outs)}"
+            arg = {"export": str(exports[masks]), "scene": scene, "model": f"{species}.pt",
+                   "out": str(outs[name]), "kw": {"frame_step": args.frame_step, **kw}}
+            batch.append((name, masks, subprocess.Popen(
+                ["taskset", "-c", str(cpu), sys.executable, "-c", CHILD, json.dumps(arg)],
+                stdout=subprocess.PIPE, text=True, cwd=ROOT, env=env)))
+        for name, masks, proc in batch:
+            text, _ = proc.communicate()
+            if proc.returncode:
+                raise SystemExit(f"{name}: the inversion failed")
+            s = json.loads(text.strip().splitlines()[-1])
+            rows.append({"variant": name,
+                         **errors(exports[masks], scene, outs[name] / "keypoints3d.npz"),
+                         "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
+                         "warm_share": s.get("warm_share"), "mean_loss": s["mean_loss"]})
+            print(rows[-1], flush=True)
+    occ = outs["occluders (the default)"]
     for sigma in SMOOTHING:
         path = smoothed(occ / "keypoints3d.npz", work / f"smooth{sigma:g}" / "keypoints3d.npz",
                         sigma)

@@ -39,7 +39,7 @@ import torch
 from pycocotools import mask as mask_utils
 
 from netepu.geometry.data import DataConfig
-from netepu.geometry.inverse import InverseSettings, invert_silhouettes
+from netepu.geometry.inverse import InverseResult, InverseSettings, invert_silhouettes
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import load_geometry_model
 from nsd.cameras.calibration_io import read_calibration
@@ -131,7 +131,7 @@ def invert_export(
     for _, anns in groups:
         for a in anns:
             in_image[int(a["image_id"])].append(a)
-    previous: dict[int, Any] = {}  # subject -> its last fit
+    previous: dict[int, InverseResult] = {}  # subject -> its last fit
     fits: list[tuple[int, int, list[dict], np.ndarray, float]] = []
     warm_fits, start = 0, time.perf_counter()
     for (t, sid), anns in groups:
@@ -199,14 +199,13 @@ def _decode(a: dict) -> np.ndarray:
 
 
 def _others(a: dict, in_image: dict[int, list[dict]]) -> np.ndarray:
-    """The union of the other subjects' masks in row ``a``'s camera-frame, (H, W) bool."""
-    out = np.zeros(_decode(a).shape, bool)
-    for b in in_image[int(a["image_id"])]:
-        if b["subject_id"] != a["subject_id"]:
-            m = _decode(b)
-            if m.shape == out.shape:
-                out |= m
-    return out
+    """The union of the other subjects' masks in row ``a``'s camera-frame, (H, W) bool
+    (merged as run-length encodings, decoded once)."""
+    others = [b["segmentation"] for b in in_image[int(a["image_id"])]
+              if b["subject_id"] != a["subject_id"]]
+    if not others:
+        return np.zeros(tuple(a["segmentation"]["size"]), bool)
+    return mask_utils.decode(mask_utils.merge(others)).astype(bool)
 
 
 def _views_of_one_size(anns: list[dict], images: dict[int, dict]) -> list[dict]:

@@ -15,7 +15,7 @@ from nsd.core.errors import ConfigError
 from nsd.evaluation.identity import ground_truth_identities
 from nsd.io.ground_truth import GroundTruth
 
-__all__ = ["keypoint_error", "mpjpe"]
+__all__ = ["keypoint_error", "mpjpe", "subject_frame_errors"]
 
 
 def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
@@ -23,15 +23,12 @@ def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).double().norm(dim=-1).mean()
 
 
-def keypoint_error(
+def subject_frame_errors(
     export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
-) -> dict[str, float]:
-    """MPJPE (mm) of the inverted subjects against a synthetic scene's 3D keypoints.
-
-    Each inverted subject-frame is matched to the ground-truth individual most of its
-    rows match (:func:`nsd.evaluation.identity.ground_truth_identities`); unmatched ones are
-    counted but not scored.
-    """
+) -> tuple[int, list[float]]:
+    """``(subject-frames in the file, MPJPE in mm of each one matched)``: each inverted
+    subject-frame is matched to the ground-truth individual most of its rows match
+    (:func:`nsd.evaluation.identity.ground_truth_identities`); unmatched ones are left out."""
 
     truth = GroundTruth.load(scene).scene.keypoints3d
     matched = ground_truth_identities(export, scene)
@@ -49,8 +46,19 @@ def keypoint_error(
         if gt.shape != kp.shape:
             raise ConfigError(f"keypoints: {kp.shape[0]} keypoints, the scene has {gt.shape[0]}")
         errors.append(1000 * float(np.linalg.norm(kp - gt, axis=-1).mean()))
+    return len(frames), errors
+
+
+def keypoint_error(
+    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
+) -> dict[str, float]:
+    """MPJPE (mm) of the inverted subjects against a synthetic scene's 3D keypoints, mean and
+    median over the matched subject-frames (:func:`subject_frame_errors`); unmatched ones
+    are counted but not scored."""
+
+    inverted, errors = subject_frame_errors(export, scene, keypoints)
     return {
-        "inverted": float(len(frames)),
+        "inverted": float(inverted),
         "scored": float(len(errors)),
         "mpjpe_mm": float(np.mean(errors)) if errors else float("nan"),
         "mpjpe_mm_median": float(np.median(errors)) if errors else float("nan"),
