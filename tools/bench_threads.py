@@ -1,13 +1,19 @@
-"""Speed against torch's CPU threads: a training step and a frame of inference, 1 .. N threads.
+"""Speed against torch's CPU threads: training steps, whole exports and one frame of inference.
 
-    .venv/bin/python tools/bench_threads.py        # ~3 minutes, nothing else running
+    .venv/bin/python tools/bench_threads.py        # ~4 minutes, nothing else running
 
 Each row runs in a fresh process (``threads`` as a command's ``threads=`` sets them) with
 its CPU affinity cut to that many cores (``taskset`` as a scheduler would), on the default
-scene: the median time of a default training step (batch 16 view pairs, 128 x 128) and of
-a multi-view decomposition of one frame (4 views; what nsd-eval and nsd-export do per
-frame). The toolkit loads frames in the main process (no data-loader workers), so the
-intra-op threads are the only ones that compete for the cores.
+scene:
+
+* ``train_step_ms``: the median time of a default training step (``batch_size`` view pairs,
+  128 x 128); ``train_step_ms_kornia_ssim`` the same with the structural loss computed by
+  ``kornia.metrics.ssim`` (depthwise convolutions: the baseline before
+  :mod:`nsd.ops.ssim`);
+* ``export_frames_per_s``: a whole ``nsd-export`` of the 300 frames (decoding, model, files;
+  median of 3), from a 20-step checkpoint;
+* ``frame_ms``: one multi-view decomposition of one frame (4 views) alone;
+* ``gemm_gflops``: a 2048 x 2048 matrix product, what more threads can give.
 
 Writes ``docs/benchmarks/threads.{md,json}``.
 """
@@ -18,6 +24,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,63 +33,107 @@ sys.path.insert(0, str(ROOT))
 from tools.benchlib import write_report  # noqa: E402
 
 CHILD = r"""
-import json, sys
-import numpy as np, torch
+import json, sys, time
+from pathlib import Path
+import kornia, numpy as np, torch
 from hydra import compose, initialize_config_module
+import nsd.training.losses
 from nsd.core.threads import set_threads
+from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.io.scene_data import SceneData
 from nsd.io.scenes import resolve_scene
 from nsd.training.task import NSDTask
 from tools.benchlib import median_time
 
-n = set_threads(int(sys.argv[1]))
+n, checkpoint, out = set_threads(int(sys.argv[1])), sys.argv[2], Path(sys.argv[3])
 with initialize_config_module("nsd.conf", version_base="1.3"):
     cfg = compose("train", ["data.max_frames=40"])
+    ecfg = compose("export", [f"checkpoint={checkpoint}", "views.tsne=false",
+                              "views.tensorboard=false", "progress=false", f"threads={n}"])
 d = cfg.data
 data = SceneData(resolve_scene(d.scene), d.image_size, d.cameras, d.val_fraction, d.max_frames)
-torch.manual_seed(0)
-task = NSDTask(cfg, data)
-rng = np.random.default_rng(0)
+result = {"threads": n}
 
-def step():
-    task.opt.zero_grad(set_to_none=True)
-    task.training_step(10**6, rng)["loss"].backward()
-    task.opt.step()
+def train_ms():
+    torch.manual_seed(0)
+    task = NSDTask(cfg, data)
+    rng = np.random.default_rng(0)
+    step_no = iter(range(10**6))
+    def step():
+        task.opt.zero_grad(set_to_none=True)
+        task.training_step(next(step_no), rng)["loss"].backward()
+        task.opt.step()
+    return 1000 * median_time(step, repeats=30, warmup=5), task
+
+result["train_step_ms"], task = train_ms()
+own = nsd.training.losses.ssim_map
+nsd.training.losses.ssim_map = kornia.metrics.ssim
+result["train_step_ms_kornia_ssim"], _ = train_ms()
+nsd.training.losses.ssim_map = own
+
+def export_rate():
+    times = []
+    for i in range(3):
+        ecfg.out = str(out / f"export{i}")
+        t0 = time.perf_counter()
+        s = export_subjects(ecfg)
+        times.append(time.perf_counter() - t0)
+    return s.frames / sorted(times)[1]
+
+result["export_frames_per_s"] = export_rate()
 
 st = InferenceSettings.defaults()
 grid = st.grid(data.rig, data.frame_hw)
 views, bgs = data.views(30)
 frame = lambda: decompose_views(task.model, views, bgs, data.num_views, st, grid)
+result["frame_ms"] = 1000 * median_time(frame, repeats=24, warmup=4)
 a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
-gemm = median_time(lambda: torch.mm(a, b), repeats=5, warmup=1)
-print(json.dumps({"threads": n, "train_step_ms": 1000 * median_time(step, repeats=8, warmup=2),
-                  "frame_ms": 1000 * median_time(frame, repeats=8, warmup=2),
-                  "gemm_gflops": 2 * 2048**3 / gemm / 1e9}))
+result["gemm_gflops"] = 2 * 2048**3 / median_time(lambda: torch.mm(a, b), repeats=5, warmup=1) / 1e9
+print(json.dumps(result))
 """
+
+SPEED = {  # column -> True when larger is faster
+    "train_step_ms": False, "train_step_ms_kornia_ssim": False, "export_frames_per_s": True,
+"frame_ms": False, "gemm_gflops": True,
+}
 
 
 def main() -> None:
-    cores = len(os.sched_getaffinity(0))
+    cores = sorted(os.sched_getaffinity(0))
     rows = []
-    for n in range(1, cores + 1):
-        cpus = ",".join(str(c) for c in sorted(os.sched_getaffinity(0))[:n])
-        out = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD, str(n)],
-                             capture_output=True, text=True, check=True, cwd=ROOT)
-        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
-        print(rows[-1], flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Path(tmp) / "run"
+        subprocess.run([str(Path(sys.executable).parent / "nsd-train"), "trainer.max_steps=20",
+                        f"hydra.run.dir={run}"], check=True, capture_output=True, cwd=ROOT)
+        for n in range(1, len(cores) + 1):
+            cpus = ",".join(str(c) for c in cores[:n])
+            out = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD, str(n),
+                                  str(run / "checkpoint.pt"), tmp],
+                                 capture_output=True, text=True, check=True, cwd=ROOT)
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            print(rows[-1], flush=True)
+    first = rows[0]
     for r in rows:
-        r["train_speed_up"] = rows[0]["train_step_ms"] / r["train_step_ms"]
-        r["frame_speed_up"] = rows[0]["frame_ms"] / r["frame_ms"]
-        r["gemm_speed_up"] = r["gemm_gflops"] / rows[0]["gemm_gflops"]
+        for k, larger in SPEED.items():
+            r[f"{k}_speed_up"] = r[k] / first[k] if larger else first[k] / r[k]
+    last = rows[-1]
     write_report(
         "threads", "Speed against CPU threads", rows,
-        notes=("Each row a fresh process with that many threads on that many cores (taskset); "
-               "medians of 8 runs after 2 warm-ups; default training step (16 view pairs, "
-               "128 x 128) and one frame of multi-view inference (4 views) on the default "
-               "scene; gemm: a 2048 x 2048 fp32 matrix product, what more threads can give. "
-               "`threads: 0` (every command's default) uses every core the process may run "
-               "on; docs/scaling.md has the rule for bigger machines."),
+        extra={
+            "train_ssim_gain_1_thread": first["train_step_ms_kornia_ssim"] / first["train_step_ms"],
+            "train_speed_up_vs_before": first["train_step_ms_kornia_ssim"] / last["train_step_ms"],
+        },
+        notes=("Each row a fresh process with that many threads on that many cores (taskset), "
+               "on the default scene. Training: medians of 30 steps after 5 warm-ups from a "
+               "fresh model (default batch, 128 x 128); `kornia_ssim`: the structural loss by "
+               "kornia's depthwise convolutions instead of nsd/ops/ssim.py's matrix products "
+               "(the baseline). Export: a whole `nsd-export` of the 300 frames from a 20-step "
+               "checkpoint, median of 3. `frame_ms`: one multi-view decomposition of one "
+               "frame alone. gemm: a 2048 x 2048 fp32 matrix product, what more threads can "
+               "give. train_speed_up_vs_before: the last row's new code against the first "
+               "row's baseline. `threads: 0` (every command's default) uses every core the "
+               "process may run on; docs/scaling.md has the rule for bigger machines."),
     )
 
 

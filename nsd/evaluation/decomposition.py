@@ -53,6 +53,7 @@ from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.io.coco_results import decomposition_to_coco
 from nsd.ops.boxes import box_iou_xywh, mask_boxes_xywh, mask_iou, match
+from nsd.ops.ssim import ssim_map
 
 __all__ = [
     "SPLIT_METRICS",
@@ -352,7 +353,7 @@ def _novel_view_scores(model, data, views: Tensor, bgs: Tensor) -> tuple[float, 
         model, model, views, views[w_idx], bgs, bgs[w_idx], data.rotations[torch.arange(V), w_idx]
     )
     psnr = kornia.metrics.psnr(rv.image.clamp(0, 1), views, 1.0).item()
-    ssim = kornia.metrics.ssim(rv.image.clamp(0, 1), views, 7).mean().item()
+    ssim = ssim_map(rv.image.clamp(0, 1), views, 7).mean().item()
     return psnr, ssim
 
 
