@@ -13,6 +13,10 @@ Where the cache folder cannot be written, frames are held in memory as before (s
 
 Indexing returns torch uint8 tensors in the layout the model reads: ``store[t]`` is
 ``(V, 3, H, W)``, ``store[t_idx, v_idx]`` ``(n, 3, H, W)``.
+
+Per-frame results as large as the frames (the visual hull's pixel owners) go to a
+:func:`scratch_array` next to the store: a memory map of an unnamed file that is deleted
+when the process ends, so they do not grow the process's own memory either.
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ import hashlib
 import json
 import logging
 import os
+import tempfile
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,7 +36,7 @@ from torch import Tensor
 from nsd.core.atomic import atomic_write_text
 from nsd.io.footage import MultiViewFootage
 
-__all__ = ["FrameStore"]
+__all__ = ["FrameStore", "scratch_array"]
 
 log = logging.getLogger(__name__)
 
@@ -104,3 +110,20 @@ class FrameStore:
         if not arr.flags.writeable:  # a view of the read-only map (basic indexing): a copy, so
             arr = arr.copy()  # that a caller writing into the tensor cannot touch the file
         return torch.from_numpy(arr).movedim(-1, -3)
+
+
+def scratch_array(folder: Path, shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
+    """A zero-filled writable array of ``shape`` backed by an unnamed file in ``folder``
+    (deleted when the array is gone), or in memory where ``folder`` cannot be written.
+
+    Its pages belong to the file, not to the process's anonymous memory: the operating
+    system writes them out and drops them under pressure.
+    """
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder) as f:  # the map keeps the file open
+            return np.memmap(f, dtype, "w+", shape=shape)
+    except OSError as e:
+        log.warning("%s held in memory (cannot write %s: %s)",
+                    "x".join(map(str, shape)), folder, e)
+        return np.zeros(shape, dtype)

@@ -21,11 +21,12 @@ from torch import Tensor
 from nsd.cameras.calibration import CameraRig
 from nsd.core.device import move
 from nsd.core.errors import ConfigError
+from nsd.core.memory import trim_heap
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import multiview_proposals, voxel_grid
 from nsd.cues.proposals import evidence_proposals
 from nsd.io.footage import MultiViewFootage
-from nsd.io.frame_store import FrameStore
+from nsd.io.frame_store import FrameStore, scratch_array
 from nsd.priors.presence import smoothed_counts
 
 __all__ = ["PairBatch", "SceneData", "split_frames"]
@@ -148,11 +149,16 @@ class SceneData:
         """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
         ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`; ``owners``: also keep
         every pixel's hull individual (``self.owners``, (T, V, H, W) int8, a third of the
-        frames' size: only the mask prior reads it)."""
+        frames' size, on disk next to the frames: only the mask prior reads it)."""
 
         grid = voxel_grid(self.rig, self.frame_hw, resolution)
-        boxes, depths, valid, pixel_owners = [], [], [], []
-        for t in range(len(self.frames)):
+        boxes, depths, valid = [], [], []
+        T, V, _, H, W = self.frames.shape
+        # (T, V, H, W) int8: hull individual, -1 none; on disk, as the frames
+        pixel_owners = torch.from_numpy(
+            scratch_array(self.footage.cache_dir / "frames", (T, V, H, W), np.int8)
+        ) if owners else None
+        for t in range(T):
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness
             )
@@ -160,12 +166,12 @@ class SceneData:
             boxes.append(b)
             depths.append(d)
             valid.append(ok)
-            if owners:
-                pixel_owners.append(own.to(torch.int8))
+            if pixel_owners is not None:
+                pixel_owners[t] = own
         self.proposals, self.proposal_valid = torch.stack(boxes), torch.stack(valid)
         self.proposal_depths = torch.stack(depths)
-        # (T, V, H, W) int8: hull individual, -1 none
-        self.owners = torch.stack(pixel_owners) if owners else None
+        self.owners = pixel_owners
+        trim_heap()  # the hull's temporaries, freed between the kept results
 
     def smooth_counts(self, window: int, scene_population: bool = False) -> None:
         """Individuals in view per frame: the multi-view proposals' count, median over

@@ -87,3 +87,52 @@ def test_streamed_and_in_memory_training_draw_the_same_batches(tiny_scene, tmp_p
     b = in_memory.sample(np.random.default_rng(7), 6)
     for name in ("image_v", "image_w", "background_v", "frame", "view_v", "view_w"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+def _mapped_file(address: int) -> str:
+    """The file behind the mapping holding ``address`` ('' for anonymous memory)."""
+    for line in open("/proc/self/maps"):
+        parts = line.split(maxsplit=5)
+        lo, hi = (int(x, 16) for x in parts[0].split("-"))
+        if lo <= address < hi:
+            return parts[5].strip() if len(parts) > 5 else ""
+    return ""
+
+
+def test_scratch_array_is_a_zeroed_file_map_or_memory(tmp_path, caplog):
+    from nsd.io.frame_store import scratch_array
+
+    a = scratch_array(tmp_path / "frames", (3, 2, 4), np.int8)
+    assert isinstance(a, np.memmap) and a.shape == (3, 2, 4) and not a.any()
+    a[1] = -1
+    assert a.sum() == -8
+    assert list((tmp_path / "frames").iterdir()) == []  # an unnamed file: nothing left behind
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    with caplog.at_level(logging.WARNING):
+        b = scratch_array(blocked / "frames", (2, 2), np.int8)
+    assert not isinstance(b, np.memmap) and b.shape == (2, 2) and "held in memory" in caplog.text
+
+
+def test_hull_owners_live_on_disk_and_equal_the_per_frame_hull(tiny_scene, tmp_path):
+    """SceneData's (T, V, H, W) hull owners sit in a file map (memory flat in frames) and
+    hold what the hull gives frame by frame (the reference), also when held in memory."""
+    from nsd.cues.evidence import foreground_evidence
+    from nsd.cues.occupancy import multiview_proposals, voxel_grid
+    from nsd.io.scene_data import SceneData, to_float
+
+    data = SceneData(tiny_scene, (16, 12), val_fraction=0.0)
+    data.compute_multiview_proposals(2, 0.04, 0.04, resolution=12)
+    assert data.owners.dtype == torch.int8 and "frames" in _mapped_file(data.owners.data_ptr())
+    assert data.owners.shape == (4, 2, 12, 16)
+    grid = voxel_grid(data.rig, data.frame_hw, 12)
+    for t in range(4):
+        ev = foreground_evidence(to_float(data.frames[t]), data.backgrounds, 0.04, 0.04)
+        *_, own = multiview_proposals(ev, grid, 2, split=True)
+        assert torch.equal(data.owners[t], own.to(torch.int8)), t
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    kept = data.owners.clone()
+    data.footage.cache_dir = blocked
+    data.compute_multiview_proposals(2, 0.04, 0.04, resolution=12)
+    assert torch.equal(data.owners, kept)
