@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -76,12 +77,19 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=2400, help="length of the long recording")
     args = ap.parse_args()
     root = Path(tempfile.mkdtemp(prefix="bench-memory-"))
+    try:
+        _measure(root, args.frames)
+    finally:  # the recording and its stores are ~2 GB at 3,000 frames
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _measure(root: Path, frames: int) -> None:
     scene = root / "long"
     subprocess.run([str(Path(sys.executable).parent / "nsd-synth"), f"out={scene}",
-                    f"num_frames={args.frames}", "dense=false"],
+                    f"num_frames={frames}", "dense=false"],
                    check=True, capture_output=True)
     rows = []
-    lengths = sorted({300, args.frames // 4, args.frames // 2, args.frames})
+    lengths = sorted({300, frames // 4, frames // 2, frames})
     for store in ("disk", "memory"):
         for T in lengths:
             out = subprocess.run([sys.executable, "-c", CHILD, str(scene), str(T), store],

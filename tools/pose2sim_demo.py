@@ -114,7 +114,8 @@ def build_scene(out: Path, wheel: Path | None = None, overwrite: bool = False,
         if notes:
             with open(tmp / "source" / "README.txt", "a") as f:
                 f.write("The calibration's image size is the sensor's; the videos are "
-                        "assumed to have lost a codec's padding at the right/bottom edge:\n" + "\n".join(notes) + "\n")
+                        "assumed to have lost a codec's padding at the right/bottom edge:\n"
+                        + "\n".join(notes) + "\n")
         write_toml(rig, tmp / "calibration.toml")
     return out
 
