@@ -30,7 +30,7 @@ Usage::
     nsd-run checkpoint=runs/nsd/<run>/checkpoint.pt  # load a trained decomposition instead
     nsd-run +export.crop.size=96 grids.frames=8  # export.* overrides conf/export.yaml
 
-``<out>/pipeline.json`` records every stage's status, wall time and summary.
+``<out>/pipeline.json`` records every stage's status, wall time, peak memory and summary.
 """
 
 from __future__ import annotations
@@ -151,6 +151,7 @@ def run_pipeline(cfg: DictConfig) -> dict[str, StageResult]:
             if "disabled" in r.summary
             else ("done earlier" if r.skipped else "ran"),
             "seconds": round(r.seconds, 3),
+            "peak_rss_mb": r.peak_rss_mb,
             "summary": r.summary,
         }
         for name, r in runner.results.items()
@@ -167,7 +168,7 @@ def _report(out: Path, results: dict[str, StageResult]) -> str:
             if "disabled" in r.summary
             else "done earlier, reused"
             if r.skipped
-            else f"ran in {r.seconds:.1f} s"
+            else f"ran in {r.seconds:.1f} s, peak memory {r.peak_rss_mb:.0f} MiB"
         )
         lines.append(f"  {name:<10} {status}")
     return "\n".join(lines)

@@ -1,11 +1,14 @@
-"""Process memory: give freed heap back to the operating system during long streaming runs."""
+"""Process memory: give freed heap back to the operating system during long streaming runs,
+and measure the peak resident size of one part of a run (a pipeline stage)."""
 
 from __future__ import annotations
 
 import ctypes
 import functools
+import resource
+from pathlib import Path
 
-__all__ = ["trim_heap"]
+__all__ = ["peak_rss_mb", "reset_peak_rss", "trim_heap"]
 
 
 @functools.cache
@@ -26,3 +29,26 @@ def trim_heap() -> None:
     trim = _malloc_trim()
     if trim is not None:
         trim(0)
+
+
+def reset_peak_rss() -> bool:
+    """Start a new peak resident size (Linux: ``5`` to ``/proc/self/clear_refs`` resets
+    VmHWM to the current size). False where it cannot (then :func:`peak_rss_mb` is the
+    process's peak so far)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> float:
+    """The process's peak resident size in MiB since :func:`reset_peak_rss` (VmHWM), or
+    since it started (``ru_maxrss``) where /proc is not there."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -23,6 +23,7 @@ from typing import Any
 
 import nsd
 from nsd.core.atomic import atomic_directory
+from nsd.core.memory import peak_rss_mb, reset_peak_rss
 
 __all__ = ["Stage", "StageResult", "StageRunner", "config_hash"]
 
@@ -46,6 +47,8 @@ class StageResult:
         seconds: wall time of the run that produced it (0 if it was skipped now).
         skipped: True when an earlier run's result was reused.
         input_hash: hash of the stage's inputs.
+        peak_rss_mb: the process's peak resident memory while the stage ran (MiB; None if
+            it was skipped now).
     """
 
     name: str
@@ -54,6 +57,7 @@ class StageResult:
     seconds: float
     skipped: bool
     input_hash: str
+    peak_rss_mb: float | None = None
 
 
 @dataclass
@@ -121,12 +125,14 @@ class StageRunner:
             return prev
         t0 = time.perf_counter()
         log.info("stage %s: running", stage.name)
+        reset_peak_rss()
         with atomic_directory(self.root / stage.name) as tmp:
             summary = stage.run(tmp, {n: self.results[n] for n in stage.needs})
-            seconds = time.perf_counter() - t0
+            seconds, peak = time.perf_counter() - t0, round(peak_rss_mb(), 1)
             (tmp / MARKER).write_text(json.dumps(
                 {"stage": stage.name, "input_hash": h, "config": stage.config,
-                 "summary": summary, "seconds": seconds}, indent=2, default=str))
-        res = StageResult(stage.name, self.root / stage.name, summary, seconds, False, h)
+                 "summary": summary, "seconds": seconds, "peak_rss_mb": peak},
+                indent=2, default=str))
+        res = StageResult(stage.name, self.root / stage.name, summary, seconds, False, h, peak)
         self.results[stage.name] = res
         return res

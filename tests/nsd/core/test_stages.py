@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from nsd.core.stages import Stage, StageRunner
@@ -64,3 +66,24 @@ def test_disabled_stage_is_recorded(tmp_path):
     r = runner.run(Stage("d", lambda o, u: {}, enabled=False, why_disabled="one subject"))
     assert r.skipped and r.summary == {"disabled": "one subject"}
     assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc")
+def test_each_stage_records_its_own_peak_memory(tmp_path):
+    """A stage that touches 300 MiB peaks that much above a small stage run after it: the
+    peak is reset per stage (not the process's high-water mark so far)."""
+    import json
+
+    import numpy as np
+
+    def big(out, up):
+        a = np.ones(300 * 2**20, np.uint8)  # touched, so resident
+        return {"sum": int(a[::4096].sum())}
+
+    runner = StageRunner(tmp_path)
+    first = runner.run(Stage("big", big))
+    second = runner.run(Stage("small", lambda out, up: {"n": 1}))
+    assert first.peak_rss_mb - second.peak_rss_mb > 250
+    assert json.loads((tmp_path / "big" / "stage.json").read_text())["peak_rss_mb"] == \
+        first.peak_rss_mb
+    assert runner.run(Stage("big", big)).peak_rss_mb is None  # done earlier: nothing measured
