@@ -37,9 +37,13 @@ def main() -> None:
     ap.add_argument("--checkpoint", required=True)
     ap.add_argument("--scene", required=True)
     ap.add_argument("--step", type=int, default=3, help="every this many held-out frames")
+    ap.add_argument("--name", default="native",
+                    help="report name: docs/benchmarks/<name>.{md,json} (native_hd for HD)")
     args = ap.parse_args()
     scene = Path(args.scene)
-    n = json.loads((scene / "gt" / "scene.json").read_text()).get("num_frames", 300)
+    info = json.loads((scene / "gt" / "scene.json").read_text())
+    n = info.get("num_frames", 300)
+    w, h = info.get("image_size", ["?", "?"])
     start = round(n * 0.8)  # the held-out tail (data.val_fraction 0.2)
     frames = f"{{start: {start}, stop: null, step: {args.step}}}"
     root = Path(tempfile.mkdtemp(prefix="bench-native-"))
@@ -65,14 +69,14 @@ def main() -> None:
                      "export_s": seconds})
         print(rows[-1], flush=True)
     write_report(
-        "native", "Visible masks at native resolution", rows,
+        args.name, f"Visible masks at native resolution ({w} x {h})", rows,
         notes=(f"Scene {scene.name}, checkpoint {Path(args.checkpoint).parent.parent.name}; "
                f"every {args.step}th frame of the held-out tail, every camera. mIoU and "
                "boundary F (2 px) at native resolution against the ground-truth visible "
                "masks, each instance matched one-to-one (unmatched: 0; "
                "nsd/evaluation/export_masks.py). export_s: the whole nsd-export run "
-               "(decoding, model, files). The scene: `nsd-synth image_size=[512,512]` (the "
-               "default scene's settings otherwise: 2 bipeds, 4 cameras, 300 frames); the "
+               f"(decoding, model, files). The scene: `nsd-synth image_size=[{w},{h}]` (the "
+               f"default scene's settings otherwise: 2 bipeds, 4 cameras, {n} frames); the "
                "checkpoint: `nsd-run train.trainer.max_steps=1000` on it (training at 128 x "
                "128). `native_refine=auto`, the export's default, redraws the masks at native "
                "resolution whenever the footage is larger than the training frames."),
