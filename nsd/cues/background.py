@@ -13,8 +13,13 @@ Which of the two is the background is decided per region of such pixels by **con
 with its surroundings**: the background continues the background around the region,
 while a subject ends at its silhouette. Each colour of the region is extrapolated a few
 pixels outwards (a normalised convolution over the region) and compared, along the
-region's border, with the background extrapolated inwards from outside; the second colour
-replaces the first where it continues the surroundings clearly better.
+region's border, with the background extrapolated inwards from outside; where the second
+colour continues the surroundings clearly better, the first is a subject's. The region's
+background is then the median of its pixels (and of those within ``BORDER`` of it) over
+the frames in which the subject was away (the frames most of the region's pixels do not
+show their first colour): rather than each pixel's own second colour, which at the
+region's edge, where a swaying subject shows only part of the time and the floor is the
+first colour, would be the subject's.
 
 Reported as uncertain (the scene check and the background report,
 :mod:`nsd.io.background_report`, tell a user per camera, with the advice to give a
@@ -144,7 +149,9 @@ def _two_colours(stack: np.ndarray, median: np.ndarray) -> tuple[np.ndarray, ...
         step: (H, W) bool, the pixels with such a second colour (candidates);
         stay: (H, W) bool, the clear cases that are reported: the stretch starts or ends
             the recording and the other colour holds ``STEP_PURITY`` of the rest;
-        no_majority: (H, W) bool, no colour holds half of the frames.
+        no_majority: (H, W) bool, no colour holds half of the frames;
+        shows_first: (N, H, W) bool, the frames showing each pixel's first colour (all
+            frames where the median is the one colour).
     """
     N = stack.shape[0]
     need = max(2, int(np.ceil(MIN_SECOND_SHARE * N)))
@@ -153,6 +160,7 @@ def _two_colours(stack: np.ndarray, median: np.ndarray) -> tuple[np.ndarray, ...
     stay = np.zeros(median.shape[:2], bool)
     no_majority = np.zeros(median.shape[:2], bool)
     off = np.abs(stack.astype(np.int16) - median.astype(np.int16)).max(-1) > MODE_TOLERANCE
+    shows_first = ~off
     ys, xs = np.nonzero(off.sum(0) >= need)  # elsewhere the median is the one colour
     chunk = max(1, 2_000_000 // (N * N))  # bounds the (N, N, K) neighbour table
     for s in range(0, len(ys), chunk):
@@ -160,6 +168,7 @@ def _two_colours(stack: np.ndarray, median: np.ndarray) -> tuple[np.ndarray, ...
         samples = stack[:, y, x].astype(np.int16)  # (N, K, 3)
         c1, n1, m1 = _densest(samples, np.ones(samples.shape[:2], bool))
         has1 = n1 >= need
+        shows_first[:, y, x] = m1
         first[y[has1], x[has1]] = np.round(c1[has1]).astype(np.uint8)
         no_majority[y, x] = n1 < N / 2
         found, part = _step(m1, need)
@@ -173,7 +182,7 @@ def _two_colours(stack: np.ndarray, median: np.ndarray) -> tuple[np.ndarray, ...
         sure = found & has1 & (n2 >= np.maximum(need, STEP_PURITY * part.sum(0)))
         step[y[ok], x[ok]] = True
         stay[y[sure], x[sure]] = True
-    return first, second, step, stay, no_majority
+    return first, second, step, stay, no_majority, shows_first
 
 
 def _spread(image: np.ndarray, region: np.ndarray, sigma: float) -> np.ndarray:
@@ -211,6 +220,39 @@ def _continuity_choice(first: np.ndarray, second: np.ndarray, two: np.ndarray) -
     switch = (sums[1] < SWITCH_MARGIN * sums[0]) & (counts > 0) & (areas >= MIN_REGION * H * W)
     switch[0] = False
     return switch[labels]
+
+
+def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
+             switched: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The background of each region whose first colour was found to be a subject: the
+    median of the region's pixels (and of those within ``BORDER`` of it) over the frames
+    the subject was away.
+
+    The subject's presence is the region's vote: the frames in which most of its pixels
+    show their first colour. Taking the free frames' median, rather than each pixel's
+    second colour, also gets right the pixels at the region's edge (where the floor is
+    the first colour and the subject, swaying, the second) and those with no majority.
+
+    Returns:
+        the background (H, W, 3) uint8 and the replaced pixels (H, W) bool: the regions and
+        the pixels around them whose colour changed.
+    """
+    N = stack.shape[0]
+    need = max(2, int(np.ceil(MIN_SECOND_SHARE * N)))
+    image, replaced = first.copy(), np.zeros(first.shape[:2], bool)
+    n, labels = cv2.connectedComponents(switched.astype(np.uint8), connectivity=8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * BORDER + 1, 2 * BORDER + 1))
+    for r in range(1, n):
+        region = labels == r
+        present = shows_first[:, region].mean(1) > 0.5  # (N,) the subject is there
+        free = np.flatnonzero(~present)
+        if len(free) < need:
+            continue
+        reach = cv2.dilate(region.astype(np.uint8), kernel) > 0
+        image[reach] = np.median(stack[free][:, reach], axis=0).round().astype(np.uint8)
+        changed = np.abs(image.astype(np.int16) - first).max(-1) > MODE_TOLERANCE
+        replaced |= region | (reach & changed)
+    return image, replaced
 
 
 def estimate_background(
@@ -253,12 +295,12 @@ def estimate_background(
         colour = cv2.resize(low.image, (W, H), interpolation=cv2.INTER_LINEAR)
         image = np.where(up(changed)[..., None], colour, median)
         return BackgroundEstimate(image, up(low.uncertain), up(low.replaced), int(N))
-    first, second, step, stay, no_majority = _two_colours(stack, median)
+    first, second, step, stay, no_majority, shows_first = _two_colours(stack, median)
     replaced = np.zeros_like(step)
     image = median
     if method == "modes":
         image = first  # the most frequent colour where the median is none of the frames'
         if step.any():
             replaced = _continuity_choice(first, second, step)
-            image = np.where(replaced[..., None], second, first)
+            image, replaced = _vacated(stack, first, shows_first, replaced)
     return BackgroundEstimate(image, stay | replaced | no_majority, replaced, int(N))

@@ -64,6 +64,21 @@ def test_a_subject_that_stayed_most_of_the_time_is_replaced_by_the_floor(stay):
     assert modes.uncertain_share == pytest.approx(subject.mean())
 
 
+def test_a_swaying_subject_leaves_no_trace_at_its_edge():
+    """The subject leans into the column next to it from frame 10 until it leaves (frame
+    35), lit in two shades: there the floor is the most frequent colour (frames 0-9 and
+    35-49) and one shade of the subject a second one. Each pixel's second colour would
+    paint the subject there; the frames the subject was away give the floor everywhere."""
+    stack, floor, subject = _recording(range(0, 35))
+    yy, xx = np.mgrid[:H, :W]
+    edge = (abs(yy - 30) < 10) & (xx == 26)
+    for t in range(10, 35):
+        stack[t][edge] = (200, 60, 40) if t % 2 else (140, 100, 70)
+    est = estimate_background(stack, "modes")
+    assert not _wrong(est.image, floor).any()
+    assert est.replaced[subject].all() and not est.replaced[~(subject | edge)].any()
+
+
 def test_large_frames_are_analysed_smaller_and_upsampled():
     """A 64 x 64 recording analysed at 32 x 32: the same subject found and replaced by the
     floor (its colour from the working size), the floor elsewhere the native median."""
