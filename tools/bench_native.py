@@ -3,16 +3,20 @@
     .venv/bin/python tools/bench_native.py --checkpoint RUN/train/checkpoint.pt --scene HD_SCENE
 
 A decomposition trained at 128 x 128 on an HD synthetic scene (e.g. ``nsd-synth
-image_size=[512,512]`` and ``nsd-run``) is exported twice over the same frames (every
-``--step``-th frame of the held-out tail): with ``native_refine=false`` (the training-size
-masks upsampled bilinearly and thresholded, the baseline) and ``native_refine=true``
-(``nsd/cues/native.py``). Each export is scored against the scene's ground-truth visible
+image_size=[1280,1024]`` and ``nsd-run``) is exported three times over the same frames
+(every ``--step``-th frame of the held-out tail): with ``native_refine=false`` (the
+training-size masks upsampled bilinearly and thresholded, the baseline), and with
+``native_refine=true`` (``nsd/cues/native.py``), once with the training-size masks' owner
+alone (``native_colour=false``) and once with the subjects' colours moving the boundaries
+between them (the default). Each export is scored against the scene's ground-truth visible
 masks at native resolution: every ground-truth instance with at least 16 visible pixels is
 matched one-to-one (Hungarian on mask IoU) to the export's masks of its camera-frame;
 ``miou`` is the mean IoU over ground-truth instances (unmatched: 0), ``boundary_f`` the
-F-score of mask boundaries within 2 native pixels (DAVIS-style), both over all instances.
+F-score of mask boundaries within 2 native pixels (DAVIS-style), both over all instances;
+``union_iou`` the IoU of the union of the export's masks with the union of the truth's per
+camera-frame (where the foreground is, whoever owns it).
 
-Writes ``docs/benchmarks/native.{md,json}``.
+Writes ``docs/benchmarks/<--name>.{md,json}`` (default ``native``).
 """
 
 from __future__ import annotations
@@ -48,12 +52,15 @@ def main() -> None:
     frames = f"{{start: {start}, stop: null, step: {args.step}}}"
     root = Path(tempfile.mkdtemp(prefix="bench-native-"))
     rows = []
-    for label, refine in (("upsampled (baseline)", "false"), ("native refine", "true")):
-        out = root / refine
+    runs = (("upsampled (baseline)", "false", "false"),
+            ("native refine, spatial owner", "true", "false"),
+            ("native refine, colour owner (default)", "true", "true"))
+    for label, refine, colour in runs:
+        out = root / f"{refine}-{colour}"
         t0 = time.perf_counter()
         subprocess.run([str(Path(sys.executable).parent / "nsd-export"),
                         f"checkpoint={args.checkpoint}", f"scene={scene}", f"out={out}",
-                        f"frames={frames}", f"native_refine={refine}",
+                        f"frames={frames}", f"native_refine={refine}", f"native_colour={colour}",
                         "views.tensorboard=false", "views.tsne=false", "progress=false"],
                        check=True, capture_output=True)
         seconds = time.perf_counter() - t0
@@ -61,6 +68,7 @@ def main() -> None:
         m = export_mask_scores(out, scene)
         rows.append({"masks": label, "miou": m["native_miou"],
                      "boundary_f": m["native_boundary_f"],
+                     "union_iou": m["native_union_iou"],
                      "instances": int(m["native_instances"]),
                      "native_size": "x".join(map(str, next(iter(
                          manifest["scene"]["native_sizes"].values())))),

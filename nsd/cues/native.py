@@ -16,8 +16,28 @@ subject that owns them; this module applies the same rule at native resolution:
 * foreground: the background residual of the native frame against the native background
   (:func:`nsd.cues.evidence.foreground_evidence` above 0.5, the cut used everywhere).
 
+* colour: with two or more subjects, the spatial owner is only a prior. Each subject's
+  colours are counted in its *core* (foreground pixels it owns with a prior above
+  ``CORE_PRIOR`` where no other subject's prior reaches ``CORE_OTHERS``; a histogram of
+  ``COLOUR_LEVELS``\ :sup:`3` bins, with ``COLOUR_PSEUDO`` of its count spread evenly over
+  the bins, so that an unseen colour is as unlikely for a small subject as for a large
+  one), and every claimed pixel goes to the subject maximising
+
+  .. math:: \log p_n(c) + \beta \log(o_n + \epsilon),
+
+  :math:`p_n` the subject's colour histogram, :math:`o_n` its blurred upsampled mask,
+  :math:`\beta` = ``PRIOR_WEIGHT``. Where the subjects' colours are alike the prior
+  decides; where they differ, colour moves the boundary between touching subjects to
+  where their clothes or coats meet, which a mask decided 10 times coarser cannot place.
+  Without ``MIN_CORE`` core pixels for every subject, the prior alone decides.
+
 A subject's native mask is the foreground pixels within reach that it owns. At equal
 resolution it gives back the training-size masks up to pixels at their boundaries.
+
+Measured on a 1280 x 1024 synthetic scene (docs/benchmarks/native_hd.md): mIoU 0.65
+upsampled, 0.74 with the spatial owner alone, 0.85 with colour; the union of the masks
+scores 0.95 against the truth, so who owns a pixel, not where the foreground is, is what
+remains.
 """
 
 from __future__ import annotations
@@ -30,7 +50,15 @@ import torch
 
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 
-__all__ = ["native_masks"]
+__all__ = ["colour_owners", "native_masks"]
+
+COLOUR_LEVELS = 16  # per channel: the colour histograms have 16^3 bins
+PRIOR_WEIGHT = 0.1  # beta: weight of the spatial prior's log against the colour's
+OWNER_FLOOR = 1e-3  # epsilon: the prior's floor (a pixel outside a subject's blurred mask)
+CORE_PRIOR = 0.5  # a core pixel: its subject's prior above this ...
+CORE_OTHERS = 0.05  # ... and every other subject's below this
+MIN_CORE = 50  # core pixels every subject needs for colour ownership
+COLOUR_PSEUDO = 0.01  # a histogram's added counts, spread over its bins, as a share of its core
 
 
 def native_masks(
@@ -39,6 +67,7 @@ def native_masks(
     background: np.ndarray,
     evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS,
+    colour: bool = True,
 ) -> np.ndarray:
     """Native-resolution visible masks (module docstring).
 
@@ -46,6 +75,8 @@ def native_masks(
         masks: training-size visible masks of the frame's subjects, (N, h, w) in [0, 1].
         view: the native frame, (H, W, 3) uint8 RGB.
         background: its native background, (H, W, 3) uint8 RGB.
+        colour: the subjects' colours move the boundaries between them (false: the
+            spatial owner alone).
 
     Returns:
         (N, H, W) bool, disjoint.
@@ -67,4 +98,39 @@ def native_masks(
                              evidence_softness)[0].numpy() > 0.5
     owner = owners.argmax(0)
     claimed = reach & fg & (owners.max(0) > 0)
+    if colour and N >= 2:
+        owner = colour_owners(view, owners, owner, claimed)
     return (owner[None] == np.arange(N)[:, None, None]) & claimed[None]
+
+
+def colour_owners(view: np.ndarray, prior: np.ndarray, owner: np.ndarray,
+                  claimed: np.ndarray) -> np.ndarray:
+    """Each claimed pixel's subject by its colour and the spatial prior (module docstring).
+
+    Args:
+        view: (H, W, 3) uint8.
+        prior: (N, H, W) float, each subject's blurred upsampled mask in [0, 1].
+        owner: (H, W) int, the prior's argmax.
+        claimed: (H, W) bool, the pixels to assign.
+
+    Returns:
+        (H, W) int: ``owner`` with the claimed pixels re-assigned (unchanged where some
+        subject has fewer than ``MIN_CORE`` core pixels).
+    """
+    N = len(prior)
+    q = view.astype(np.int64) * COLOUR_LEVELS // 256
+    code = (q[..., 0] * COLOUR_LEVELS + q[..., 1]) * COLOUR_LEVELS + q[..., 2]
+    bins = COLOUR_LEVELS**3
+    pixels = code[claimed]
+    score = PRIOR_WEIGHT * np.log(prior[:, claimed] + OWNER_FLOOR)  # (N, K)
+    for n in range(N):
+        others = np.delete(prior, n, 0).max(0)
+        core = claimed & (owner == n) & (prior[n] > CORE_PRIOR) & (others < CORE_OTHERS)
+        if core.sum() < MIN_CORE:
+            return owner
+        hist = np.bincount(code[core], minlength=bins).astype(np.float64)
+        hist += COLOUR_PSEUDO * hist.sum() / bins  # the same share for every subject
+        score[n] += np.log(hist / hist.sum())[pixels]
+    out = owner.copy()
+    out[claimed] = score.argmax(0)
+    return out

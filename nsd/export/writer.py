@@ -158,6 +158,7 @@ class SubjectWriter:
                 float(self.cfg.threshold),
                 {"camera": cam, "frame": t},
                 (views[v], self.native_backgrounds[v]) if refine else None,
+                bool(self.cfg.get("native_colour", True)),
             )
             for r in res:
                 r["association_id"] = int(assoc[v, r["slot"]])

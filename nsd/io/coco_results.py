@@ -42,6 +42,7 @@ def decomposition_to_coco(
     threshold: float = 0.5,
     extra: dict | None = None,
     native: tuple[np.ndarray, np.ndarray] | None = None,
+    native_colour: bool = True,
 ) -> list[dict]:
     """COCO results for frame ``b`` of an :class:`nsd.inference.single.Decomposition`.
 
@@ -55,13 +56,15 @@ def decomposition_to_coco(
         native: (frame, background), native uint8 RGB: the masks are refined at native
             resolution (:func:`nsd.cues.native.native_masks`) instead of upsampled
             and thresholded.
+        native_colour: at native resolution, the subjects' colours move the boundaries
+            between them (:func:`nsd.cues.native.colour_owners`).
     """
     out = []
     active = np.flatnonzero(dec.active[b].cpu().numpy())
     refined = None
     if native is not None and len(active):
         low = (dec.masks[b, active].cpu().numpy() > threshold).astype(np.float32)
-        refined = native_masks(low, *native)
+        refined = native_masks(low, *native, colour=native_colour)
     for j, k in enumerate(active):
         if refined is not None:
             m = refined[j]

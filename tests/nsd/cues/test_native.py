@@ -49,3 +49,50 @@ def test_native_masks_recover_what_upsampling_loses():
     assert not (got[0] & got[1]).any()  # disjoint
     assert native_masks(np.zeros((0, 16, 16), np.float32), view, background).shape == (
         0, 128, 128)
+
+
+def _touching(colours: tuple[tuple[int, int, int], tuple[int, int, int]]):
+    """Two subjects side by side at 128 x 128 meeting at x = 64, and masks decided at
+    16 x 16 that place the meeting 16 native pixels too far right (x = 80)."""
+    truth = np.zeros((2, 128, 128), bool)
+    truth[0, 30:90, 20:64] = True
+    truth[1, 30:90, 64:108] = True
+    background = np.full((128, 128, 3), 60, np.uint8)
+    view = background.copy()
+    for k in range(2):
+        view[truth[k]] = colours[k]
+    coarse = np.zeros((2, 16, 16), np.float32)
+    coarse[0, 4:11, 2:10] = 1  # x 16..80 at 8 native pixels a cell
+    coarse[1, 4:11, 10:14] = 1  # x 80..112
+    return view, background, truth, coarse
+
+
+def test_colour_moves_the_boundary_between_touching_subjects_to_where_colours_meet():
+    view, background, truth, coarse = _touching(((200, 40, 40), (40, 200, 60)))
+    got = native_masks(coarse, view, background)
+    for k in range(2):
+        assert _iou(got[k], truth[k]) > 0.97, k
+    assert not (got[0] & got[1]).any()
+
+
+def test_look_alike_subjects_keep_the_spatial_boundary():
+    """Same colours: no colour tells them apart, the coarse masks' boundary stays
+    (within the blur), so the second subject loses the 16 pixels the coarse masks gave away."""
+    view, background, truth, coarse = _touching(((200, 40, 40), (200, 40, 40)))
+    got = native_masks(coarse, view, background)
+    assert (got[0] | got[1]).sum() == (truth[0] | truth[1]).sum()  # the foreground is right
+    assert 0.55 < _iou(got[1], truth[1]) < 0.75
+    assert got[0][:, 70:76].all(axis=1)[30:90].all()  # x 70..75 still the first subject's
+
+
+def test_colour_owners_needs_a_core_for_every_subject():
+    """A subject without MIN_CORE core pixels: the spatial owners are returned unchanged."""
+    from nsd.cues.native import colour_owners
+
+    view, _, _, _ = _touching(((200, 40, 40), (40, 200, 60)))
+    prior = np.zeros((2, 128, 128), np.float32)
+    prior[0, 30:90, 20:100] = 1.0
+    prior[1, 60:64, 100:108] = 1.0  # 32 pixels
+    owner = prior.argmax(0)
+    claimed = prior.max(0) > 0
+    assert np.array_equal(colour_owners(view, prior, owner, claimed), owner)

@@ -36,3 +36,27 @@ def test_export_mask_scores_at_native_resolution(world, tmp_path):
     coco["annotations"] = coco["annotations"][1:]
     (out / "subjects.coco.json").write_text(json.dumps(coco))
     assert export_mask_scores(out, world["scene"])["native_miou"] < got["native_miou"]
+
+
+def test_union_iou_ignores_who_owns_a_pixel(world, tmp_path):
+    """One mask holding every subject of its camera-frame: the union IoU stays 1 while the
+    mIoU drops; an empty export scores union IoU 0."""
+    coco = json.loads(json.dumps(world["coco"]))
+    by_image: dict[int, list[dict]] = {}
+    for a in coco["annotations"]:
+        by_image.setdefault(a["image_id"], []).append(a)
+    assert any(len(rows) >= 2 for rows in by_image.values())
+    for rows in by_image.values():
+        union = np.any([mask_utils.decode(a["segmentation"]) for a in rows], axis=0)
+        rle = mask_utils.encode(np.asfortranarray(union.astype(np.uint8)))
+        rows[0]["segmentation"] = dict(rle, counts=rle["counts"].decode())
+    coco["annotations"] = [rows[0] for rows in by_image.values()]
+    out = tmp_path / "merged"
+    out.mkdir()
+    (out / "subjects.coco.json").write_text(json.dumps(coco))
+    got = export_mask_scores(out, world["scene"])
+    assert got["native_union_iou"] == pytest.approx(1.0)
+    assert got["native_miou"] < 0.9
+    coco["annotations"] = []
+    (out / "subjects.coco.json").write_text(json.dumps(coco))
+    assert export_mask_scores(out, world["scene"])["native_union_iou"] == 0.0
