@@ -285,7 +285,9 @@ def estimate_background(
         f = (H * W / max_pixels) ** 0.5
         size = (max(1, round(W / f)), max(1, round(H / f)))
         small = np.stack([cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in stack])
-        low = estimate_background(small, method, max_pixels)
+        # at the working size, whatever its rounding (a size rounded up past max_pixels
+        # would otherwise be analysed smaller again, without end)
+        low = estimate_background(small, method, max_pixels=size[0] * size[1])
         low_median = np.median(small, axis=0).round().astype(np.uint8)
         changed = np.abs(low.image.astype(np.int16) - low_median).max(-1) > MODE_TOLERANCE
 

@@ -96,10 +96,10 @@ class GroundTruth:
 
     def frame(self, camera: str, frame: int, size: tuple[int, int] | None = None) -> FrameGT:
         """Individuals visible in one camera-frame, at ``size`` = (H, W) (default native)."""
-        d = self.scene.dense(camera, frame)
+        d = self.scene.dense(camera, frame, ("instance", "amodal"))
         inst, amodal = d["instance"], d["amodal"]
         native = inst.shape
-        ids = np.array(sorted(int(i) for i in np.unique(inst) if i >= 0), dtype=np.int64)
+        ids = np.flatnonzero(np.bincount(inst[inst >= 0].ravel()))  # (a hash unique: 10x slower)
         visible = np.stack([inst == i for i in ids]) if len(ids) else np.zeros((0, *native), bool)
         amo = amodal[ids] if len(ids) else np.zeros((0, *native), bool)
         size = tuple(size) if size is not None else native

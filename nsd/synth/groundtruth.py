@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from functools import cached_property
 from pathlib import Path
 
@@ -56,22 +57,28 @@ def save_dense(
     )
 
 
-def load_dense(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read one camera-frame's dense maps.
+DENSE_KEYS = ("depth", "instance", "part", "nnopcs", "amodal")
+
+
+def load_dense(path: str | os.PathLike,
+               keys: Sequence[str] = DENSE_KEYS) -> dict[str, np.ndarray]:
+    """Read one camera-frame's dense maps (only ``keys``: each is decompressed when read,
+    which at HD sizes is most of the cost).
 
     Returns:
         ``depth`` float32 (H, W), ``instance`` int64 (H, W), ``part`` int64 (H, W),
-        ``nnopcs`` float32 (H, W, 3) in [0, 1], ``amodal`` bool (N, H, W).
+        ``nnopcs`` float32 (H, W, 3) in [0, 1], ``amodal`` bool (N, H, W), as asked.
     """
+    read = {
+        "depth": lambda z: z["depth"],
+        "instance": lambda z: z["instance"].astype(np.int64),
+        "part": lambda z: z["part"].astype(np.int64),
+        "nnopcs": lambda z: z["nnopcs"].astype(np.float32) / NNOPCS_SCALE,
+        "amodal": lambda z: np.unpackbits(
+            z["amodal"], axis=-1, count=int(z["amodal_shape"][2])).astype(bool),
+    }
     with np.load(path) as z:
-        shape = tuple(int(s) for s in z["amodal_shape"])
-        return {
-            "depth": z["depth"],
-            "instance": z["instance"].astype(np.int64),
-            "part": z["part"].astype(np.int64),
-            "nnopcs": z["nnopcs"].astype(np.float32) / NNOPCS_SCALE,
-            "amodal": np.unpackbits(z["amodal"], axis=-1, count=shape[2]).astype(bool),
-        }
+        return {k: read[k](z) for k in keys}
 
 
 class SyntheticScene:
@@ -103,9 +110,11 @@ class SyntheticScene:
     def _camera(self, camera: str | int) -> str:
         return self.camera_names[camera] if isinstance(camera, int) else camera
 
-    def dense(self, camera: str | int, frame: int) -> dict[str, np.ndarray]:
+    def dense(self, camera: str | int, frame: int,
+              keys: Sequence[str] = DENSE_KEYS) -> dict[str, np.ndarray]:
         """Dense maps of one camera-frame (:func:`load_dense`)."""
-        return load_dense(self.root / "gt" / "dense" / self._camera(camera) / f"{frame:06d}.npz")
+        return load_dense(self.root / "gt" / "dense" / self._camera(camera) / f"{frame:06d}.npz",
+                          keys)
 
     def background(self, camera: str | int) -> tuple[np.ndarray, np.ndarray]:
         """The backdrop of a camera: RGB uint8 (H, W, 3) and camera-space Z (H, W)."""

@@ -93,6 +93,15 @@ def test_large_frames_are_analysed_smaller_and_upsampled():
     assert np.array_equal(est.image[~est.replaced], median.image[~est.replaced])
 
 
+def test_a_working_size_rounded_past_the_limit_is_analysed_once():
+    """20 x 26 frames for 400 pixels: the working size rounds to 18 x 23 = 414 > 400 (a
+    1080 x 1920 camera does the same at the default limit); it must not shrink again and
+    again (it recursed until memory ran out)."""
+    stack = np.random.default_rng(0).integers(0, 255, (5, 20, 26, 3)).astype(np.uint8)
+    est = estimate_background(stack, "modes", max_pixels=400)
+    assert est.image.shape == (20, 26, 3) and est.samples == 5
+
+
 def test_walkers_alone_leave_nothing_uncertain():
     stack, floor, _ = _recording(None)
     est = estimate_background(stack, "modes")
