@@ -91,14 +91,16 @@ def depth_order_image(masks: np.ndarray, depths: np.ndarray, threshold: float = 
 
 
 def grid(rows: Sequence[Sequence[np.ndarray]], pad: int = 2, scale: int = 1) -> np.ndarray:
-    """Tile equally sized (H, W, 3) images into one image (rows x columns)."""
-    H, W = rows[0][0].shape[:2]
+    """Tile (H, W, 3) images into one image (rows x columns); each cell is as large as the
+    largest image, and a smaller one (a camera of another size) sits at its top left."""
+    H = max(im.shape[0] for r in rows for im in r)
+    W = max(im.shape[1] for r in rows for im in r)
     ncol = max(len(r) for r in rows)
     out = np.full((len(rows) * (H + pad) + pad, ncol * (W + pad) + pad, 3), 255, np.uint8)
     for i, r in enumerate(rows):
         for j, im in enumerate(r):
             y, x = pad + i * (H + pad), pad + j * (W + pad)
-            out[y : y + H, x : x + W] = im
+            out[y : y + im.shape[0], x : x + im.shape[1]] = im
     if scale > 1:
         out = cv2.resize(out, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     return out
