@@ -123,10 +123,23 @@ def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int
         lf.bboxes.append(sio.PredictedBoundingBox.from_xywh(x, y, w, h, score=score,
                                                             track=track, instance=inst))
     session = _session(rig.select(cameras), videos)
-    return sio.Labels(labeled_frames=[frames[k] for k in sorted(frames)],
+    return sio.Labels(labeled_frames=[frames[k] for k in sorted(frames) if frames[k].instances],
                       videos=list(videos.values()), skeletons=[skeleton],
                       tracks=list(tracks.values()), sessions=[session] if session else [],
                       provenance={"source": SCORER})
+
+
+def _used_videos(labels: sio.Labels) -> sio.Labels:
+    """``labels`` with only the videos that hold an instance: sleap-io's NWB writer fails
+    (a KeyError on the video's path) on a video without one, e.g. a camera in which no
+    subject got keypoints (``netepu.keypoints.frame_step``)."""
+    used = {id(lf.video) for lf in labels.labeled_frames if lf.instances}
+    if len(used) == len(labels.videos):
+        return labels
+    return sio.Labels(labeled_frames=list(labels.labeled_frames),
+                      videos=[v for v in labels.videos if id(v) in used],
+                      skeletons=labels.skeletons, tracks=labels.tracks,
+                      provenance=labels.provenance)
 
 
 def _markers(positions: dict[tuple[int, int], tuple[np.ndarray, int]],
@@ -292,7 +305,7 @@ def write_pose_tool_files(
             # timestamps in seconds for every footage frame (sleap-io's default, one per
             # frame with data, misplaces exports that do not start at frame 0)
             last = max(lf.frame_idx for lf in labels.labeled_frames) if labels else 0
-            nwb_predictions.write_nwb(labels, str(out / "subjects.nwb"),
+            nwb_predictions.write_nwb(_used_videos(labels), str(out / "subjects.nwb"),
                                       pose_estimation_metadata={
                                           "video_timestamps": np.arange(last + 1) / rate,
                                           "video_sample_rate": rate})

@@ -191,3 +191,22 @@ def test_an_export_without_subjects_writes_nothing_and_says_so(gt_export, tmp_pa
     s = write_pose_tool_files(empty, gt_export["scene"], gt_export["rig"], tmp_path / "out")
     assert s["files"] == [] and s["skipped"] == "no subjects"
     assert "no subject" in caplog.text
+
+
+def test_a_camera_without_any_identified_row_still_gets_an_nwb_file(gt_export, tmp_path):
+    """sleap-io's NWB writer fails on a video without instances (a real run: no subject of
+    one camera got keypoints); that camera is left out of the NWB file, the others kept."""
+    coco, rig = gt_export["coco"], gt_export["rig"]
+    first = rig[0].name
+    row_ids = {a["id"]: (-1 if a["camera"] == first else a["identity_id"])
+               for a in coco["annotations"]}
+    summary = write_pose_tool_files(gt_export["export"], gt_export["scene"], rig, tmp_path,
+                                    row_ids, formats=("slp", "nwb"))
+    with NWBHDF5IO(str(tmp_path / "subjects.nwb"), "r") as io:
+        series = [o for o in io.read().objects.values() if isinstance(o, PoseEstimation)]
+        assert len(series) == (len(rig) - 1) * 2  # the other cameras x tracks
+    n = sum(1 for a in coco["annotations"]
+            if a["camera"] != first and mask_utils.area(a["segmentation"]) > 0)
+    assert summary["instances"] == n
+    labels = sio.load_slp(str(tmp_path / "subjects.slp"))
+    assert all(lf.instances for lf in labels.labeled_frames)  # no empty frames
