@@ -13,7 +13,6 @@ import datetime as _dt
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import time
@@ -24,6 +23,7 @@ from typing import Any
 import torch
 
 from nsd.core.atomic import atomic_write_text
+from nsd.core.memory import peak_rss_mb  # one reader of VmHWM, re-exported for the benchmarks
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_DIR = ROOT / "docs" / "benchmarks"
@@ -88,22 +88,6 @@ def median_time(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> flo
         fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far, in MiB.
-
-    Linux: ``VmHWM`` of ``/proc/self/status``, the high-water mark of this
-    process's own address space. ``ru_maxrss`` (the fallback elsewhere) survives
-    ``exec``, so a subprocess would report its parent's peak at the fork.
-    """
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _fmt(v: Any) -> str:

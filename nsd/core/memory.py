@@ -43,8 +43,10 @@ def reset_peak_rss() -> bool:
 
 
 def peak_rss_mb() -> float:
-    """The process's peak resident size in MiB since :func:`reset_peak_rss` (VmHWM), or
-    since it started (``ru_maxrss``) where /proc is not there."""
+    """The process's peak resident size in MiB since :func:`reset_peak_rss` (Linux: VmHWM,
+    this process's own address space), or since it started (``ru_maxrss``, which survives
+    ``exec``: a subprocess would report its parent's peak at the fork) where /proc is not
+    there."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
             if line.startswith("VmHWM:"):

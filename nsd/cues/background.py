@@ -239,7 +239,8 @@ def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
     """
     N = stack.shape[0]
     need = max(2, int(np.ceil(MIN_SECOND_SHARE * N)))
-    image, replaced = first.copy(), np.zeros(first.shape[:2], bool)
+    image = first.copy()
+    regions, reached = np.zeros(first.shape[:2], bool), np.zeros(first.shape[:2], bool)
     n, labels = cv2.connectedComponents(switched.astype(np.uint8), connectivity=8)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * BORDER + 1, 2 * BORDER + 1))
     for r in range(1, n):
@@ -249,10 +250,11 @@ def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
         if len(free) < need:
             continue
         reach = cv2.dilate(region.astype(np.uint8), kernel) > 0
-        image[reach] = np.median(stack[free][:, reach], axis=0).round().astype(np.uint8)
-        changed = np.abs(image.astype(np.int16) - first).max(-1) > MODE_TOLERANCE
-        replaced |= region | (reach & changed)
-    return image, replaced
+        image[reach] = np.median(stack[:, reach][free], axis=0).round().astype(np.uint8)
+        regions |= region
+        reached |= reach
+    changed = np.abs(image.astype(np.int16) - first).max(-1) > MODE_TOLERANCE
+    return image, regions | (reached & changed)
 
 
 def estimate_background(

@@ -156,7 +156,7 @@ class SceneData:
         T, V, _, H, W = self.frames.shape
         # (T, V, H, W) int8: hull individual, -1 none; on disk, as the frames
         pixel_owners = torch.from_numpy(
-            scratch_array(self.footage.cache_dir / "frames", (T, V, H, W), np.int8)
+            scratch_array(self.frames.path.parent, (T, V, H, W), np.int8)
         ) if owners else None
         for t in range(T):
             ev = foreground_evidence(
