@@ -148,6 +148,7 @@ def _hull_data(scene: Path, frames: int = 0):
         cfg.loss.evidence_softness,
         resolution=cfg.prior_proposal.resolution,
         split=False,
+        min_views=cfg.prior_proposal.min_views,
     )
     return data
 

@@ -185,7 +185,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "count_population": _r("str", choices=("frame", "scene")),
     },
     "prior_proposal": {"source": _r("str", choices=("multiview", "single_view", "none")),
-                       "resolution": _r("int", low=8), "split": _r("bool", allow=("auto",))},
+                       "resolution": _r("int", low=8), "split": _r("bool", allow=("auto",)),
+                       "min_views": _r("int", low=2, allow=("auto",))},
     "prior_depth": {"source": _r("str", choices=("proposals", "triangulation", "none")),
                     "unit": RATE},
     "prior_association": {"score": _r("str", choices=("appearance", "full"))},
@@ -196,7 +197,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "numbers", low=0)},
     "inference": {"views": _r("str", choices=("multiview", "single")),
                   "window_blend": FRACTION, "depth": _r("str", choices=("hull", "detector")),
-                  "resolution": _r("int", low=8)},
+                  "resolution": _r("int", low=8), "min_views": _r("int", low=2, allow=("auto",))},
     "train": {  # conf/train.yaml's own keys
         "device": DEVICE,
         "stage": _r("str", choices=("decomposition", "pose")), "batch_size": POS,

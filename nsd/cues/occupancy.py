@@ -4,7 +4,8 @@ Static calibrated cameras and median backgrounds give, without any label, a
 coarse *visual hull* of the individuals: a voxel of the working volume is
 occupied when its projection shows foreground evidence (see
 :func:`nsd.cues.evidence.foreground_evidence`, > 0.5) in every view that sees it, and
-at least ``min_views`` views see it. The occupied voxels are counted per
+at least ``min_views`` views see it (by default a majority of the cameras,
+:func:`hull_min_views`). The occupied voxels are counted per
 column on the horizontal plane; the ``k`` heaviest connected components of that
 map are the individuals (visual-hull *ghosts*, the regions every camera sees
 as foreground without anything being there, are lighter and dropped); when
@@ -43,11 +44,13 @@ from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.projection import project_points
+from nsd.core.errors import ConfigError
 
 __all__ = [
     "MultiviewProposals",
     "VoxelGrid",
     "cluster_individuals",
+    "hull_min_views",
     "multiview_proposals",
     "occupied_voxels",
     "owned_pixels",
@@ -86,6 +89,7 @@ class VoxelGrid:
         up: world up direction (3,).
         focal: mean focal length of each view in pixels (V,).
         image_size: (H, W).
+        min_views: views that must see a voxel for it to be carved (:func:`hull_min_views`).
     """
 
     centres: Tensor
@@ -97,6 +101,7 @@ class VoxelGrid:
     up: Tensor
     focal: Tensor
     image_size: tuple[int, int]
+    min_views: int = 2
 
 
 def working_volume(rig: CameraRig) -> tuple[np.ndarray, float, np.ndarray]:
@@ -112,12 +117,32 @@ def working_volume(rig: CameraRig) -> tuple[np.ndarray, float, np.ndarray]:
     return focus, half, up / np.linalg.norm(up)
 
 
+def hull_min_views(num_views: int, setting: int | str = "auto") -> int:
+    """Views that must see a voxel (and all of them show foreground there) for the hull to
+    hold it: ``auto`` is a majority of the cameras (2 of 2 or 3, 3 of 4, 4 of 6, 5 of 8).
+
+    A voxel seen by two cameras only is carved by two silhouettes: near the edges of the
+    cameras' fields, where few see, such voxels form ghost bodies between and beside the
+    individuals that join them in one component or take their slots
+    (docs/benchmarks/hull_views.md: with 2 of 6 cameras, detection 0.58; with 4 of 6, 0.95).
+    A number is used as given (at least 2, at most ``num_views``).
+    """
+    if setting == "auto":
+        return max(2, num_views // 2 + 1) if num_views >= 2 else num_views
+    n = int(setting)
+    if not 2 <= n <= max(2, num_views):
+        raise ConfigError(f"min_views must be auto or between 2 and the {num_views} cameras, "
+                          f"got {setting!r}")
+    return n
+
+
 def voxel_grid(
     rig: CameraRig,
     image_size: tuple[int, int],
     resolution: int = 48,
     centre: np.ndarray | None = None,
     half_size: float | None = None,
+    min_views: int | str = "auto",
 ) -> VoxelGrid:
     """Precompute a ``resolution``^3 grid over the working volume and its projections.
 
@@ -126,6 +151,7 @@ def voxel_grid(
         image_size: (H, W) of the frames.
         resolution: voxels per side.
         centre, half_size: working volume (default: :func:`working_volume`).
+        min_views: :func:`hull_min_views`' setting.
     """
     focus, half, up = working_volume(rig)
     centre = focus if centre is None else np.asarray(centre, float)
@@ -144,24 +170,26 @@ def voxel_grid(
     pixel = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).long()
     focal = (cams.K[:, 0, 0] + cams.K[:, 1, 1]) / 2
     return VoxelGrid(
-        centres, size, pixel, inside, uv, z, torch.as_tensor(up, dtype=torch.float32), focal, (H, W)
+        centres, size, pixel, inside, uv, z, torch.as_tensor(up, dtype=torch.float32), focal,
+        (H, W), hull_min_views(len(rig), min_views),
     )
 
 
 def occupied_voxels(
-    evidence: Tensor, grid: VoxelGrid, min_views: int = 2, threshold: float = 0.5
+    evidence: Tensor, grid: VoxelGrid, min_views: int | None = None, threshold: float = 0.5
 ) -> Tensor:
     """Visual-hull occupancy of one frame.
 
     Args:
         evidence: foreground evidence of every view (V, H, W).
         grid: the precomputed grid.
-        min_views: a voxel must be seen by at least this many views.
+        min_views: a voxel must be seen by at least this many views (None: the grid's).
         threshold: evidence above which a pixel is foreground.
 
     Returns:
         (M,) bool.
     """
+    min_views = grid.min_views if min_views is None else min_views
     fg = evidence.flatten(1) > threshold  # (V, P)
     hit = torch.gather(fg, 1, grid.pixel)  # (V, M)
     seen = grid.inside.sum(0)
@@ -292,7 +320,7 @@ def multiview_proposals(
     min_voxels: int = 4,
     min_scale: float = 0.2,
     max_scale: float = 1.0,
-    min_views: int = 2,
+    min_views: int | None = None,
     split: bool = True,
 ) -> MultiviewProposals:
     """Proposals for all views of one frame from its occupancy.

@@ -221,7 +221,8 @@ def quality_report(
     bgs = torch.stack([torch.from_numpy(cv2.resize(footage.background_estimate(v).image,
                                                    (W, H), interpolation=cv2.INTER_AREA))
                        for v in range(len(cams))]).permute(0, 3, 1, 2).float() / 255
-    grid = voxel_grid(footage.rig, (H, W), HULL_RESOLUTION)
+    # two views, as when the report's limits were set (docs/benchmarks/quality.md)
+    grid = voxel_grid(footage.rig, (H, W), HULL_RESOLUTION, min_views=2)
     voxel_px = float((grid.focal.mean() * grid.size / grid.depth[grid.inside].median()).item())
     dilate = max(1, round(voxel_px))  # a voxel's footprint around its centre
     frames = []

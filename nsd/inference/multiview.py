@@ -63,6 +63,8 @@ class InferenceSettings(ConfigSection):
         depth: ``hull`` (the individuals' camera-space depths) or ``detector``.
         slot_bonus: association score added for two windows on the same individual.
         resolution: voxels per side of the hull's grid.
+        min_views: cameras that must see a voxel of the hull (``auto``: a majority,
+            :func:`nsd.cues.occupancy.hull_min_views`).
         colour_sigma: colour agreement of the mask ownership
             (:func:`nsd.inference.single.ownership`).
         hull_ownership: log-score bonus of the window whose hull individual owns a pixel
@@ -78,6 +80,7 @@ class InferenceSettings(ConfigSection):
     depth: str
     slot_bonus: float
     resolution: int
+    min_views: int | str
     colour_sigma: float
     hull_ownership: float
 
@@ -91,6 +94,10 @@ class InferenceSettings(ConfigSection):
         need(self.depth in DEPTHS, "depth", f"must be one of {DEPTHS}")
         need(float(self.slot_bonus) >= 0.0, "slot_bonus", "must be >= 0")
         need(int(self.resolution) >= 8, "resolution", "must be >= 8 voxels")
+        need(self.min_views == "auto" or (isinstance(self.min_views, int)
+                                          and not isinstance(self.min_views, bool)
+                                          and self.min_views >= 2),
+             "min_views", "must be auto or a number of cameras >= 2")
         need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
         need(float(self.hull_ownership) >= 0.0, "hull_ownership", "must be >= 0 (0: off)")
 
@@ -119,7 +126,8 @@ class InferenceSettings(ConfigSection):
             raise ConfigError(
                 "inference.views=multiview needs at least 2 cameras; use inference.views=single"
             )
-        return voxel_grid(rig, tuple(image_size), int(self.resolution))
+        return voxel_grid(rig, tuple(image_size), int(self.resolution),
+                          min_views=self.min_views)
 
 
 def fuse_detections(

@@ -144,14 +144,15 @@ class SceneData:
 
     def compute_multiview_proposals(
         self, k: int, threshold: float, softness: float, resolution: int = 48, split: bool = True,
-        owners: bool = True,
+        owners: bool = True, min_views: int | str = "auto",
     ) -> None:
         """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
         ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`; ``owners``: also keep
         every pixel's hull individual (``self.owners``, (T, V, H, W) int8, a third of the
-        frames' size, on disk next to the frames: only the mask prior reads it)."""
+        frames' size, on disk next to the frames: only the mask prior reads it); ``min_views``:
+        :func:`nsd.cues.occupancy.hull_min_views`' setting."""
 
-        grid = voxel_grid(self.rig, self.frame_hw, resolution)
+        grid = voxel_grid(self.rig, self.frame_hw, resolution, min_views=min_views)
         boxes, depths, valid = [], [], []
         T, V, _, H, W = self.frames.shape
         # (T, V, H, W) int8: hull individual, -1 none; on disk, as the frames

@@ -173,7 +173,8 @@ class NSDTask:
                 if split == "auto":  # num_windows is an upper bound when presence is learned
                     split = not cfg.model.detector.presence
                 data.compute_multiview_proposals(*args, resolution=pp.resolution, split=split,
-                                                 owners=cfg.prior_mask.weight > 0)
+                                                 owners=cfg.prior_mask.weight > 0,
+                                                 min_views=pp.min_views)
                 if self.presence_target == "hull":
                     self._hull_counts(cfg.prior_presence, data)
             elif pp.source == "single_view":

@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 import torch
 
+from nsd.core.errors import ConfigError
 from nsd.cues.occupancy import (
     cluster_individuals,
+    hull_min_views,
     multiview_proposals,
     occupied_voxels,
     owned_pixels,
@@ -161,3 +163,28 @@ def test_training_evidence_defaults_are_the_cue_defaults():
     cfg = compose_app("train")
     assert cfg.loss.evidence_threshold == EVIDENCE_THRESHOLD
     assert cfg.loss.evidence_softness == EVIDENCE_SOFTNESS
+
+
+def test_hull_min_views_is_a_majority_of_the_cameras_unless_given():
+    assert [hull_min_views(v) for v in (2, 3, 4, 5, 6, 8, 12)] == [2, 2, 3, 3, 4, 5, 7]
+    assert hull_min_views(8, 3) == 3
+    for bad in (1, 9):
+        with pytest.raises(ConfigError, match="min_views"):
+            hull_min_views(8, bad)
+
+
+def test_voxels_seen_by_fewer_views_than_the_grids_minimum_are_not_carved():
+    """Every pixel foreground: the hull is every voxel seen by enough cameras, so a voxel
+    seen by two of four (the edges of the fields, where ghost bodies form) is kept with
+    min_views=2 and dropped by the default majority (3 of 4)."""
+    rig = corner_rig(4, size=(48, 48))
+    ev = torch.ones(4, 48, 48)
+    two = voxel_grid(rig, (48, 48), 24, min_views=2)
+    auto = voxel_grid(rig, (48, 48), 24)
+    assert (two.min_views, auto.min_views) == (2, 3)
+    seen = two.inside.sum(0)
+    assert (seen == 2).any() and (seen >= 3).any()
+    assert torch.equal(occupied_voxels(ev, two), seen >= 2)
+    assert torch.equal(occupied_voxels(ev, auto), seen >= 3)
+    # an explicit argument still overrides the grid's
+    assert torch.equal(occupied_voxels(ev, auto, min_views=2), seen >= 2)

@@ -101,6 +101,8 @@ def test_slot_bonus_is_added_only_for_the_same_valid_individual(tiny_scene):
         {"depth": "stereo"},
         {"slot_bonus": -1.0},
         {"resolution": 2},
+        {"min_views": 1},
+        {"min_views": "most"},
         {"colour_sigma": -0.1},
     ],
 )
