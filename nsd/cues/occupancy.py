@@ -196,6 +196,16 @@ def occupied_voxels(
     return ((hit | ~grid.inside).all(0)) & (seen >= min_views) & (hit & grid.inside).any(0)
 
 
+# owned_pixels' radius and reach in voxel sides (a voxel's side in pixels at the median depth
+# of the view's voxels). A radius of 1.5 gave every pixel within a voxel and a half of an
+# individual's hull to the front-most one, so the front individual's hull, fat along the
+# rays of the views that do not carve it, took the rims of those behind it: 0.6 (about a
+# voxel's footprint) lifts hull-only detection of three huddling bipeds 0.78 -> 0.87 and
+# halves the merge rate (docs/benchmarks/hull_views.md).
+OWNER_RADIUS = 0.6
+OWNER_REACH = 4.5
+
+
 def _plane_basis(up: Tensor) -> Tensor:
     """Two unit vectors (2, 3) spanning the plane orthogonal to ``up``."""
     a = torch.tensor([1.0, 0.0, 0.0]) if abs(float(up[0])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
@@ -359,10 +369,9 @@ def multiview_proposals(
     for v in range(V):
         vis = grid.inside[v, idx]
         z = grid.depth[v, idx[vis]]
-        radius = float(1.5 * grid.size * grid.focal[v] / z.median()) if len(z) else 1.0
-        owners[v] = owned_pixels(
-            evidence[v] > 0.5, grid.uv[v, idx[vis]], z, labels[vis], k, radius, 3 * radius
-        )
+        voxel_px = float(grid.size * grid.focal[v] / z.median()) if len(z) else 1.0
+        owners[v] = owned_pixels(evidence[v] > 0.5, grid.uv[v, idx[vis]], z, labels[vis], k,
+                                 OWNER_RADIUS * voxel_px, OWNER_REACH * voxel_px)
         for j in range(k):
             sel = labels[vis] == j
             ys, xs = torch.nonzero(owners[v] == j, as_tuple=True)
