@@ -221,3 +221,47 @@ def test_pixels_go_to_the_individual_whose_voxels_cover_them_not_to_a_fat_hull_i
     before = accuracy()
     assert now.mean() > before.mean() + 0.03, (now, before)
     assert (now > before - 0.02).all(), (now, before)
+
+
+def _columns(centres_xy, radius: float, height: int, cell: float) -> torch.Tensor:
+    """Voxel centres (P, 3) of round bodies: columns of ``height`` voxels within ``radius``
+    of each (x, y) centre, z up."""
+    pts = []
+    for cx, cy in centres_xy:
+        for i in np.arange(-radius, radius + cell / 2, cell):
+            for j in np.arange(-radius, radius + cell / 2, cell):
+                if i * i + j * j <= radius * radius:
+                    pts += [(cx + i, cy + j, (h + 0.5) * cell) for h in range(height)]
+    return torch.tensor(pts, dtype=torch.float32)
+
+
+def test_pieces_of_one_individual_join_it_instead_of_taking_a_slot():
+    """Three bodies, one of them broken in two pieces by a gap in the hull (legs apart):
+    with k = 3 the pieces are one individual and the other two keep their own labels;
+    the old rule (the k heaviest components) gave the two pieces two slots and merged
+    nobody else, so one body lost its label."""
+    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
+    whole = _columns([(0.0, 0.0), (1.5, 0.0)], 0.25, 16, cell)
+    pieces = _columns([(-1.5, 0.2), (-1.5, -0.2)], 0.12, 14, cell)  # 0.16 m gap between
+    labels = cluster_individuals(torch.cat([whole, pieces]), up, cell, 3)
+    n = len(whole) // 2
+    a, b, broken = labels[:n], labels[n : 2 * n], labels[2 * n :]
+    assert len(set(broken.tolist())) == 1 and broken[0] >= 0
+    assert len(set(a.tolist())) == 1 and len(set(b.tolist())) == 1
+    assert len({int(a[0]), int(b[0]), int(broken[0])}) == 3
+
+
+def test_a_huddle_of_three_in_one_component_is_cut_into_three():
+    """Three bodies in a row whose hulls touch (one plane component): k = 3 gives each its
+    own label; ``split=False`` (k an upper bound) keeps them as one."""
+    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
+    bodies = [(-0.4, 0.0), (0.0, 0.0), (0.4, 0.0)]
+    pts = _columns(bodies, 0.25, 16, cell)
+    labels = cluster_individuals(pts, up, cell, 3)
+    xy = pts[:, :2]
+    nearest = torch.cdist(xy, torch.tensor(bodies)).argmin(1)
+    for j in range(3):  # each body's columns (away from the seams) carry one label
+        core = (nearest == j) & (torch.cdist(xy, torch.tensor(bodies))[:, j] < 0.15)
+        assert len(set(labels[core].tolist())) == 1
+    assert len(set(labels.tolist()) - {-1}) == 3
+    assert set(cluster_individuals(pts, up, cell, 3, split=False).tolist()) == {0}
