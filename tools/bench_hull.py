@@ -1,0 +1,163 @@
+"""The hull-only decomposition: before this change, now, and each part of the change alone.
+
+    git worktree add /tmp/hull-before 7d6630d    # the commit before (optional)
+    .venv/bin/python tools/bench_hull.py --before /tmp/hull-before    # ~25 min on 2 cores
+
+The visual hull of the background residuals (:mod:`nsd.cues.occupancy`) places NSD's
+windows, gives their depths and links the views at inference, and makes the training
+priors; :mod:`nsd.evaluation.hull_baseline` scores it alone (no learning). Three rules
+changed together:
+
+* ``min_views``: a voxel is kept when a majority of the cameras see it (before: two);
+* ``owner_radius``: a foreground pixel goes to the front-most individual with a voxel
+  within 0.6 voxel sides (before: 1.5);
+* ``clustering``: with the count known, a seeded k-means of the plane's columns (before:
+  the ``k`` heaviest components, the largest bisected while fewer).
+
+Rows per scene: ``before`` (the given checkout of the commit before, scored in a
+subprocess with its own code; left out without ``--before``), ``now`` (the defaults), and
+``now`` with one rule put back (``min_views=2``, ``owner_radius=1.5``) or the seeds' spread
+at 1.5 instead of 4. Synthetic scenes of 2-6 individuals, 4-8 cameras, apart and in contact
+(``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128, 48^3 voxels; metrics as
+``nsd-eval`` (nsd/evaluation/decomposition.py).
+
+Writes ``docs/benchmarks/hull.{md,json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from nsd.cues import occupancy  # noqa: E402
+from nsd.cues.occupancy import hull_min_views, voxel_grid  # noqa: E402
+from nsd.evaluation.hull_baseline import evaluate_hull  # noqa: E402
+from nsd.io.ground_truth import GroundTruth  # noqa: E402
+from nsd.io.scene_data import SceneData  # noqa: E402
+from nsd.synth.scene import default_scene  # noqa: E402
+from tools.benchlib import write_report  # noqa: E402
+
+BIN = Path(sys.executable).parent
+SCENES = {  # name -> (individuals, nsd-synth overrides)
+    "default scene (2 bipeds, 4 cameras)": (2, None),
+    "2 bipeds huddling, 4 cameras": (
+        2, ["num_individuals=2", "motion.interaction=huddle", "seed=1"]),
+    "3 bipeds huddling, 4 cameras": (
+        3, ["num_individuals=3", "motion.interaction=huddle", "seed=1"]),
+    "3 bipeds huddling, 4 cameras, seed 2": (
+        3, ["num_individuals=3", "motion.interaction=huddle", "seed=2"]),
+    "3 bipeds free, 6-camera ring": (
+        3, ["num_individuals=3", "rig.kind=ring", "rig.count=6", "motion.area_radius=2.5",
+            "motion.interaction=free", "seed=4"]),
+    "4 (bipeds, quadrupeds) huddling, 8 cameras": (
+        4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
+            "motion.area_radius=2.0", "motion.interaction=huddle", "seed=1"]),
+    "6 bipeds huddling, 8 cameras": (
+        6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0",
+            "motion.interaction=huddle", "seed=1"]),
+}
+METRICS = ("detection_rate", "mask_miou", "depth_order_accuracy", "association_accuracy",
+           "merge_rate", "detection_rate_touching", "mask_miou_touching", "touching_share")
+# an older checkout's hull-only scores, with its own code and defaults (its grid knows no
+# min_views; its evaluate_hull takes the same arguments)
+BEFORE = """
+import json, sys
+import numpy as np, torch
+sys.path.insert(0, sys.argv[1])
+torch.set_num_threads(2)
+from nsd.cues.occupancy import voxel_grid
+from nsd.evaluation.hull_baseline import evaluate_hull
+from nsd.io.ground_truth import GroundTruth
+from nsd.io.scene_data import SceneData
+data = SceneData(sys.argv[2], (128, 128))
+idx = np.asarray(json.loads(sys.argv[4]))
+m = evaluate_hull(data, idx, GroundTruth.load(sys.argv[2]), voxel_grid(data.rig, (128, 128), 48),
+                  int(sys.argv[3]))
+print(json.dumps(m))
+"""
+
+
+def _frames(data: SceneData, n: int) -> np.ndarray:
+    idx = np.asarray(data.heldout_frames)
+    return idx[np.linspace(0, len(idx) - 1, n).round().astype(int)]
+
+
+def _row(name: str, cameras: int, rule: str, m: dict, seconds: float, frames: int) -> dict:
+    row = {"scene": name, "cameras": cameras, "rule": rule}
+    row.update({key: m.get(key) for key in METRICS})
+    row["s_per_frame"] = seconds / frames
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=30, help="held-out frames scored per scene")
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="scene names to run")
+    ap.add_argument("--before", type=Path, default=None,
+                    help="a checkout of an older commit: its hull-only row per scene")
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
+    defaults = {"OWNER_RADIUS": occupancy.OWNER_RADIUS, "SEED_SPREAD": occupancy.SEED_SPREAD}
+    rows = []
+    for i, name in enumerate(args.scenes):
+        k, synth = SCENES[name]
+        scene = default_scene() if synth is None else root / f"scene{i}"
+        if synth is not None:
+            subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", *synth], check=True,
+                           capture_output=True)
+        data = SceneData(scene, (128, 128))
+        gt = GroundTruth.load(scene)
+        idx = _frames(data, args.frames)
+        V = data.num_views
+        if args.before:
+            t0 = time.perf_counter()
+            out = subprocess.run([sys.executable, "-c", BEFORE, str(args.before), str(scene),
+                                  str(k), json.dumps(idx.tolist())],
+                                 check=True, capture_output=True, text=True)
+            m = json.loads(out.stdout.strip().splitlines()[-1])
+            rows.append(_row(name, V, "before", m, time.perf_counter() - t0, len(idx)))
+            print(rows[-1], flush=True)
+        variants = [("now", "auto", {}), ("now, min_views=2", 2, {}),
+                    ("now, owner_radius=1.5", "auto", {"OWNER_RADIUS": 1.5}),
+                    ("now, seeds 1.5 radii apart", "auto", {"SEED_SPREAD": 1.5})]
+        for rule, views, consts in variants:
+            for key, value in {**defaults, **consts}.items():
+                setattr(occupancy, key, value)  # read by the hull at each call
+            grid = voxel_grid(data.rig, data.frame_hw, 48, min_views=views)
+            t0 = time.perf_counter()
+            m = evaluate_hull(data, idx, gt, grid, k)
+            label = rule if rule != "now" else f"now (min_views {hull_min_views(V)})"
+            rows.append(_row(name, V, label, m, time.perf_counter() - t0, len(idx)))
+            print(rows[-1], flush=True)
+        for key, value in defaults.items():
+            setattr(occupancy, key, value)
+    write_report(
+        "hull", "The hull-only decomposition: before, now, and each rule put back", rows,
+        notes=("Hull-only decomposition (nsd/evaluation/hull_baseline.py, no learning) of "
+               f"{args.frames} held-out frames per scene at 128 x 128, 48^3 voxels. "
+               "`before`: the commit before the change, its own code; `now`: a voxel kept "
+               "when a majority of the cameras see it (`min_views`), a pixel owned by the "
+               "front-most individual with a voxel within 0.6 voxel sides, the individuals "
+               "by a k-means of the plane's columns seeded by components 4 typical radii "
+               "apart (nsd/cues/occupancy.py); the other rows put one rule back. Touching "
+               "columns: instants where two individuals' amodal masks overlap in most "
+               "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
+               "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "
+               "built-in one)."),
+    )
+
+
+if __name__ == "__main__":
+    main()
