@@ -149,6 +149,7 @@ def _hull_data(scene: Path, frames: int = 0):
         resolution=cfg.prior_proposal.resolution,
         split=False,
         min_views=cfg.prior_proposal.min_views,
+        owners=False,  # counts only; the frames here are a tensor, not the frame store
     )
     return data
 
