@@ -239,7 +239,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "crop.size": _r("int", low=8), "crop.chunk": POS,
         "embeddings.format": _r("str", choices=("parquet", "npz")),
         "embeddings.row_group_size": POS, "tracking.appearance_weight": FRACTION,
-        "tracking.min_similarity": FRACTION, "views.max_points": POS,
+        "tracking.min_similarity": FRACTION, "tracking.position_weight": FRACTION,
+        "tracking.position_scale": _r("number", above=0, allow=("auto",)), "views.max_points": POS,
         "views.thumbnail": _r("int", low=4), "views.perplexity": RATE,
     },
     "synth": {

@@ -20,6 +20,8 @@ from omegaconf import DictConfig
 from pycocotools import mask as mask_utils
 
 from nsd.core.memory import trim_heap
+from nsd.cues.occupancy import working_volume
+from nsd.cues.triangulation import nearest_point_to_rays
 from nsd.export.inputs import ExportInputs, ImageEntries, to_model_size
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
@@ -54,12 +56,13 @@ class SubjectWriter:
             root / "embeddings", cfg.embeddings.format, int(cfg.embeddings.row_group_size)
         )
         self.mot = MotWriter(root / "tracks", self.names)
-        t = cfg.tracking
-        self.tracker = SubjectTracker(
-            float(t.appearance_weight), float(t.min_similarity), int(t.max_gap)
-        )
         self.sample = Reservoir(int(cfg.views.max_points), int(cfg.views.seed))
         self.inference = InferenceSettings.from_config(cfg.get("inference"))
+        t = cfg.tracking
+        self.tracker = SubjectTracker(
+            float(t.appearance_weight), float(t.min_similarity), int(t.max_gap),
+            float(t.position_weight), self._position_scale(t.position_scale),
+        )
         self.grid = (
             self.inference.grid(inp.footage.rig, inp.trained.frame_hw)
             if self.inference.multiview
@@ -165,20 +168,44 @@ class SubjectWriter:
             per_view.append(res)
         return per_view
 
+    def _position_scale(self, setting) -> float:
+        """``tracking.position_scale``: a distance in metres, or ``auto`` (two sides of a
+        voxel of the hull's grid: a fraction of the working volume, whatever the scene's
+        size)."""
+        if setting == "auto":
+            _, half, _ = working_volume(self.inp.footage.rig)
+            return 2 * (2 * half / int(self.inference.resolution))
+        return float(setting)
+
+    def _position(self, boxes: dict[str, np.ndarray]) -> np.ndarray | None:
+        """World point nearest to the rays through the boxes' centres (native pixels), or
+        None with fewer than two cameras."""
+        if len(boxes) < 2:
+            return None
+        rig = self.inp.footage.rig
+        origins = np.stack([rig[c].center for c in boxes])
+        rays = np.stack([rig[c].unproject((b[:2] + b[2:] / 2)[None])[0]
+                         for c, b in boxes.items()])
+        try:
+            return nearest_point_to_rays(origins, rays)
+        except ValueError:  # parallel rays
+            return None
+
     def _observations(self, dec, first: int, per_view: list[list[dict]]) -> dict:
-        """One :class:`SubjectObservation` per association id: mean appearance, boxes."""
+        """One :class:`SubjectObservation` per association id: mean appearance, boxes and
+        world position."""
         observed: dict[int, list[tuple[str, np.ndarray, np.ndarray]]] = defaultdict(list)
         for v, cam in enumerate(self.names):
             for r in per_view[v]:
                 app = dec.app[first + v, r["slot"]].numpy()
                 observed[r["association_id"]].append((cam, np.asarray(r["bbox"]), app))
-        return {
-            aid: SubjectObservation(
+        out = {}
+        for aid, obs in observed.items():
+            boxes = {cam: box for cam, box, _ in obs}
+            out[aid] = SubjectObservation(
                 unit_vectors(np.mean([unit_vectors(a[: self.dims]) for _, _, a in obs], 0)),
-                {cam: box for cam, box, _ in obs},
-            )
-            for aid, obs in observed.items()
-        }
+                boxes, self._position(boxes) if self.tracker.position_weight > 0 else None)
+        return out
 
     def _write_subject(
         self,

@@ -6,10 +6,16 @@ frame t need not be subject 0 of frame t+1. :class:`SubjectTracker` links the
 subjects of consecutive frames into tracks with a deliberately simple rule:
 
 * a subject of frame t is described by the mean of its views' unit appearance
-  vectors (the association dims, as in training) and its box in each camera;
+  vectors (the association dims, as in training), its box in each camera and, where two
+  or more cameras see it, its world position (the point nearest to the rays through its
+  boxes' centres);
 * the similarity of a track and a subject is
   ``appearance_weight * cos(a_track, a_subject) + (1 - appearance_weight) * IoU``
-  where IoU is the mean box IoU over the cameras that see both (0 if none);
+  where IoU is the mean box IoU over the cameras that see both (0 if none); when both
+  have a position, ``position_weight`` of it goes to
+  ``exp(-d^2 / (2 position_scale^2))`` instead, ``d`` the distance between them. In a
+  huddle the boxes of neighbours overlap in every camera, so box IoU links a track to
+  whoever took its place; where they stand tells them apart;
 * tracks and subjects are matched one-to-one by the Hungarian algorithm on this
   similarity; pairs below ``min_similarity`` are not linked;
 * an unlinked subject starts a new track; a track unseen for more than
@@ -22,7 +28,7 @@ Track ids start at 1 (MOTChallenge ids are positive).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -41,21 +47,30 @@ class SubjectObservation:
         appearance: unit appearance vector (D,) (mean of the views' unit vectors,
             renormalised).
         boxes: camera name -> COCO box [x, y, w, h] in that camera's pixels.
+        position: world position (3,), or None (seen by one camera).
     """
 
     appearance: np.ndarray
     boxes: dict[str, np.ndarray] = field(default_factory=dict)
+    position: np.ndarray | None = None
 
 
 def track_similarity(
-    a: SubjectObservation, b: SubjectObservation, appearance_weight: float
+    a: SubjectObservation, b: SubjectObservation, appearance_weight: float,
+    position_weight: float = 0.0, position_scale: float = 1.0,
 ) -> float:
-    """Similarity of two observations: weighted cosine of appearance and mean box IoU."""
+    """Similarity of two observations: weighted cosine of appearance and mean box IoU, and
+    their positions' closeness (module docstring)."""
     cos = float(np.dot(unit_vectors(a.appearance), unit_vectors(b.appearance)))
     common = [c for c in a.boxes if c in b.boxes]
     ious = [box_iou_xywh(a.boxes[c], b.boxes[c])[0, 0] for c in common]
     iou = float(np.mean(ious)) if common else 0.0
-    return appearance_weight * cos + (1.0 - appearance_weight) * iou
+    sim = appearance_weight * cos + (1.0 - appearance_weight) * iou
+    if position_weight > 0 and a.position is not None and b.position is not None:
+        d2 = float(np.sum((np.asarray(a.position) - np.asarray(b.position)) ** 2))
+        near = float(np.exp(-0.5 * d2 / position_scale**2))
+        sim = (1.0 - position_weight) * sim + position_weight * near
+    return sim
 
 
 @dataclass
@@ -72,6 +87,9 @@ class SubjectTracker:
         appearance_weight: weight of the appearance cosine (the rest goes to box IoU).
         min_similarity: smallest similarity that links a subject to a track.
         max_gap: frames a track may go unseen before it is closed.
+        position_weight: share of the similarity given to the positions' closeness when
+            both observations have one (0: appearance and boxes only).
+        position_scale: distance (world units) at which closeness falls to exp(-1/2).
 
     Example:
         >>> trk = SubjectTracker()
@@ -82,11 +100,16 @@ class SubjectTracker:
     """
 
     def __init__(
-        self, appearance_weight: float = 0.5, min_similarity: float = 0.3, max_gap: int = 10
+        self, appearance_weight: float = 0.5, min_similarity: float = 0.3, max_gap: int = 10,
+        position_weight: float = 0.0, position_scale: float = 1.0,
     ) -> None:
         if not 0.0 <= appearance_weight <= 1.0:
             raise ValueError(f"appearance_weight must be in [0, 1], got {appearance_weight}")
+        if not 0.0 <= position_weight <= 1.0 or position_scale <= 0:
+            raise ValueError(f"position_weight must be in [0, 1] and position_scale > 0, got "
+                             f"{position_weight}, {position_scale}")
         self.appearance_weight = appearance_weight
+        self.position_weight, self.position_scale = position_weight, position_scale
         self.min_similarity = min_similarity
         self.max_gap = max_gap
         self.tracks: list[_Track] = []
@@ -103,15 +126,19 @@ class SubjectTracker:
         if self.tracks and keys:
             sim = np.array(
                 [
-                    [track_similarity(tr.last, subjects[k], self.appearance_weight) for k in keys]
+                    [track_similarity(tr.last, subjects[k], self.appearance_weight,
+                                      self.position_weight, self.position_scale)
+                     for k in keys]
                     for tr in self.tracks
                 ]
             )
             rows, cols = linear_sum_assignment(-sim)
             for r, c in zip(rows, cols, strict=True):
                 if sim[r, c] >= self.min_similarity:
-                    tr = self.tracks[r]
-                    tr.last, tr.last_frame = subjects[keys[c]], frame
+                    tr, obs = self.tracks[r], subjects[keys[c]]
+                    if obs.position is None and tr.last.position is not None:
+                        obs = replace(obs, position=tr.last.position)  # seen by one camera
+                    tr.last, tr.last_frame = obs, frame
                     out[keys[c]] = tr.id
         for k in keys:
             if k not in out:

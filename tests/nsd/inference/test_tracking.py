@@ -66,3 +66,39 @@ def test_box_overlap_alone_swaps_identities_that_swap_places_in_contact():
     trk = SubjectTracker(appearance_weight=0.0, min_similarity=0.0)
     ids = [trk.update(t, subjects) for t, subjects in enumerate(_episode(True))]
     assert ids[-1] == {0: 2, 1: 1}  # A took B's old box: the stale box decides, wrongly
+
+
+def _placed(app, x, position):
+    return SubjectObservation(app, {"c0": np.array([x, 10.0, 10.0, 20.0])}, np.asarray(position))
+
+
+def test_position_term_known_values_and_fallback():
+    a = _placed(A, 0, [0.0, 0.0, 0.0])
+    b = _placed(A, 0, [0.3, 0.4, 0.0])  # 0.5 apart
+    assert track_similarity(a, b, 0.5, 0.5, 0.5) == pytest.approx(0.5 + 0.5 * np.exp(-0.5))
+    assert track_similarity(a, b, 0.5, 1.0, 0.25) == pytest.approx(np.exp(-2.0))
+    # without a position on either side (one camera) the term is left out
+    assert track_similarity(a, _obs(A, 0), 0.5, 0.5, 0.5) == pytest.approx(1.0)
+
+
+def test_positions_keep_identities_where_boxes_and_appearance_cannot():
+    """Two look-alikes in a huddle: in frame 1 each one's box sits where the other's was
+    (the camera sees them side by side, and they step across each other's place in the
+    image) while in the world they stay put. Boxes alone swap them; positions do not."""
+    frames = [{0: _placed(A, 0, [0.0, 0.0, 0.0]), 1: _placed(A, 8, [0.5, 0.0, 0.0])},
+              {0: _placed(A, 8, [0.02, 0.0, 0.0]), 1: _placed(A, 0, [0.52, 0.0, 0.0])}]
+    boxes = SubjectTracker(appearance_weight=0.5, min_similarity=0.0)
+    placed = SubjectTracker(appearance_weight=0.5, min_similarity=0.0, position_weight=0.5,
+                            position_scale=0.1)
+    assert [boxes.update(t, f) for t, f in enumerate(frames)][1] == {0: 2, 1: 1}
+    assert [placed.update(t, f) for t, f in enumerate(frames)][1] == {0: 1, 1: 2}
+
+
+def test_a_track_keeps_its_last_position_through_a_one_camera_frame():
+    trk = SubjectTracker(appearance_weight=0.5, min_similarity=0.0, position_weight=0.5,
+                         position_scale=0.1)
+    trk.update(0, {0: _placed(A, 0, [0.0, 0.0, 0.0])})
+    trk.update(1, {0: _obs(A, 0)})  # seen by one camera: no position
+    assert trk.tracks[0].last.position is not None
+    with pytest.raises(ValueError, match="position_weight"):
+        SubjectTracker(position_weight=1.5)
