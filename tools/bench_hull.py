@@ -18,7 +18,8 @@ Rows per scene: ``before`` (the given checkout of the commit before, scored in a
 subprocess with its own code; left out without ``--before``), ``now`` (the defaults), and
 ``now`` with one rule put back (``min_views=2``, ``owner_radius=1.5``) or the seeds' spread
 at 1.5 instead of 4. Synthetic scenes of 2-6 individuals, 4-8 cameras, apart and in contact
-(``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128, 48^3 voxels; metrics as
+(``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128, 48^3 voxels, the shipped
+background estimate (``data.background``, as training and ``nsd-eval``); metrics as
 ``nsd-eval`` (nsd/evaluation/decomposition.py).
 
 Writes ``docs/benchmarks/hull.{md,json}``.
@@ -40,6 +41,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from nsd.core.config import compose_app  # noqa: E402
 from nsd.cues import occupancy  # noqa: E402
 from nsd.cues.occupancy import hull_min_views, voxel_grid  # noqa: E402
 from nsd.evaluation.hull_baseline import evaluate_hull  # noqa: E402
@@ -80,7 +82,7 @@ from nsd.cues.occupancy import voxel_grid
 from nsd.evaluation.hull_baseline import evaluate_hull
 from nsd.io.ground_truth import GroundTruth
 from nsd.io.scene_data import SceneData
-data = SceneData(sys.argv[2], (128, 128))
+data = SceneData(sys.argv[2], (128, 128), background=sys.argv[5])
 idx = np.asarray(json.loads(sys.argv[4]))
 m = evaluate_hull(data, idx, GroundTruth.load(sys.argv[2]), voxel_grid(data.rig, (128, 128), 48),
                   int(sys.argv[3]))
@@ -110,6 +112,7 @@ def main() -> None:
     torch.set_num_threads(2)
     root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
     defaults = {"OWNER_RADIUS": occupancy.OWNER_RADIUS, "SEED_SPREAD": occupancy.SEED_SPREAD}
+    background = str(compose_app("train").data.background)  # as training and nsd-eval
     rows = []
     for i, name in enumerate(args.scenes):
         k, synth = SCENES[name]
@@ -117,14 +120,14 @@ def main() -> None:
         if synth is not None:
             subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", *synth], check=True,
                            capture_output=True)
-        data = SceneData(scene, (128, 128))
+        data = SceneData(scene, (128, 128), background=background)
         gt = GroundTruth.load(scene)
         idx = _frames(data, args.frames)
         V = data.num_views
         if args.before:
             t0 = time.perf_counter()
             out = subprocess.run([sys.executable, "-c", BEFORE, str(args.before), str(scene),
-                                  str(k), json.dumps(idx.tolist())],
+                                  str(k), json.dumps(idx.tolist()), background],
                                  check=True, capture_output=True, text=True)
             m = json.loads(out.stdout.strip().splitlines()[-1])
             rows.append(_row(name, V, "before", m, time.perf_counter() - t0, len(idx)))
@@ -146,7 +149,8 @@ def main() -> None:
     write_report(
         "hull", "The hull-only decomposition: before, now, and each rule put back", rows,
         notes=("Hull-only decomposition (nsd/evaluation/hull_baseline.py, no learning) of "
-               f"{args.frames} held-out frames per scene at 128 x 128, 48^3 voxels. "
+               f"{args.frames} held-out frames per scene at 128 x 128, 48^3 voxels, "
+               f"background `{background}` (the shipped `data.background`). "
                "`before`: the commit before the change, its own code; `now`: a voxel kept "
                "when a majority of the cameras see it (`min_views`), a pixel owned by the "
                "front-most individual with a voxel within 0.6 voxel sides, the individuals "

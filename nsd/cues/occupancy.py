@@ -124,7 +124,7 @@ def hull_min_views(num_views: int, setting: int | str = "auto") -> int:
     A voxel seen by two cameras only is carved by two silhouettes: near the edges of the
     cameras' fields, where few see, such voxels form ghost bodies between and beside the
     individuals that join them in one component or take their slots
-    (docs/benchmarks/hull.md: with 2 of 6 cameras, detection 0.58; with 4 of 6, 0.95).
+    (docs/benchmarks/hull.md: hull-only detection with 2 of 6 cameras 0.55, with 4 of 6 1.00).
     A number is used as given (at least 2, at most ``num_views``).
     """
     if setting == "auto":
@@ -198,16 +198,16 @@ def occupied_voxels(
 
 # owned_pixels' radius and reach in voxel sides (a voxel's side in pixels at the median depth
 # of the view's voxels). A radius of 1.5 gave every pixel within a voxel and a half of an
-# individual's hull to the front-most one, so the front individual's hull, fat along the
-# rays of the views that do not carve it, took the rims of those behind it: 0.6 (about a
-# voxel's footprint) lifts hull-only detection of three huddling bipeds 0.78 -> 0.87 and
-# halves the merge rate (docs/benchmarks/hull.md).
+# individual's hull to the front-most one, so the front individual's hull, fat along the rays
+# of the views that do not carve it, took the rims of those behind it: 0.6 (about a voxel's
+# footprint); put back to 1.5, hull-only detection of three huddling bipeds falls 0.98 -> 0.83
+# and the merge rate rises 0.28 -> 0.84 (docs/benchmarks/hull.md).
 OWNER_RADIUS = 0.6
 OWNER_REACH = 4.5
 # cluster_individuals with the count known: seeds of the k-means at least SEED_SPREAD typical
-# radii apart; columns beyond GHOST_SPREAD radii of their cluster dropped. Chosen on five
-# synthetic scenes (docs/benchmarks/hull.md): hull-only detection of three huddling
-# bipeds 0.87 -> 0.96, of six 0.70 -> 0.93 (spread 1.5: 0.88; 5: 0.94).
+# radii apart; columns beyond GHOST_SPREAD radii of their cluster dropped. With 1.5 radii,
+# hull-only detection of six huddling bipeds 0.95 -> 0.93, of the mixed group 0.62 -> 0.59
+# (docs/benchmarks/hull.md); 4 was chosen on the scenes of that table.
 SEED_SPREAD = 4.0
 GHOST_SPREAD = 3.0
 KMEANS_ITERATIONS = 10
