@@ -101,7 +101,7 @@ class VoxelGrid:
     up: Tensor
     focal: Tensor
     image_size: tuple[int, int]
-    min_views: int = 2
+    min_views: int
 
 
 def working_volume(rig: CameraRig) -> tuple[np.ndarray, float, np.ndarray]:

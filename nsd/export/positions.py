@@ -27,8 +27,8 @@ from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_write_text
 from nsd.cues.triangulation import nearest_point_to_rays
 
-__all__ = ["POSITION_COLUMNS", "mask_centroid", "mask_centroids", "read_positions",
-           "triangulate_positions", "write_positions"]
+__all__ = ["POSITION_COLUMNS", "mask_centroid", "mask_centroids", "point_from_views",
+           "read_positions", "triangulate_positions", "write_positions"]
 
 POSITION_COLUMNS = ("frame", "identity", "x", "y", "z", "views")
 
@@ -77,15 +77,24 @@ def triangulate_positions(
         cams = {}
         for camera, uv in views:  # one ray per camera (two rows of one id: their mean)
             cams.setdefault(camera, []).append(uv)
-        if len(cams) < 2:
-            continue
-        origins = np.stack([rig[c].center for c in cams])
-        rays = np.stack([rig[c].unproject(np.mean(uv, 0)[None])[0] for c, uv in cams.items()])
-        try:
-            out[key] = (nearest_point_to_rays(origins, rays), len(cams))
-        except ValueError:  # parallel rays
-            continue
+        point = point_from_views(rig, {c: np.mean(uv, 0) for c, uv in cams.items()})
+        if point is not None:
+            out[key] = (point, len(cams))
     return out
+
+
+def point_from_views(rig: CameraRig, pixels: dict[str, np.ndarray]) -> np.ndarray | None:
+    """The world point (3,) nearest to the rays through one pixel (x, y) per camera (native
+    pixels, lens distortion undone), or None with fewer than two cameras or parallel rays."""
+    if len(pixels) < 2:
+        return None
+    origins = np.stack([rig[c].center for c in pixels])
+    rays = np.stack([rig[c].unproject(np.asarray(uv, np.float64)[None])[0]
+                     for c, uv in pixels.items()])
+    try:
+        return nearest_point_to_rays(origins, rays)
+    except ValueError:  # parallel rays
+        return None
 
 
 def write_positions(path: Path, positions: dict[tuple[int, int], tuple[np.ndarray, int]]) -> None:

@@ -21,8 +21,8 @@ from pycocotools import mask as mask_utils
 
 from nsd.core.memory import trim_heap
 from nsd.cues.occupancy import working_volume
-from nsd.cues.triangulation import nearest_point_to_rays
 from nsd.export.inputs import ExportInputs, ImageEntries, to_model_size
+from nsd.export.positions import point_from_views
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
 from nsd.inference.single import associate_views
@@ -109,7 +109,7 @@ class SubjectWriter:
     def _native_refine(self) -> bool:
         """``native_refine``: true, false, or auto (when the footage is larger than the
         training frames; at equal size the masks are the training-size ones)."""
-        setting = self.cfg.get("native_refine", False)
+        setting = self.cfg["native_refine"]
         if setting == "auto":
             H, W = self.inp.trained.frame_hw
             return any(s.size[0] > W or s.size[1] > H for s in self.inp.footage.sources)
@@ -161,7 +161,7 @@ class SubjectWriter:
                 float(self.cfg.threshold),
                 {"camera": cam, "frame": t},
                 (views[v], self.native_backgrounds[v]) if refine else None,
-                bool(self.cfg.get("native_colour", True)),
+                bool(self.cfg["native_colour"]),
             )
             for r in res:
                 r["association_id"] = int(assoc[v, r["slot"]])
@@ -177,20 +177,6 @@ class SubjectWriter:
             return 2 * (2 * half / int(self.inference.resolution))
         return float(setting)
 
-    def _position(self, boxes: dict[str, np.ndarray]) -> np.ndarray | None:
-        """World point nearest to the rays through the boxes' centres (native pixels), or
-        None with fewer than two cameras."""
-        if len(boxes) < 2:
-            return None
-        rig = self.inp.footage.rig
-        origins = np.stack([rig[c].center for c in boxes])
-        rays = np.stack([rig[c].unproject((b[:2] + b[2:] / 2)[None])[0]
-                         for c, b in boxes.items()])
-        try:
-            return nearest_point_to_rays(origins, rays)
-        except ValueError:  # parallel rays
-            return None
-
     def _observations(self, dec, first: int, per_view: list[list[dict]]) -> dict:
         """One :class:`SubjectObservation` per association id: mean appearance, boxes and
         world position."""
@@ -204,7 +190,9 @@ class SubjectWriter:
             boxes = {cam: box for cam, box, _ in obs}
             out[aid] = SubjectObservation(
                 unit_vectors(np.mean([unit_vectors(a[: self.dims]) for _, _, a in obs], 0)),
-                boxes, self._position(boxes) if self.tracker.position_weight > 0 else None)
+                boxes, point_from_views(self.inp.footage.rig,  # through the boxes' centres
+                                        {c: b[:2] + b[2:] / 2 for c, b in boxes.items()})
+                if self.tracker.position_weight > 0 else None)
         return out
 
     def _write_subject(
