@@ -117,7 +117,7 @@ def working_volume(rig: CameraRig) -> tuple[np.ndarray, float, np.ndarray]:
     return focus, half, up / np.linalg.norm(up)
 
 
-def hull_min_views(num_views: int, setting: int | str = "auto") -> int:
+def hull_min_views(num_views: int, setting: int | str = "auto", key: str = "min_views") -> int:
     """Views that must see a voxel (and all of them show foreground there) for the hull to
     hold it: ``auto`` is a majority of the cameras (2 of 2 or 3, 3 of 4, 4 of 6, 5 of 8).
 
@@ -125,13 +125,14 @@ def hull_min_views(num_views: int, setting: int | str = "auto") -> int:
     cameras' fields, where few see, such voxels form ghost bodies between and beside the
     individuals that join them in one component or take their slots
     (docs/benchmarks/hull.md: hull-only detection with 2 of 6 cameras 0.55, with 4 of 6 1.00).
-    A number is used as given (at least 2, at most ``num_views``).
+    A number is used as given (at least 2, at most ``num_views``); ``key`` names the setting
+    in the error.
     """
     if setting == "auto":
         return max(2, num_views // 2 + 1) if num_views >= 2 else num_views
     n = int(setting)
     if not 2 <= n <= max(2, num_views):
-        raise ConfigError(f"min_views must be auto or between 2 and the {num_views} cameras, "
+        raise ConfigError(f"{key} must be auto or between 2 and the {num_views} cameras, "
                           f"got {setting!r}")
     return n
 
@@ -143,6 +144,7 @@ def voxel_grid(
     centre: np.ndarray | None = None,
     half_size: float | None = None,
     min_views: int | str = "auto",
+    key: str = "min_views",
 ) -> VoxelGrid:
     """Precompute a ``resolution``^3 grid over the working volume and its projections.
 
@@ -151,7 +153,7 @@ def voxel_grid(
         image_size: (H, W) of the frames.
         resolution: voxels per side.
         centre, half_size: working volume (default: :func:`working_volume`).
-        min_views: :func:`hull_min_views`' setting.
+        min_views: :func:`hull_min_views`' setting; ``key`` its name in an error.
     """
     focus, half, up = working_volume(rig)
     centre = focus if centre is None else np.asarray(centre, float)
@@ -171,7 +173,7 @@ def voxel_grid(
     focal = (cams.K[:, 0, 0] + cams.K[:, 1, 1]) / 2
     return VoxelGrid(
         centres, size, pixel, inside, uv, z, torch.as_tensor(up, dtype=torch.float32), focal,
-        (H, W), hull_min_views(len(rig), min_views),
+        (H, W), hull_min_views(len(rig), min_views, key),
     )
 
 

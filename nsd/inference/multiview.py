@@ -127,7 +127,7 @@ class InferenceSettings(ConfigSection):
                 "inference.views=multiview needs at least 2 cameras; use inference.views=single"
             )
         return voxel_grid(rig, tuple(image_size), int(self.resolution),
-                          min_views=self.min_views)
+                          min_views=self.min_views, key="inference.min_views")
 
 
 def fuse_detections(

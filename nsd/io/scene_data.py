@@ -152,7 +152,8 @@ class SceneData:
         frames' size, on disk next to the frames: only the mask prior reads it); ``min_views``:
         :func:`nsd.cues.occupancy.hull_min_views`' setting."""
 
-        grid = voxel_grid(self.rig, self.frame_hw, resolution, min_views=min_views)
+        grid = voxel_grid(self.rig, self.frame_hw, resolution, min_views=min_views,
+                          key="prior_proposal.min_views")
         boxes, depths, valid = [], [], []
         T, V, _, H, W = self.frames.shape
         # (T, V, H, W) int8: hull individual, -1 none; on disk, as the frames
