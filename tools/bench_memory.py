@@ -10,8 +10,8 @@ what cannot be dropped) and its peak resident memory (VmHWM: also file pages the
 drop), with the frames in the disk store (``nsd/io/frame_store.py``, the default) and,
 as the baseline, held in memory (the former behaviour, forced by making the store's file
 unwritable). Export rows: ``nsd-export`` of the first T frames (every camera) with a
-checkpoint of 20 training steps on the same recording, its peak resident memory
-(``ru_maxrss`` of the export process, alone in a wrapper process).
+checkpoint of 20 training steps on the same recording, in one process (``workers=1``), its
+peak resident memory (``ru_maxrss`` of the export process, alone in a wrapper process).
 
 Writes ``docs/benchmarks/memory.{md,json}``.
 """
@@ -66,7 +66,7 @@ EXPORT = r"""
 import json, resource, subprocess, sys
 nsd_export, checkpoint, scene, frames, out = sys.argv[1:6]
 subprocess.run([nsd_export, f"checkpoint={checkpoint}", f"scene={scene}", f"out={out}",
-                f"frames={{start: 0, stop: {frames}, step: 1}}", "threads=2"],
+                f"frames={{start: 0, stop: {frames}, step: 1}}", "threads=2", "workers=1"],
                check=True, capture_output=True)
 print(json.dumps({"peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
 """
@@ -121,7 +121,9 @@ def _measure(root: Path, frames: int) -> None:
                "RssFile: file pages resident now (the OS drops them under pressure); "
                "peak_rss_mb: VmHWM, the peak of both. frame_bytes_mb: the frames' size. "
                "`export (disk)`: nsd-export of the first T frames with a 20-step checkpoint, "
-               "the export process's peak resident memory (ru_maxrss)."),
+               "`workers=1` (one process), its peak resident memory (ru_maxrss); with "
+               "`workers: auto` every worker process has its own peak (the manifest's "
+               "`timing.worker_peak_rss_mb`)."),
     )
 
 

@@ -14,6 +14,7 @@ import io
 import os
 import shutil
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -77,10 +78,16 @@ def atomic_save_torch(obj: Any, path: str | os.PathLike) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def atomic_save_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
-    """``np.savez_compressed`` to ``path`` atomically."""
+def atomic_save_npz(path: str | os.PathLike, *, compresslevel: int = 6,
+                    **arrays: np.ndarray) -> None:
+    """A compressed ``.npz`` (what ``np.savez_compressed`` writes and ``np.load`` reads) to
+    ``path`` atomically, with zlib's ``compresslevel`` (6: NumPy's own; 1 is about twice as
+    fast)."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=compresslevel) as z:
+        for name, value in arrays.items():
+            with z.open(f"{name}.npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
     atomic_write_bytes(path, buf.getvalue())
 
 

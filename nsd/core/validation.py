@@ -235,7 +235,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "frames": ALWAYS, "batch_size": POS, "threshold": _r("number", above=0, high=0.999),
         "refine": _r("str", choices=("residual", "none")),
         "native_refine": _r("bool", allow=("auto",)),
-        "native_colour": _r("bool"),
+        "native_colour": _r("bool"), "workers": _r("int", low=1, allow=("auto",)),
         "crop.size": _r("int", low=8), "crop.chunk": POS,
         "embeddings.format": _r("str", choices=("parquet", "npz")),
         "embeddings.row_group_size": POS, "tracking.appearance_weight": FRACTION,

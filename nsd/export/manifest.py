@@ -57,10 +57,14 @@ def _selection(spec: Any) -> Any:
 
 @dataclass(frozen=True)
 class Timing:
-    """Wall times of an export: the streaming pass and the embedding views (seconds)."""
+    """Wall times of an export: the streaming pass and the embedding views (seconds); the
+    processes that decomposed the batches and the largest peak resident size of one (MiB,
+    0 without workers)."""
 
     seconds: float
     views_seconds: float
+    workers: int = 1
+    worker_peak_mb: float = 0.0
 
 
 def build_manifest(
@@ -151,4 +155,6 @@ def _timing_section(timing: Timing, n_frames: int, V: int) -> dict[str, float]:
         "frames_per_second": round(n_frames / max(timing.seconds, 1e-9), 3),
         "camera_frames_per_second": round(n_frames * V / max(timing.seconds, 1e-9), 3),
         "views_seconds": round(timing.views_seconds, 3),
+        "workers": timing.workers,
+        "worker_peak_rss_mb": round(timing.worker_peak_mb, 1),
     }

@@ -19,9 +19,10 @@ association score) and the subjects are linked over time
       manifest.json         # version, checkpoint, config, scene, counts, checksums
 
 Streaming: frames are decoded one at a time and decomposed ``batch_size``
-instants at a time; COCO entries, crops, embedding rows and MOT lines are
-written as they are produced, so memory does not grow with the footage's length
-(the projector and t-SNE use a bounded random sample).
+instants at a time (by ``workers`` processes, :mod:`nsd.export.parallel`); COCO entries,
+crops, embedding rows and MOT lines are written in frame order as they are produced, so
+memory does not grow with the footage's length (the projector and t-SNE use a bounded
+random sample).
 
 Atomicity: the folder is built under a hidden temporary name next to ``out``
 and renamed into place at the end. An interrupted export (Ctrl-C, SIGTERM, a
@@ -42,6 +43,7 @@ import datetime as _dt
 import json
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,13 +53,15 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from nsd.core.atomic import atomic_directory, atomic_write_text
-from nsd.core.threads import set_threads
+from nsd.core.threads import available_cores, set_threads
 from nsd.export.config import check_export_config
 from nsd.export.inputs import ExportInputs, prepare_inputs
 from nsd.export.manifest import Timing, build_manifest, share_folder, toolkit_version
+from nsd.export.parallel import BatchPool, resolve_workers
 from nsd.export.writer import SubjectWriter
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embedding_views import plot_tsne, write_projector
+from nsd.io.footage import ImageFolderSource
 from nsd.io.frame_selection import iter_selected
 
 log = logging.getLogger(__name__)
@@ -76,6 +80,7 @@ class ExportSummary:
         subjects: COCO annotations (subject-camera-frames).
         tracks: distinct subject ids.
         seconds: wall time of the streaming pass (decode, decompose, write).
+        workers: processes that decomposed the batches (``workers``).
         manifest: the manifest's content.
     """
 
@@ -85,6 +90,7 @@ class ExportSummary:
     subjects: int
     tracks: int
     seconds: float
+    workers: int = 1
     manifest: dict[str, Any] = field(repr=False, default_factory=dict)
 
 
@@ -105,6 +111,8 @@ def export_subjects(cfg: DictConfig) -> ExportSummary:
     if out.exists() and not cfg.overwrite:
         raise FileExistsError(f"{out} exists; pass overwrite=true to replace it")
     inp = prepare_inputs(cfg)
+    device = next(inp.trained.model.parameters()).device.type
+    workers = resolve_workers(cfg.workers, int(cfg.threads), device)
     asked = InferenceSettings.from_config(cfg.get("inference"))
     used = asked.for_views(len(inp.footage.rig))
     if used != asked:
@@ -113,7 +121,7 @@ def export_subjects(cfg: DictConfig) -> ExportSummary:
     with atomic_directory(out, overwrite=bool(cfg.overwrite)) as tmp:
         writer = SubjectWriter(inp, cfg, tmp)
         t0 = time.perf_counter()
-        _stream(writer, inp, cfg)
+        worker_peak = _stream(writer, inp, cfg, workers)
         created = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         writer.close(
             {
@@ -126,7 +134,7 @@ def export_subjects(cfg: DictConfig) -> ExportSummary:
         seconds = time.perf_counter() - t0
         t1 = time.perf_counter()
         views_written = _write_views(writer, cfg, tmp)
-        timing = Timing(seconds, time.perf_counter() - t1)
+        timing = Timing(seconds, time.perf_counter() - t1, workers, worker_peak)
         manifest = build_manifest(cfg, inp, writer, tmp, created, views_written, timing)
         atomic_write_text(tmp / "manifest.json", json.dumps(manifest, indent=2, default=str))
         share_folder(tmp)
@@ -138,12 +146,30 @@ def export_subjects(cfg: DictConfig) -> ExportSummary:
         counts["subjects"],
         counts["tracks"],
         seconds,
+        workers,
         manifest,
     )
 
 
-def _stream(writer: SubjectWriter, inp: ExportInputs, cfg: DictConfig) -> None:
-    """Decode the selected frames one instant at a time and write them in batches."""
+def _batches(inp: ExportInputs, size: int,
+             decode: bool) -> Iterator[list[tuple[int, list[np.ndarray] | None]]]:
+    """The selected frames, ``size`` instants per batch: decoded here one instant at a time,
+    or (``decode`` false: image files, read by whoever decomposes the batch) as indices."""
+    selected = (iter_selected(inp.footage, inp.frames) if decode
+                else ((int(t), None) for t in inp.frames))
+    items: list[tuple[int, list[np.ndarray] | None]] = []
+    for t, views in selected:
+        items.append((t, views))
+        if len(items) == size:
+            yield items
+            items = []
+    if items:
+        yield items
+
+
+def _stream(writer: SubjectWriter, inp: ExportInputs, cfg: DictConfig, workers: int) -> float:
+    """Decompose the batches (``workers`` processes) and write them in order; returns the
+    largest peak resident size of one worker in MiB (0 without workers)."""
     bar = tqdm(
         total=len(inp.frames),
         unit="frame",
@@ -151,17 +177,15 @@ def _stream(writer: SubjectWriter, inp: ExportInputs, cfg: DictConfig) -> None:
         dynamic_ncols=True,
         disable=not cfg.progress,
     )
-    items: list[tuple[int, list[np.ndarray]]] = []
-    for t, views in iter_selected(inp.footage, inp.frames):
-        items.append((t, views))
-        if len(items) == int(cfg.batch_size):
-            writer.batch(items)
+    threads = int(cfg.threads) or available_cores()
+    files = all(isinstance(s, ImageFolderSource) for s in inp.footage.sources)
+    with BatchPool(writer.decompose, workers, threads) as pool:
+        batches = _batches(inp, int(cfg.batch_size), decode=workers == 1 or not files)
+        for items, results in pool.map(batches):
+            writer.write(results)
             bar.update(len(items))
-            items = []
-    if items:
-        writer.batch(items)
-        bar.update(len(items))
     bar.close()
+    return pool.worker_peak_mb
 
 
 def _write_views(writer: SubjectWriter, cfg: DictConfig, root: Path) -> dict[str, bool]:
@@ -184,6 +208,7 @@ def run(cfg: DictConfig) -> ExportSummary:
     print(
         f"exported {s.frames} frames ({s.camera_frames} camera-frames, {s.subjects} subjects, "
         f"{s.tracks} tracks) to {s.out} in {s.seconds:.1f} s "
-        f"({s.frames / max(s.seconds, 1e-9):.1f} frames/s)"
+        f"({s.frames / max(s.seconds, 1e-9):.1f} frames/s, {s.workers} worker"
+        f"{'s' if s.workers > 1 else ''})"
     )
     return s

@@ -1,14 +1,17 @@
 """The writers of one export folder and the per-batch work (:class:`SubjectWriter`).
 
-Each batch of instants is decomposed (:func:`nsd.inference.multiview.decompose_views`), its
-windows get cross-view subject ids and track ids, and every subject-camera-frame is written
-as it is produced: a COCO annotation, a crop, a MOT line, a sampled vector and a table row
-(:data:`COLUMN_TYPES`; ``datasets/export.md`` lists every column).
+Each batch of instants is decomposed (:meth:`SubjectWriter.decompose`:
+:func:`nsd.inference.multiview.decompose_views`, cross-view subject ids, COCO results and crops
+of each instant; this part may run in a worker process, :mod:`nsd.export.parallel`), then its
+subjects get track ids and every subject-camera-frame is written in order
+(:meth:`SubjectWriter.write`): a COCO annotation, a crop, a MOT line, a sampled vector and a
+table row (:data:`COLUMN_TYPES`; ``datasets/export.md`` lists every column).
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -29,17 +32,37 @@ from nsd.inference.single import associate_views
 from nsd.inference.tracking import SubjectObservation, SubjectTracker
 from nsd.io.coco import CocoStreamWriter
 from nsd.io.coco_results import SUBJECT_CATEGORY, decomposition_to_coco
-from nsd.io.crops import CropWriter
+from nsd.io.crops import CropWriter, cut_crop, square_crop_box
 from nsd.io.embedding_views import Reservoir
 from nsd.io.embeddings import EmbeddingWriter
 from nsd.io.mot import MotWriter
 from nsd.ops.vectors import unit_vectors
 
-__all__ = ["CATEGORIES", "COLUMN_TYPES", "SubjectWriter", "columns"]
+__all__ = ["CATEGORIES", "COLUMN_TYPES", "FrameResult", "SubjectWriter", "columns"]
 
 
 JPEG_QUALITY = 95  # frame_images: the exported frames as JPEG of this quality
 CATEGORIES = [{"id": SUBJECT_CATEGORY, "name": "subject", "supercategory": "subject"}]
+
+
+@dataclass
+class FrameResult:
+    """One instant decomposed, ready to be tracked and written.
+
+    Attributes:
+        t: frame index.
+        per_view: per camera, its COCO results (native size, with ``association_id``).
+        apps: per camera and result, the appearance vector (A,) float32.
+        crops: per camera and result, (crop window (x0, y0, side), crop uint8 (S, S, 3),
+            crop mask uint8 (S, S), thumbnail uint8 (s, s, 3)).
+        observations: per association id, what the tracker links over time.
+    """
+
+    t: int
+    per_view: list[list[dict]]
+    apps: list[list[np.ndarray]]
+    crops: list[list[tuple]]
+    observations: dict[int, SubjectObservation]
 
 
 class SubjectWriter:
@@ -69,10 +92,31 @@ class SubjectWriter:
             else None
         )
         self.frames_done = 0
-        self.native_backgrounds: list[np.ndarray] | None = None  # native_refine, on first use
+        self.native_backgrounds = (  # before any worker is forked, which inherits them
+            [inp.footage.native_background(v) for v in range(len(self.names))]
+            if self._native_refine() else None)
 
-    def batch(self, items: list[tuple[int, list[np.ndarray]]]) -> None:
-        """Decompose and write B instants: ``items`` = [(t, native views)]."""
+    def batch(self, items: list[tuple[int, list[np.ndarray] | None]]) -> None:
+        """Decompose and write B instants: ``items`` = [(t, native views or None)]."""
+        self.write(self.decompose(items))
+
+    def write(self, results: list[FrameResult]) -> None:
+        """Track and write B decomposed instants, in order (this process only)."""
+        for res in results:
+            self._write_frame(res)
+        self.frames_done += len(results)
+
+    @torch.no_grad()
+    def decompose(self, items: list[tuple[int, list[np.ndarray] | None]]) -> list[FrameResult]:
+        """Decompose B instants into what :meth:`write` needs; ``items`` = [(t, native views)],
+        views None: read here (footage with random access, so that workers decode too). Writes
+        no shared file (``frame_images``: each frame's own), so it may run in a worker."""
+        sources = self.inp.footage.sources
+        items = [(t, [s.read(t) for s in sources] if views is None else views)
+                 for t, views in items]
+        if self.cfg.get("frame_images", False):
+            for t, views in items:
+                self._frame_images(t, views)
         V = len(self.names)
         H, W = self.inp.trained.frame_hw
         small = np.stack([to_model_size(views, (W, H)) for _, views in items])  # B, V, H, W, 3
@@ -88,13 +132,10 @@ class SubjectWriter:
             mask_threshold=float(self.cfg.threshold),
             refine=str(self.cfg.refine),
         )
-        for b, (t, views) in enumerate(items):
-            self._frame(dec, b * V, t, views)
-            if self.cfg.get("frame_images", False):
-                self._frame_images(t, views)
-        self.frames_done += len(items)
+        out = [self._frame(dec, b * V, t, views) for b, (t, views) in enumerate(items)]
         del dec, images, bgs, small
         trim_heap()
+        return out
 
     def _frame_images(self, t: int, views: list[np.ndarray]) -> None:
         """The native frames as JPEG files, where the COCO ``file_name`` points
@@ -115,15 +156,35 @@ class SubjectWriter:
             return any(s.size[0] > W or s.size[1] > H for s in self.inp.footage.sources)
         return bool(setting)
 
-    def _frame(self, dec, first: int, t: int, views: list[np.ndarray]) -> None:
-        """Write instant ``t``, whose views are rows ``first ..`` of ``dec``."""
+    def _frame(self, dec, first: int, t: int, views: list[np.ndarray]) -> FrameResult:
+        """Instant ``t``, whose views are rows ``first ..`` of ``dec``: COCO results, appearance
+        vectors and crops."""
         assoc = self._associate(dec, first)
         per_view = self._coco_results(dec, first, t, assoc, views)
-        track = self.tracker.update(t, self._observations(dec, first, per_view))
+        apps = [[dec.app[first + v, r["slot"]].numpy().astype(np.float32) for r in res]
+                for v, res in enumerate(per_view)]
+        size, margin = int(self.cfg.crop.size), float(self.cfg.crop.margin)
+        thumb = int(self.cfg.views.thumbnail)
+        crops = []
+        for v, res in enumerate(per_view):
+            crops.append([])
+            for r in res:
+                window = square_crop_box(r["bbox"], margin)
+                mask = mask_utils.decode(r["segmentation"]).astype(bool)
+                crop, m = cut_crop(views[v], mask, window, size)
+                small = cv2.resize(crop, (thumb, thumb), interpolation=cv2.INTER_AREA)
+                crops[-1].append((window, crop, m, small))
+        return FrameResult(t, per_view, apps, crops, self._observations(per_view, apps))
+
+    def _write_frame(self, res: FrameResult) -> None:
+        """Track and write one decomposed instant."""
+        for v in range(len(self.names)):
+            self.coco.add_image(self.inp.images(v, res.t))
+        track = self.tracker.update(res.t, res.observations)
         rows: dict[str, list] = defaultdict(list)
         for v, cam in enumerate(self.names):
-            for r in per_view[v]:
-                self._write_subject(dec, first + v, cam, t, views[v], r, track, rows)
+            for r, app, crop in zip(res.per_view[v], res.apps[v], res.crops[v], strict=True):
+                self._write_subject(cam, res.t, r, app, crop, track, rows)
         if rows:
             self.embeddings.write(columns(rows))
 
@@ -145,13 +206,9 @@ class SubjectWriter:
         """Each view's COCO results at its native size, with their ``association_id``
         (``native_refine``: masks refined at native resolution, :mod:`nsd.cues.native`)."""
         per_view = []
-        refine = self._native_refine()
-        if refine and self.native_backgrounds is None:
-            self.native_backgrounds = [self.inp.footage.native_background(v)
-                                       for v in range(len(self.names))]
+        refine = self.native_backgrounds is not None
         for v, cam in enumerate(self.names):
             image = self.inp.images(v, t)
-            self.coco.add_image(image)
             native = (int(image["height"]), int(image["width"]))
             res = decomposition_to_coco(
                 dec,
@@ -177,13 +234,13 @@ class SubjectWriter:
             return 2 * (2 * half / int(self.inference.resolution))
         return float(setting)
 
-    def _observations(self, dec, first: int, per_view: list[list[dict]]) -> dict:
+    def _observations(self, per_view: list[list[dict]],
+                      apps: list[list[np.ndarray]]) -> dict[int, SubjectObservation]:
         """One :class:`SubjectObservation` per association id: mean appearance, boxes and
         world position."""
         observed: dict[int, list[tuple[str, np.ndarray, np.ndarray]]] = defaultdict(list)
         for v, cam in enumerate(self.names):
-            for r in per_view[v]:
-                app = dec.app[first + v, r["slot"]].numpy()
+            for r, app in zip(per_view[v], apps[v], strict=True):
                 observed[r["association_id"]].append((cam, np.asarray(r["bbox"]), app))
         out = {}
         for aid, obs in observed.items():
@@ -195,28 +252,14 @@ class SubjectWriter:
                 if self.tracker.position_weight > 0 else None)
         return out
 
-    def _write_subject(
-        self,
-        dec,
-        row: int,
-        cam: str,
-        t: int,
-        view: np.ndarray,
-        r: dict,
-        track: dict,
-        rows: dict[str, list],
-    ) -> None:
+    def _write_subject(self, cam: str, t: int, r: dict, app: np.ndarray, crop: tuple,
+                       track: dict, rows: dict[str, list]) -> None:
         """One subject-camera-frame: COCO annotation, crop, MOT line, sample, table row."""
         sid = track[r["association_id"]]
         ann_id = self.coco.add_annotation({**r, "subject_id": sid, "iscrowd": 0})
-        mask = mask_utils.decode(r["segmentation"]).astype(bool)
-        crop, _ = self.crops.add(
-            ann_id, sid, cam, t, view, mask, r["bbox"], float(self.cfg.crop.margin)
-        )
+        window, image, mask, small = crop
+        self.crops.put(ann_id, sid, cam, t, window, r["bbox"], image, mask)
         self.mot.write(cam, t, sid, r["bbox"], r["score"])
-        app = dec.app[row, r["slot"]].numpy().astype(np.float32)
-        thumb = int(self.cfg.views.thumbnail)
-        small = cv2.resize(crop, (thumb, thumb), interpolation=cv2.INTER_AREA)
         self.sample.offer(app, small, (sid, cam, t))
         x, y, w, h = r["bbox"]
         values = {

@@ -12,6 +12,9 @@ Its mask is the subject's visible mask resampled the same way (bilinear, then
       crops-000001.npz      # ids int64 (n,): the crop's annotation id
       ...
 
+Each full chunk is compressed and written by a thread while the export goes on (zlib lets
+other threads run meanwhile), at zlib level :data:`COMPRESSION`.
+
 ``index.csv`` names the file and row of every crop and its crop window
 (``crop_x``, ``crop_y``, ``crop_side``: top-left corner and side in native
 pixels, pixel edges) and the subject's box (COCO ``[x, y, w, h]``).
@@ -22,6 +25,7 @@ from __future__ import annotations
 import csv
 import os
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -38,6 +42,7 @@ __all__ = [
     "square_crop_box",
 ]
 
+COMPRESSION = 1  # zlib level of the chunks: 2.2x faster than level 6, files 1 % larger (crops)
 INDEX_COLUMNS = (
     "id",
     "subject_id",
@@ -114,6 +119,8 @@ class CropWriter:
         self._index_file = (self.folder / "index.csv").open("w", newline="", encoding="utf-8")
         self._index = csv.writer(self._index_file)
         self._index.writerow(INDEX_COLUMNS)
+        self._saver = ThreadPoolExecutor(1, thread_name_prefix="crops")
+        self._saving: Future | None = None
 
     def _file_name(self, k: int) -> str:
         return f"crops-{k:06d}.npz"
@@ -132,6 +139,15 @@ class CropWriter:
         """Cut and store the crop of one subject; returns the crop and its mask."""
         window = square_crop_box(box, margin)
         crop, m = cut_crop(image, mask, window, self.size)
+        self.put(ann_id, subject_id, camera, frame, window, box, crop, m)
+        return crop, m
+
+    def put(self, ann_id: int, subject_id: int, camera: str, frame: int,
+            window: Sequence[float], box: Sequence[float], crop: np.ndarray,
+            mask: np.ndarray) -> None:
+        """Store a crop already cut (:func:`cut_crop` of ``window``): (S, S, 3) and (S, S)."""
+        if crop.shape[:2] != (self.size, self.size):
+            raise ValueError(f"crop of {crop.shape[:2]}, this writer stores {self.size}^2")
         row = len(self._ids)
         self._index.writerow(
             [
@@ -146,18 +162,20 @@ class CropWriter:
             ]
         )
         self._images.append(crop)
-        self._masks.append(m)
+        self._masks.append(mask)
         self._ids.append(ann_id)
         self.count += 1
         if len(self._ids) >= self.chunk:
             self._flush()
-        return crop, m
 
     def _flush(self) -> None:
         if not self._ids:
             return
-        atomic_save_npz(
+        self._wait()  # one chunk in the writing thread at a time: memory stays bounded
+        self._saving = self._saver.submit(
+            atomic_save_npz,
             self.folder / self._file_name(self.files),
+            compresslevel=COMPRESSION,
             images=np.stack(self._images),
             masks=np.stack(self._masks),
             ids=np.asarray(self._ids, np.int64),
@@ -165,9 +183,20 @@ class CropWriter:
         self.files += 1
         self._images, self._masks, self._ids = [], [], []
 
+    def _wait(self) -> None:
+        """Wait for the chunk being written; its error, if any, is raised here."""
+        if self._saving is not None:
+            saving, self._saving = self._saving, None
+            saving.result()
+
     def close(self) -> None:
-        self._flush()
-        self._index_file.close()
+        """Write the last chunk and wait for the writing thread."""
+        try:
+            self._flush()
+            self._wait()
+        finally:
+            self._saver.shutdown()
+            self._index_file.close()
 
 
 def read_crop_index(folder: str | os.PathLike) -> list[dict]:

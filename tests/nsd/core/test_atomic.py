@@ -6,9 +6,10 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from nsd.core.atomic import atomic_directory, atomic_write_text
+from nsd.core.atomic import atomic_directory, atomic_save_npz, atomic_write_text
 
 
 def test_directory_appears_only_on_success(tmp_path):
@@ -56,3 +57,21 @@ def test_atomic_write_text(tmp_path):
     assert (tmp_path / "f.txt").read_text() == "hello"
     assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
     assert os.stat(tmp_path / "f.txt").st_size == 5
+
+
+@pytest.mark.parametrize("level", [1, 6, 9])
+def test_npz_at_any_compression_level_loads_as_numpy_writes_it(tmp_path, level):
+    """atomic_save_npz writes what np.load reads, equal to np.savez_compressed's content; a
+    faster level makes a file no smaller than the default's on the same data."""
+    rng = np.random.default_rng(level)
+    arrays = {"images": rng.integers(0, 8, (20, 16, 16, 3), dtype=np.uint8),
+              "ids": np.arange(20, dtype=np.int64), "x": rng.random((3, 5))}
+    atomic_save_npz(tmp_path / "a.npz", compresslevel=level, **arrays)
+    np.savez_compressed(tmp_path / "b.npz", **arrays)
+    a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
+    assert sorted(a.files) == sorted(b.files) == sorted(arrays)
+    for k, v in arrays.items():
+        assert a[k].dtype == v.dtype
+        np.testing.assert_array_equal(a[k], v)
+    size, default = (tmp_path / "a.npz").stat().st_size, (tmp_path / "b.npz").stat().st_size
+    assert size >= default if level == 1 else size <= default + 64

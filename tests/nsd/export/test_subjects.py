@@ -11,6 +11,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -262,36 +263,57 @@ def test_unreadable_frame_mid_export(trained, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]  # no export, no partial
 
 
-def test_killed_export_leaves_no_export_folder(trained, tmp_path):
+def _alive(pid: int) -> bool:
+    """The process exists and is not a zombie."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    return "\nState:\tZ" not in status
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_killed_export_leaves_no_export_folder(trained, tmp_path, workers):
+    """Killed mid-export (SIGKILL): no export folder, and no worker process left behind."""
     ckpt, scene = trained
     out = tmp_path / "out"
     code = (
-        "import time, sys\n"
+        "import multiprocessing, time, sys\n"
         "import nsd.export.subjects as e\n"
         "from nsd.export.config import load_export_config\n"
         "from nsd.export.writer import SubjectWriter\n"
-        "orig = SubjectWriter.batch\n"
-        "def batch(self, items):\n"
-        "    orig(self, items); print('written', flush=True); time.sleep(120)\n"
-        "SubjectWriter.batch = batch\n"
+        "orig = SubjectWriter.write\n"
+        "def write(self, results):\n"
+        "    orig(self, results)\n"
+        "    pids = [p.pid for p in multiprocessing.active_children()]\n"
+        "    print('written', *pids, flush=True); time.sleep(120)\n"
+        "SubjectWriter.write = write\n"
         "cfg = load_export_config(checkpoint=sys.argv[1], scene=sys.argv[2], out=sys.argv[3],\n"
-        "                         batch_size=1, progress=False)\n"
+        "                         batch_size=1, progress=False, workers=int(sys.argv[4]))\n"
         "e.export_subjects(cfg)\n"
     )
     proc = subprocess.Popen(
-        [sys.executable, "-c", code, str(ckpt), str(scene), str(out)],
+        [sys.executable, "-c", code, str(ckpt), str(scene), str(out), str(workers)],
         stdout=subprocess.PIPE,
         text=True,
         cwd=ROOT,
     )
     try:
-        assert proc.stdout.readline().strip() == "written"
+        said = proc.stdout.readline().split()
+        assert said[:1] == ["written"]
+        children = [int(p) for p in said[1:]]
+        assert len(children) == (workers if workers > 1 else 0)
         partials = list(tmp_path.glob(".out.partial-*"))
         assert len(partials) == 1 and (partials[0] / "crops").is_dir()
     finally:
         proc.kill()
         proc.wait()
     assert not out.exists()
+    for _ in range(100):  # the workers die with their parent
+        if not any(_alive(pid) for pid in children):
+            break
+        time.sleep(0.05)
+    assert not any(_alive(pid) for pid in children)
     s = _export(ckpt, scene, out)  # re-running starts afresh and removes the dead partial
     assert s.frames == 6 and not list(tmp_path.glob(".out.partial-*"))
 
@@ -406,3 +428,64 @@ def test_native_refine_auto_turns_on_for_footage_larger_than_training():
 
     assert writer("auto", (640, 480)) and not writer("auto", (64, 48))
     assert writer(True, (64, 48)) and not writer(False, (640, 480))
+
+
+def test_workers_write_the_same_files_as_one_process(trained, tmp_path):
+    """Batches decomposed by 2 forked workers (1 thread each) give byte-identical files to one
+    process with 1 thread: the results are taken back and written in frame order."""
+    ckpt, scene = trained
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)  # the library runs workers=1 with the caller's threads
+    try:
+        one = _export(ckpt, scene, tmp_path / "one", batch_size=1, workers=1)
+    finally:
+        torch.set_num_threads(before)
+    two = _export(ckpt, scene, tmp_path / "two", batch_size=1, workers=2, threads=2)
+    assert (one.workers, two.workers) == (1, 2)
+    assert two.manifest["timing"]["worker_peak_rss_mb"] > 0
+    files = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*")
+                   if p.is_file() and p.name != "manifest.json")
+    assert files == sorted(p.relative_to(tmp_path / "two") for p in (tmp_path / "two").rglob("*")
+                           if p.is_file() and p.name != "manifest.json")
+    for f in files:
+        a, b = (tmp_path / "one" / f).read_bytes(), (tmp_path / "two" / f).read_bytes()
+        if f.name == "subjects.coco.json":  # the date differs; every image and annotation not
+            a, b = (json.loads(x) for x in (a, b))
+            a["info"].pop("date_created"), b["info"].pop("date_created")
+        assert a == b, f
+
+
+def test_a_workers_error_reaches_the_caller_and_leaves_nothing(trained, tmp_path, monkeypatch):
+    """An error raised in a worker (here: a frame that cannot be decoded, faked) stops the
+    export with that error; no folder, no worker process left."""
+    import multiprocessing
+
+    from nsd.export.writer import SubjectWriter
+
+    ckpt, scene = trained
+    orig = SubjectWriter.decompose
+
+    def decompose(self, items):
+        if items[0][0] == 3:
+            raise FootageError("camera 'cam1' (fake, frame 3): frame cannot be decoded")
+        return orig(self, items)
+
+    monkeypatch.setattr(SubjectWriter, "decompose", decompose)  # inherited by the fork
+    with pytest.raises(FootageError, match="frame 3"):
+        _export(ckpt, scene, tmp_path / "out", batch_size=1, workers=2, threads=2)
+    assert list(tmp_path.iterdir()) == []
+    assert multiprocessing.active_children() == []
+
+
+def test_workers_setting():
+    from nsd.export.parallel import MAX_AUTO_WORKERS, resolve_workers
+
+    assert resolve_workers("auto", 64, "cpu") == MAX_AUTO_WORKERS
+    assert resolve_workers("auto", 2, "cpu") == 2
+    assert resolve_workers("auto", 2, "cuda") == 1
+    assert resolve_workers(1, 0, "cuda") == 1
+    for bad in (0, -1, "many"):
+        with pytest.raises(ConfigError, match="workers"):
+            resolve_workers(bad, 0, "cpu")
+    with pytest.raises(ConfigError, match="workers=2 needs a CPU"):
+        resolve_workers(2, 0, "cuda")

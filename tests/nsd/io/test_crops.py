@@ -52,3 +52,17 @@ def test_writer_chunks_and_index_round_trip(tmp_path):
     assert crops.shape == (2, 12, 12, 3) and masks.dtype == np.uint8
     with pytest.raises(KeyError, match="no crops for ids"):
         read_crops(tmp_path / "crops", [99])
+
+
+def test_a_chunk_that_cannot_be_written_stops_the_writer(tmp_path):
+    """Chunks are written by a thread; its error (here: the folder became a file) is raised
+    by the writer, not lost."""
+    import shutil
+
+    img = np.zeros((8, 8, 3), np.uint8)
+    w = CropWriter(tmp_path / "crops", size=4, chunk=1)
+    shutil.rmtree(tmp_path / "crops")
+    (tmp_path / "crops").write_text("not a folder")
+    with pytest.raises(OSError):
+        w.add(1, 1, "cam0", 0, img, np.ones((8, 8), bool), [0, 0, 8, 8], 0.0)
+        w.close()
