@@ -24,6 +24,8 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
+import cv2
+
 from nsd.core.errors import ConfigError
 from nsd.core.memory import peak_rss_mb
 from nsd.core.threads import available_cores, set_threads
@@ -98,14 +100,21 @@ class BatchPool:
         self.worker_threads = max(1, int(threads) // self.workers)
         self.worker_peak_mb = 0.0  # the largest peak resident size of one worker
         self._pool = None
+        self._cv2_threads = cv2.getNumThreads()
 
     def __enter__(self) -> BatchPool:
         global _TASK
         if self.workers > 1:
             _TASK = self.function
+            # OpenCV's threads are set before the fork (the workers inherit the setting; set
+            # in a forked worker it waits for the parent's pool threads, which are not there)
+            cv2.setNumThreads(self.worker_threads)
             ctx = mp.get_context("fork")
-            self._pool = ctx.Pool(self.workers, initializer=_start,
-                                  initargs=(self.worker_threads, os.getpid()))
+            try:
+                self._pool = ctx.Pool(self.workers, initializer=_start,
+                                      initargs=(self.worker_threads, os.getpid()))
+            finally:
+                cv2.setNumThreads(self._cv2_threads)
         return self
 
     def __exit__(self, kind, value, tb) -> None:
