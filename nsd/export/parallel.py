@@ -3,10 +3,11 @@
 A profile of ``nsd-export`` on one core (default scene) puts ~80 % of its time in
 :func:`nsd.inference.multiview.decompose_views`, and half of that is not torch (the visual
 hull's proposals and pixel owners are NumPy on one core), so more torch threads buy little
-(1.32x on two cores). Instants are independent until tracking links them, so the
-decomposition of batch ``k`` goes to worker ``k mod P`` (a forked process with
-``threads // P`` torch threads) and the parent takes the results back in order, tracks and
-writes. At most ``2 P`` batches are in flight, so memory stays flat in the footage's length.
+(1.32x on two cores). Instants are independent until tracking links them, so each batch is
+decomposed by the next free one of ``P`` workers (forked processes with ``threads // P``
+torch threads each) and the parent takes the results back in order, tracks and writes. At
+most ``2 P`` batches are in flight, so memory stays flat in the footage's length. A worker
+that dies (the out-of-memory killer) stops the export with a message, not a wait.
 
 ``workers: auto`` (conf/export.yaml) is one process per available core up to
 :data:`MAX_AUTO_WORKERS`, and 1 (this process alone) on a GPU or where processes cannot be
@@ -22,6 +23,8 @@ import signal
 import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import cv2
@@ -99,32 +102,33 @@ class BatchPool:
         self.function, self.workers = function, int(workers)
         self.worker_threads = max(1, int(threads) // self.workers)
         self.worker_peak_mb = 0.0  # the largest peak resident size of one worker
-        self._pool = None
-        self._cv2_threads = cv2.getNumThreads()
+        self._pool: ProcessPoolExecutor | None = None
 
     def __enter__(self) -> BatchPool:
         global _TASK
         if self.workers > 1:
             _TASK = self.function
-            # OpenCV's threads are set before the fork (the workers inherit the setting; set
-            # in a forked worker it waits for the parent's pool threads, which are not there)
+            # OpenCV's threads are set before the fork, which the workers inherit (set in a
+            # forked worker, it waits for the parent's pool threads, which are not there)
+            cv2_threads = cv2.getNumThreads()
             cv2.setNumThreads(self.worker_threads)
-            ctx = mp.get_context("fork")
             try:
-                self._pool = ctx.Pool(self.workers, initializer=_start,
-                                      initargs=(self.worker_threads, os.getpid()))
+                self._pool = ProcessPoolExecutor(
+                    self.workers, mp.get_context("fork"), initializer=_start,
+                    initargs=(self.worker_threads, os.getpid()))
+                self._pool.submit(int).result()  # forks every worker now
+            except BaseException:
+                self.__exit__(None, None, None)
+                raise
             finally:
-                cv2.setNumThreads(self._cv2_threads)
+                cv2.setNumThreads(cv2_threads)
         return self
 
     def __exit__(self, kind, value, tb) -> None:
+        """Stop the workers: the queued batches are dropped, running ones finish (a batch)."""
         global _TASK
         if self._pool is not None:
-            if kind is None:
-                self._pool.close()
-            else:
-                self._pool.terminate()
-            self._pool.join()
+            self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
         _TASK = None
 
@@ -137,7 +141,7 @@ class BatchPool:
             return
         pending: deque = deque()
         for item in items:
-            pending.append((item, self._pool.apply_async(_run, (item,))))
+            pending.append((item, self._pool.submit(_run, item)))
             if len(pending) >= 2 * self.workers:
                 yield self._take(pending)
         while pending:
@@ -145,6 +149,11 @@ class BatchPool:
 
     def _take(self, pending: deque) -> tuple[Any, Any]:
         item, future = pending.popleft()
-        result, peak = future.get()
+        try:
+            result, peak = future.result()
+        except BrokenProcessPool:
+            raise RuntimeError(
+                f"an export worker process died (killed by the system, e.g. out of memory, "
+                f"with {self.workers} workers): lower workers= or batch_size=") from None
         self.worker_peak_mb = max(self.worker_peak_mb, peak)
         return item, result

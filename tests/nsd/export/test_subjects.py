@@ -489,3 +489,25 @@ def test_workers_setting():
             resolve_workers(bad, 0, "cpu")
     with pytest.raises(ConfigError, match="workers=2 needs a CPU"):
         resolve_workers(2, 0, "cuda")
+
+
+def test_a_worker_killed_stops_the_export_with_a_message(trained, tmp_path, monkeypatch):
+    """A worker killed mid-export (the kernel's out-of-memory killer) stops the export with a
+    message that says what to lower, instead of waiting forever for its batch."""
+    import os
+    import signal
+
+    from nsd.export.writer import SubjectWriter
+
+    ckpt, scene = trained
+    orig = SubjectWriter.decompose
+
+    def decompose(self, items):
+        if items[0][0] == 3:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return orig(self, items)
+
+    monkeypatch.setattr(SubjectWriter, "decompose", decompose)
+    with pytest.raises(RuntimeError, match=r"worker process died.*lower workers= or batch_size="):
+        _export(ckpt, scene, tmp_path / "out", batch_size=1, workers=2, threads=2)
+    assert list(tmp_path.iterdir()) == []
