@@ -216,8 +216,16 @@ def evaluate_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
     )
 
 
+# export settings that do not change what is exported (or are set per run by the stage)
+_EXPORT_NOT_RESULTS = ("checkpoint", "scene", "out", "overwrite", "threads", "device", "workers",
+                       "progress")
+
+
 def export_stage(cfg: DictConfig) -> Stage:
     overrides = _container(OmegaConf.merge({"inference": _inference(cfg)}, cfg.export))
+    # keyed by the whole export config, so that a changed shipped default re-runs the export
+    composed = _container(OmegaConf.merge(load_export_config(), overrides))
+    settings = {k: v for k, v in composed.items() if k not in _EXPORT_NOT_RESULTS}
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         ecfg = OmegaConf.merge(load_export_config(), overrides)
@@ -237,7 +245,7 @@ def export_stage(cfg: DictConfig) -> Stage:
             "seconds": round(s.seconds, 3),
         }
 
-    return Stage("export", run, overrides, needs=("scene", "train"))
+    return Stage("export", run, settings, needs=("scene", "train"))
 
 
 KEYPOINT_SOURCES = ("inverse", "regressor")

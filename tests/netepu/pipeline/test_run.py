@@ -116,6 +116,29 @@ def test_changed_grid_setting_reruns_only_grids(tiny_run, tmp_path, monkeypatch)
     assert [g.name for g in (out / "grids").glob("*.png")] == ["frame_000000.png"]
 
 
+def test_a_changed_shipped_export_default_reruns_the_export(tiny_run, tmp_path, monkeypatch):
+    """The export stage is keyed by nsd-export's whole config, not only the run's overrides:
+    a toolkit whose conf/export.yaml changed re-exports; where it runs (workers) does not."""
+    from nsd.export.config import load_export_config
+
+    tiny_scene, first, _ = tiny_run
+    out = shutil.copytree(first, tmp_path / "run")
+    monkeypatch.setattr(
+        netepu.pipeline.stages, "train", lambda *a, **k: pytest.fail("train re-ran")
+    )
+    res = run_pipeline(_cfg(tiny_scene, out, "+export.workers=1"))
+    assert res["export"].skipped
+
+    def changed(**overrides):
+        cfg = load_export_config(**overrides)
+        cfg.tracking.min_similarity = 0.31  # as a new release's default would
+        return cfg
+
+    monkeypatch.setattr(netepu.pipeline.stages, "load_export_config", changed)
+    res = run_pipeline(_cfg(tiny_scene, out))
+    assert res["train"].skipped and not res["export"].skipped
+
+
 def test_missing_scene_is_a_clear_error(tmp_path):
     from nsd.core.errors import NSDError
 
