@@ -31,6 +31,7 @@ from nsd.evaluation.identity import identity_accuracy_by_contact
 from nsd.io.identities import read_identities
 from tools.benchlib import write_report
 
+ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 SCENES = {  # name -> (individuals, nsd-synth overrides)
     "2 bipeds, 4 cameras": (2, ["num_individuals=2"]),
@@ -63,6 +64,20 @@ def _identity_split(out: Path, scene: Path) -> dict:
     return identity_accuracy_by_contact(out / "export", scene, rows, rows["identity"], (128, 128))
 
 
+def _carried(scenes: list[str]) -> list[dict]:
+    """The rows of ``scenes`` in the current docs/benchmarks/contact.json, marked with their
+    date and commit (a scene not re-run this time keeps its figures, visibly older)."""
+    if not scenes:
+        return []
+    old = json.loads((ROOT / "docs" / "benchmarks" / "contact.json").read_text())
+    rows = [dict(r, measured=f"{old['date']}, `{old['commit']}`")
+            for r in old["rows"] if r["scene"] in scenes]
+    missing = set(scenes) - {r["scene"] for r in rows}
+    if missing:
+        raise SystemExit(f"--carry: no rows of {sorted(missing)} in contact.json")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=1000, help="training steps per scene")
@@ -70,7 +85,11 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="scene names to run")
     ap.add_argument("--rescore", type=Path, default=None,
                     help="a folder of an earlier run of this script: score it, train nothing")
+    ap.add_argument("--carry", nargs="*", default=[],
+                    help="scene names whose rows are kept from the report being replaced, "
+                         "marked with when and at which commit they were measured")
     args = ap.parse_args()
+    carried = _carried(args.carry)
     root = args.rescore or Path(tempfile.mkdtemp(prefix="bench-contact-"))
     rows = []
     for i, name in enumerate(args.scenes):
@@ -101,6 +120,9 @@ def main() -> None:
             learned["train_steps"] = rec["train"]["summary"].get("steps")
             rows += [learned, _row(name, seed, "hull-only", m, "hull_")]
             print(rows[-2:], flush=True)
+    for r in rows:
+        r["measured"] = "this run"
+    rows += carried
     write_report(
         "contact", "Groups in contact: metrics apart / touching, learned and hull-only", rows,
         notes=(f"`nsd-run` per scene and seed with `train.model.num_windows` = the number of "
@@ -111,7 +133,9 @@ def main() -> None:
                "`nsd-synth motion.interaction=huddle seed=1`. `hull-only`: the visual hull "
                "of the residuals alone (nsd/evaluation/hull_baseline.py). Identity accuracy "
                "and IDF1 (whole export, all frames, split apart / touching by frame) exist for the "
-               "learned rows only: the hull-only decomposition has no identities over time."),
+               "learned rows only: the hull-only decomposition has no identities over time. "
+               "`measured`: this run, or the date and commit of rows carried from an "
+               "earlier report (`--carry`: scenes not re-run)."),
     )
 
 

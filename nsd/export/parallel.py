@@ -75,7 +75,10 @@ def _start(threads: int, parent: int) -> None:
     process behind: Linux's parent-death signal)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (AttributeError, OSError):  # a C library without prctl: workers end with the queue
+        pass
     if os.getppid() != parent:  # the parent died before the line above
         os._exit(1)
     set_threads(threads)
