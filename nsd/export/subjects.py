@@ -61,7 +61,6 @@ from nsd.export.parallel import BatchPool, resolve_workers
 from nsd.export.writer import SubjectWriter
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embedding_views import plot_tsne, write_projector
-from nsd.io.footage import ImageFolderSource
 from nsd.io.frame_selection import iter_selected
 
 log = logging.getLogger(__name__)
@@ -178,9 +177,9 @@ def _stream(writer: SubjectWriter, inp: ExportInputs, cfg: DictConfig, workers: 
         disable=not cfg.progress,
     )
     threads = int(cfg.threads) or available_cores()
-    files = all(isinstance(s, ImageFolderSource) for s in inp.footage.sources)
     with BatchPool(writer.decompose, workers, threads) as pool:
-        batches = _batches(inp, int(cfg.batch_size), decode=workers == 1 or not files)
+        decode = workers == 1 or not inp.footage.random_access  # else the workers read files
+        batches = _batches(inp, int(cfg.batch_size), decode)
         for items, results in pool.map(batches):
             writer.write(results)
             bar.update(len(items))

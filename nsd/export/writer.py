@@ -32,7 +32,7 @@ from nsd.inference.single import associate_views
 from nsd.inference.tracking import SubjectObservation, SubjectTracker
 from nsd.io.coco import CocoStreamWriter
 from nsd.io.coco_results import SUBJECT_CATEGORY, decomposition_to_coco
-from nsd.io.crops import CropWriter, cut_crop, square_crop_box
+from nsd.io.crops import CropWriter, subject_crop
 from nsd.io.embedding_views import Reservoir
 from nsd.io.embeddings import EmbeddingWriter
 from nsd.io.mot import MotWriter
@@ -169,9 +169,8 @@ class SubjectWriter:
         for v, res in enumerate(per_view):
             crops.append([])
             for r in res:
-                window = square_crop_box(r["bbox"], margin)
                 mask = mask_utils.decode(r["segmentation"]).astype(bool)
-                crop, m = cut_crop(views[v], mask, window, size)
+                window, crop, m = subject_crop(views[v], mask, r["bbox"], margin, size)
                 small = cv2.resize(crop, (thumb, thumb), interpolation=cv2.INTER_AREA)
                 crops[-1].append((window, crop, m, small))
         return FrameResult(t, per_view, apps, crops, self._observations(per_view, apps))

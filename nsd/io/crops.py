@@ -40,6 +40,7 @@ __all__ = [
     "read_crop_index",
     "read_crops",
     "square_crop_box",
+    "subject_crop",
 ]
 
 COMPRESSION = 1  # zlib level of the chunks: 2.2x faster than level 6, files 1 % larger (crops)
@@ -96,6 +97,14 @@ def cut_crop(
     return crop, m.astype(np.uint8)
 
 
+def subject_crop(image: np.ndarray, mask: np.ndarray, box: Sequence[float], margin: float,
+                 size: int) -> tuple[tuple[float, float, float], np.ndarray, np.ndarray]:
+    """A subject's crop window around its COCO ``box`` (:func:`square_crop_box`), and the
+    window cut from the frame and its mask (:func:`cut_crop`): (window, crop, crop mask)."""
+    window = square_crop_box(box, margin)
+    return (window, *cut_crop(image, mask, window, size))
+
+
 class CropWriter:
     """Buffer crops and write them ``chunk`` at a time into ``folder`` (see the module).
 
@@ -137,8 +146,7 @@ class CropWriter:
         margin: float,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Cut and store the crop of one subject; returns the crop and its mask."""
-        window = square_crop_box(box, margin)
-        crop, m = cut_crop(image, mask, window, self.size)
+        window, crop, m = subject_crop(image, mask, box, margin, self.size)
         self.put(ann_id, subject_id, camera, frame, window, box, crop, m)
         return crop, m
 

@@ -321,6 +321,12 @@ class MultiViewFootage:
         return self._num_frames
 
     @property
+    def random_access(self) -> bool:
+        """Every camera is an image folder: any frame is read alone, exactly (a video is
+        decoded in order)."""
+        return all(isinstance(s, ImageFolderSource) for s in self.sources)
+
+    @property
     def num_views(self) -> int:
         return len(self.sources)
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from nsd.core.errors import ConfigError
-from nsd.io.footage import ImageFolderSource, MultiViewFootage
+from nsd.io.footage import MultiViewFootage
 
 __all__ = ["iter_selected", "select_frames"]
 
@@ -92,8 +92,7 @@ def iter_selected(
     if len(frames) == 0:
         return
     contiguous = bool(np.all(np.diff(frames) == 1))
-    random_access = all(isinstance(s, ImageFolderSource) for s in footage.sources)
-    if random_access and not contiguous:
+    if footage.random_access and not contiguous:
         for t in frames.tolist():
             yield t, [s.read(t) for s in footage.sources]
         return
