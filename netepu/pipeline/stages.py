@@ -370,8 +370,10 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
         fill = column != "app" and str(i.fill) == "app"
         table = read_embeddings(source, [*keys, column, *(["app"] if fill else [])])
         identity, summary = assign_identities(  # rows without a code hold NaN
-            table, column, int(i.k), str(i.method), int(i.restarts)
+            table, column, int(i.k), str(i.method), int(i.restarts),
+            "nearest" if fill else str(i.fill),
         )
+        summary["fill"] = str(i.fill)
         if fill:  # rows without a code: by their appearance vector, not their track
             coded = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
             identity = transfer_identities(table, identity, coded, "app")

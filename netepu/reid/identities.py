@@ -5,24 +5,34 @@ association of a frame, linked over time by box overlap and appearance). A
 track can break (an occlusion, a subject leaving the view), two tracks can be
 the same individual, and a track can swap individuals when they cross. Every
 row's identity is therefore decided from its own texture code (NeTePu's
-:math:`\\mu` from the visible pixels only, see ``netepu-embed``), in two steps:
+:math:`\\mu` from the visible pixels only, see ``netepu-embed``), in three steps:
 
 1. **Tracks** (:func:`constrained_average_linkage`): each track is described
    by the mean of its rows' unit codes, and tracks are grouped into ``k``
    clusters by average-linkage agglomerative clustering on the cosine
    distance that never joins two tracks seen in the same frame (so more than
    ``k`` clusters remain when the tracks do not allow fewer).
-2. **Rows** (:func:`constrained_kmeans`, ``method="rows"``, the default): a
+2. **Rows** (:func:`constrained_kmeans`, ``method="rows"``): a
    spherical k-means over the coded rows in which the rows of one camera-frame
    take distinct identities (a Hungarian assignment per camera-frame on the
    cosine distance to the prototypes); prototypes are the normalised means of
    their rows. It starts from the ``k`` largest clusters' mean unit codes and
    from ``restarts`` sets of ``k`` random rows (seeded), and the run whose rows
    are closest to their prototypes in total is kept. A row whose
-   track swapped individuals follows its own code, not its track. Rows without
-   a code take the most frequent identity of their track's coded rows (-1
-   when the track has none).
+   track swapped individuals follows its own code, not its track.
+3. **Rows without a code** (keypoints, hence codes, exist on every ``frame_step``-th
+   frame only), ``fill="nearest"`` (the default): the identity their track has at its
+   nearest coded frame in time (the most frequent identity of the track's coded rows
+   there; the earlier frame on a tie), so a track that swapped individuals between two
+   coded frames is right up to halfway on each side of the swap.
+   ``fill="tracks"``: the most frequent identity of all the track's coded rows, wrong
+   on the whole stretch after a swap. -1 when the track has no coded row.
 
+``method="subjects"`` (the default) runs step 2 on *subject-frames* instead of rows: the rows
+of one subject in one frame (its cameras, which the export's cross-view association
+joined) are one item whose code is the normalised mean of their unit codes, and the
+subjects of one frame take distinct identities; every row takes its subject-frame's. A
+camera in which the subject is half hidden then no longer decides its row alone.
 ``method="tracks"`` stops after step 1: every row takes its track's cluster.
 ``k`` is the number of individuals the export shows at once (the median over
 frames of the distinct subjects per frame) unless given. With one subject
@@ -33,7 +43,7 @@ Their accuracy against ground truth: :mod:`nsd.evaluation.identity`.
 
 from __future__ import annotations
 
-from collections import Counter, defaultdict
+from collections import defaultdict
 from typing import Any
 
 import numpy as np
@@ -42,6 +52,7 @@ from scipy.optimize import linear_sum_assignment
 from nsd.ops.vectors import unit_vectors
 
 __all__ = [
+    "FILL_METHODS",
     "IDENTITY_METHODS",
     "assign_identities",
     "constrained_average_linkage",
@@ -49,7 +60,8 @@ __all__ = [
     "transfer_identities",
 ]
 
-IDENTITY_METHODS = ("rows", "tracks")
+IDENTITY_METHODS = ("subjects", "rows", "tracks")
+FILL_METHODS = ("nearest", "tracks")  # rows without a code; "app" is transfer_identities
 
 
 def constrained_average_linkage(dist: np.ndarray, apart: np.ndarray, k: int) -> np.ndarray:
@@ -128,8 +140,9 @@ def assign_identities(
     table: dict[str, np.ndarray],
     column: str = "texture",
     k: int = 0,
-    method: str = "rows",
+    method: str = "subjects",
     restarts: int = 10,
+    fill: str = "nearest",
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Identity of every row of an export's embedding table.
 
@@ -138,19 +151,24 @@ def assign_identities(
             ``<column>_valid``; ``method="rows"`` also needs ``camera``.
         column: the texture-code column.
         k: identities (0: the median number of subjects per frame).
-        method: ``rows`` (each coded row by its own code) or ``tracks`` (each row its
-            track's cluster); see the module.
-        restarts: ``rows``: k-means runs from ``k`` random rows (seeded) besides the
+        method: ``subjects`` (each subject-frame by its rows' pooled code), ``rows`` (each
+            coded row by its own code) or ``tracks`` (each row its track's cluster); see
+            the module.
+        restarts: ``subjects``, ``rows``: k-means runs from ``k`` random rows (seeded) besides the
             one from the track clusters; the run of least cost is kept.
+        fill: ``subjects``, ``rows``: how rows without a code get an identity from the coded rows of
+            their track, one of :data:`FILL_METHODS` (see the module).
 
     Returns:
         ``(identity (rows,) int64, summary)``; -1 for rows of tracks without a valid code.
 
     Raises:
-        ValueError: an unknown ``method``.
+        ValueError: an unknown ``method`` or ``fill``.
     """
     if method not in IDENTITY_METHODS:
         raise ValueError(f"identities: method must be one of {IDENTITY_METHODS}, got {method!r}")
+    if fill not in FILL_METHODS:
+        raise ValueError(f"identities: fill must be one of {FILL_METHODS}, got {fill!r}")
     sid = np.asarray(table["subject_id"], np.int64)
     frame = np.asarray(table["frame"], np.int64)
     codes = np.asarray(table[column], np.float64)
@@ -180,18 +198,53 @@ def assign_identities(
             "association": f"tracks clustered by {column}",
         }
     row_track = np.array([of_track[int(s)] for s in sid[valid]])
-    cams = np.unique(np.asarray(table["camera"])[valid], return_inverse=True)[1]
-    groups = frame[valid] * (cams.max() + 1) + cams
-    identity[valid] = _cluster_rows(unit, row_track, groups, k, restarts)
-    for s in tracks:  # uncoded rows of a coded track: the track's most frequent identity
+    if method == "subjects":  # one item per subject and frame, distinct within a frame
+        key = np.stack([frame[valid], sid[valid]], 1)
+        items, item = np.unique(key, axis=0, return_inverse=True)
+        item = item.reshape(-1)
+        pooled = np.zeros((len(items), unit.shape[1]))
+        np.add.at(pooled, item, unit)
+        labels = _cluster_rows(unit_vectors(pooled, eps=1e-12),
+                               np.array([of_track[int(t)] for t in items[:, 1]]),
+                               items[:, 0], k, restarts)
+        identity[valid] = labels[item]
+    else:
+        cams = np.unique(np.asarray(table["camera"])[valid], return_inverse=True)[1]
+        groups = frame[valid] * (cams.max() + 1) + cams
+        identity[valid] = _cluster_rows(unit, row_track, groups, k, restarts)
+    for s in tracks:  # uncoded rows of a coded track
         rows = sid == s
-        fill = rows & ~valid
-        if fill.any():
-            identity[fill] = Counter(identity[rows & valid].tolist()).most_common(1)[0][0]
+        gap = rows & ~valid
+        if not gap.any():
+            continue
+        if fill == "tracks":  # the track's most frequent identity
+            identity[gap] = _most_frequent(identity[rows & valid])
+        else:
+            identity[gap] = _nearest_coded(frame[rows & valid], identity[rows & valid],
+                                           frame[gap])
     return identity, summary | {
         "identities": len(set(identity[valid].tolist())),
         "association": f"rows clustered by {column}",
     }
+
+
+def _most_frequent(ids: np.ndarray) -> int:
+    """The most frequent value of ``ids`` (the smallest on a tie)."""
+    values, counts = np.unique(ids, return_counts=True)
+    return int(values[counts.argmax()])
+
+
+def _nearest_coded(coded_frame: np.ndarray, coded_id: np.ndarray, frames: np.ndarray
+                   ) -> np.ndarray:
+    """For each of ``frames`` (G,), the identity of the nearest coded frame in time (the most
+    frequent of its rows' ``coded_id``; the earlier frame on a tie), from one track's coded
+    rows (``coded_frame``, ``coded_id`` (C,)). Returns (G,) int64."""
+    times = np.unique(coded_frame)
+    ids = np.array([_most_frequent(coded_id[coded_frame == t]) for t in times])
+    after = np.clip(np.searchsorted(times, frames), 0, len(times) - 1)
+    before = np.clip(after - 1, 0, len(times) - 1)
+    take_before = np.abs(frames - times[before]) <= np.abs(times[after] - frames)
+    return ids[np.where(take_before, before, after)]
 
 
 def transfer_identities(

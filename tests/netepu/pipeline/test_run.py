@@ -293,7 +293,7 @@ def _track_table(spec, rng, cameras=("a",)):
     }
 
 
-@pytest.mark.parametrize("method", ["rows", "tracks"])
+@pytest.mark.parametrize("method", ["subjects", "rows", "tracks"])
 def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(method):
     from netepu.reid.identities import assign_identities
 
@@ -349,6 +349,59 @@ def test_rows_without_a_code_take_their_tracks_identity():
         assert len(set(identity[table["subject_id"] == s].tolist())) == 1
     assert identity[table["subject_id"] == 1][0] != identity[table["subject_id"] == 2][0]
     assert (identity[table["subject_id"] == 3] == -1).all()  # a track without codes
+
+
+def test_uncoded_rows_take_their_tracks_identity_at_the_nearest_coded_frame():
+    """Codes on every 10th frame; the two tracks swap individuals at frame 14, between the
+    coded frames 10 and 20. ``nearest`` gives each uncoded row the identity its track has
+    at the nearest coded frame (the earlier one on a tie): wrong only at frames 14 and 15,
+    whose nearest coded frame, 10, precedes the swap. ``tracks`` (the track's most frequent
+    identity) gives a track's uncoded rows one identity, wrong on one whole side of the swap."""
+    from netepu.reid.identities import assign_identities
+
+    rng = np.random.default_rng(4)
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    spec = [(1, range(14), a), (1, range(14, 40), b), (2, range(14), b), (2, range(14, 40), a)]
+    table = _track_table(spec, rng, cameras=("a", "b"))
+    table["texture_valid"] = table["frame"] % 10 == 0
+    truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
+    frame = table["frame"]
+    near, summary = assign_identities(table, fill="nearest")
+    assert summary["identities"] == 2
+    if (near[frame == 0] != truth[frame == 0]).any():
+        truth = 1 - truth
+    assert set(frame[near != truth].tolist()) == {14, 15}
+    by_tracks, _ = assign_identities(table, fill="tracks")
+    uncoded = ~table["texture_valid"]
+    for s in (1, 2):
+        assert len(set(by_tracks[uncoded & (table["subject_id"] == s)].tolist())) == 1
+    assert (by_tracks != truth).sum() >= 2 * 2 * 12  # 2 tracks x 2 cameras x a side's uncoded
+    with pytest.raises(ValueError, match="fill"):
+        assign_identities(table, fill="app")
+
+
+def test_subject_identities_pool_the_cameras_of_a_subject_frame():
+    """In camera "c" each subject is half hidden by the other and its code leans to the other
+    individual's (0.4 own + 0.6 other): ``rows`` decides that camera's rows alone and swaps
+    them; ``subjects`` pools the three cameras of each subject-frame and gets every row."""
+    from netepu.reid.identities import assign_identities
+
+    rng = np.random.default_rng(5)
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    table = _track_table([(1, range(12), a), (2, range(12), b)], rng, cameras=("a", "b", "c"))
+    truth = (table["subject_id"] == 2).astype(int)
+    in_c = table["camera"] == "c"
+    own, other = np.where(truth[in_c, None] == 0, a, b), np.where(truth[in_c, None] == 0, b, a)
+    table["texture"][in_c] = 0.4 * own + 0.6 * other + 0.05 * rng.normal(size=own.shape)
+
+    def right(identity):
+        return max((identity == truth).mean(), (identity == 1 - truth).mean())
+
+    by_rows, _ = assign_identities(table, method="rows")
+    by_subjects, summary = assign_identities(table, method="subjects")
+    assert summary["identities"] == 2
+    assert right(by_subjects) == 1.0
+    assert right(by_rows) == pytest.approx(2 / 3)  # camera c swapped
 
 
 def test_rows_without_a_code_take_the_identity_of_their_appearance():
