@@ -2,18 +2,21 @@
 
     .venv/bin/python tools/bench_contact.py          # ~40 minutes on 2 cores, nothing else running
     .venv/bin/python tools/bench_contact.py --seeds 0 1 --steps 3000  # two seeds, longer
+    .venv/bin/python tools/bench_contact.py --minutes 15 --report contact_15min  # 15 minutes
 
 For each scene (``nsd-synth motion.interaction=huddle``: the group alternates huddles, in
 which every individual touches another, and dispersals), ``nsd-run`` trains with
 ``num_windows`` = the number of individuals for ``--steps`` steps (a step budget, so the
-figures do not depend on the machine's load), evaluates on the held-out tail and exports.
+figures do not depend on the machine's load) or ``--minutes`` minutes of training (a time
+budget: the steps it bought are in the ``train_steps`` column), evaluates on the held-out
+tail and exports.
 Rows per scene and seed:
 
 * ``learned``: the trained decomposition (multi-view inference, the default);
 * ``hull-only``: the visual hull of the background residuals alone on the same frames
   (:mod:`nsd.evaluation.hull_baseline`: no learning).
 
-Writes ``docs/benchmarks/contact.{md,json}``.
+Writes ``docs/benchmarks/<--report>.{md,json}`` (default ``contact``).
 """
 
 from __future__ import annotations
@@ -64,23 +67,26 @@ def _identity_split(out: Path, scene: Path) -> dict:
     return identity_accuracy_by_contact(out / "export", scene, rows, rows["identity"], (128, 128))
 
 
-def _carried(scenes: list[str]) -> list[dict]:
-    """The rows of ``scenes`` in the current docs/benchmarks/contact.json, marked with their
+def _carried(scenes: list[str], report: str) -> list[dict]:
+    """The rows of ``scenes`` in the current docs/benchmarks/<report>.json, marked with their
     date and commit (a scene not re-run this time keeps its figures, visibly older)."""
     if not scenes:
         return []
-    old = json.loads((ROOT / "docs" / "benchmarks" / "contact.json").read_text())
+    old = json.loads((ROOT / "docs" / "benchmarks" / f"{report}.json").read_text())
     rows = [dict(r, measured=f"{old['date']}, `{old['commit']}`")
             for r in old["rows"] if r["scene"] in scenes]
     missing = set(scenes) - {r["scene"] for r in rows}
     if missing:
-        raise SystemExit(f"--carry: no rows of {sorted(missing)} in contact.json")
+        raise SystemExit(f"--carry: no rows of {sorted(missing)} in {report}.json")
     return rows
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=1000, help="training steps per scene")
+    ap.add_argument("--minutes", type=float, default=0.0,
+                    help="a time budget per scene instead of --steps (0: the step budget)")
+    ap.add_argument("--report", default="contact", help="docs/benchmarks/<report>.{md,json}")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds")
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="scene names to run")
     ap.add_argument("--rescore", type=Path, default=None,
@@ -89,7 +95,10 @@ def main() -> None:
                     help="scene names whose rows are kept from the report being replaced, "
                          "marked with when and at which commit they were measured")
     args = ap.parse_args()
-    carried = _carried(args.carry)
+    carried = _carried(args.carry, args.report)
+    budget = ([f"train.trainer.max_steps={args.steps}", "train.trainer.max_minutes=0"]
+              if args.minutes <= 0 else
+              ["train.trainer.max_steps=0", f"train.trainer.max_minutes={args.minutes}"])
     root = args.rescore or Path(tempfile.mkdtemp(prefix="bench-contact-"))
     rows = []
     for i, name in enumerate(args.scenes):
@@ -104,7 +113,7 @@ def main() -> None:
                 subprocess.run(
                     [str(BIN / "nsd-run"), f"scene={scene}", f"out={out}",
                      f"train.model.num_windows={n}", f"train.trainer.seed={seed}",
-                     f"train.trainer.max_steps={args.steps}", "train.trainer.max_minutes=0",
+                     *budget,
                      "evaluate.max_frames=30", "grids.frames=0", "overlays.enabled=false"],
                     check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             rec = json.loads((out / "pipeline.json").read_text())
@@ -123,10 +132,12 @@ def main() -> None:
     for r in rows:
         r["measured"] = "this run"
     rows += carried
+    budget_text = (f"`train.trainer.max_steps={args.steps}`" if args.minutes <= 0 else
+                   f"`train.trainer.max_minutes={args.minutes:g}` (steps bought: `train_steps`)")
     write_report(
-        "contact", "Groups in contact: metrics apart / touching, learned and hull-only", rows,
+        args.report, "Groups in contact: metrics apart / touching, learned and hull-only", rows,
         notes=(f"`nsd-run` per scene and seed with `train.model.num_windows` = the number of "
-               f"individuals, `train.trainer.max_steps={args.steps}`, evaluated on 30 frames "
+               f"individuals, {budget_text}, evaluated on 30 frames "
                "of the held-out tail (nsd-eval's metrics, nsd/evaluation/decomposition.py), "
                "split by nsd/evaluation/contact.py: an instant is touching when two "
                "individuals' amodal masks overlap in most cameras that see both. Scenes: "
