@@ -126,6 +126,8 @@ def main() -> None:
                 learned[f"identity_accuracy{part or '_all'}"] = split.get(
                     f"identity_accuracy{part}")
             learned["idf1"] = ident.get("tracking", {}).get("identities", {}).get("idf1")
+            learned["identities"] = (f"{ident.get('method', 'rows')}, "
+                                     f"fill {ident.get('fill', 'tracks')}")
             learned["train_steps"] = rec["train"]["summary"].get("steps")
             rows += [learned, _row(name, seed, "hull-only", m, "hull_")]
             print(rows[-2:], flush=True)
@@ -144,7 +146,8 @@ def main() -> None:
                "`nsd-synth motion.interaction=huddle seed=1`. `hull-only`: the visual hull "
                "of the residuals alone (nsd/evaluation/hull_baseline.py). Identity accuracy "
                "and IDF1 (whole export, all frames, split apart / touching by frame) exist for the "
-               "learned rows only: the hull-only decomposition has no identities over time. "
+               "learned rows only: the hull-only decomposition has no identities over time; "
+               "`identities`: how they were assigned (`netepu.identities.method`, `.fill`). "
                "`measured`: this run, or the date and commit of rows carried from an "
                "earlier report (`--carry`: scenes not re-run)."),
     )
