@@ -22,9 +22,10 @@ row's identity is therefore decided from its own texture code (NeTePu's
    track swapped individuals follows its own code, not its track.
 3. **Rows without a code** (keypoints, hence codes, exist on every ``frame_step``-th
    frame only), ``fill="nearest"`` (the default): the identity their track has at its
-   nearest coded frame in time (the most frequent identity of the track's coded rows
-   there; the earlier frame on a tie), so a track that swapped individuals between two
-   coded frames is right up to halfway on each side of the swap.
+   nearest coded frame in time (the earlier frame on a tie; a coded frame's identity is the
+   most frequent of its rows', smoothed over it and its two neighbouring coded frames), so
+   a track that swapped individuals between two coded frames is right up to halfway on
+   each side of the swap, and one coded frame with wrong codes changes nothing.
    ``fill="tracks"``: the most frequent identity of all the track's coded rows, wrong
    on the whole stretch after a swap. -1 when the track has no coded row.
 
@@ -236,11 +237,19 @@ def _most_frequent(ids: np.ndarray) -> int:
 
 def _nearest_coded(coded_frame: np.ndarray, coded_id: np.ndarray, frames: np.ndarray
                    ) -> np.ndarray:
-    """For each of ``frames`` (G,), the identity of the nearest coded frame in time (the most
-    frequent of its rows' ``coded_id``; the earlier frame on a tie), from one track's coded
-    rows (``coded_frame``, ``coded_id`` (C,)). Returns (G,) int64."""
+    """For each of ``frames`` (G,), the identity of the nearest coded frame in time (the
+    earlier frame on a tie), from one track's coded rows (``coded_frame``, ``coded_id``
+    (C,)). A coded frame's identity is the most frequent of its rows', then the most
+    frequent of it and its two neighbouring coded frames (its own on a tie): one coded frame
+    whose codes were wrong does not flip the rows around it, a swap that lasts two coded
+    frames does. Returns (G,) int64."""
     times = np.unique(coded_frame)
-    ids = np.array([_most_frequent(coded_id[coded_frame == t]) for t in times])
+    own = np.array([_most_frequent(coded_id[coded_frame == t]) for t in times])
+    ids = own.copy()
+    for i in range(len(own)):
+        values, counts = np.unique(own[max(0, i - 1) : i + 2], return_counts=True)
+        if counts.max() > (own[max(0, i - 1) : i + 2] == own[i]).sum():
+            ids[i] = values[counts.argmax()]
     after = np.clip(np.searchsorted(times, frames), 0, len(times) - 1)
     before = np.clip(after - 1, 0, len(times) - 1)
     take_before = np.abs(frames - times[before]) <= np.abs(times[after] - frames)
