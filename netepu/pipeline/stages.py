@@ -367,14 +367,14 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
             log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
         source = up["texture"].folder if have_texture else up["export"].folder
         keys = ["id", "camera", "frame", "subject_id"]
-        fill = column != "app" and str(i.fill) == "app"
-        table = read_embeddings(source, [*keys, column, *(["app"] if fill else [])])
+        by_app = column != "app" and str(i.fill) == "app"
+        table = read_embeddings(source, [*keys, column, *(["app"] if by_app else [])])
         identity, summary = assign_identities(  # rows without a code hold NaN
             table, column, int(i.k), str(i.method), int(i.restarts),
-            "nearest" if fill else str(i.fill),
+            "nearest" if by_app else str(i.fill),  # by_app: replaced just below
         )
         summary["fill"] = str(i.fill)
-        if fill:  # rows without a code: by their appearance vector, not their track
+        if by_app:  # rows without a code: by their appearance vector, not their track
             coded = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
             identity = transfer_identities(table, identity, coded, "app")
             summary["fill"] = "app: nearest identity by appearance vector"

@@ -198,7 +198,6 @@ def assign_identities(
             "identities": n_clusters,
             "association": f"tracks clustered by {column}",
         }
-    row_track = np.array([of_track[int(s)] for s in sid[valid]])
     if method == "subjects":  # one item per subject and frame, distinct within a frame
         key = np.stack([frame[valid], sid[valid]], 1)
         items, item = np.unique(key, axis=0, return_inverse=True)
@@ -210,6 +209,7 @@ def assign_identities(
                                items[:, 0], k, restarts)
         identity[valid] = labels[item]
     else:
+        row_track = np.array([of_track[int(s)] for s in sid[valid]])
         cams = np.unique(np.asarray(table["camera"])[valid], return_inverse=True)[1]
         groups = frame[valid] * (cams.max() + 1) + cams
         identity[valid] = _cluster_rows(unit, row_track, groups, k, restarts)
@@ -225,7 +225,7 @@ def assign_identities(
                                            frame[gap])
     return identity, summary | {
         "identities": len(set(identity[valid].tolist())),
-        "association": f"rows clustered by {column}",
+        "association": f"{method} clustered by {column}",
     }
 
 
@@ -247,8 +247,9 @@ def _nearest_coded(coded_frame: np.ndarray, coded_id: np.ndarray, frames: np.nda
     own = np.array([_most_frequent(coded_id[coded_frame == t]) for t in times])
     ids = own.copy()
     for i in range(len(own)):
-        values, counts = np.unique(own[max(0, i - 1) : i + 2], return_counts=True)
-        if counts.max() > (own[max(0, i - 1) : i + 2] == own[i]).sum():
+        window = own[max(0, i - 1) : i + 2]
+        values, counts = np.unique(window, return_counts=True)
+        if counts.max() > (window == own[i]).sum():
             ids[i] = values[counts.argmax()]
     after = np.clip(np.searchsorted(times, frames), 0, len(times) - 1)
     before = np.clip(after - 1, 0, len(times) - 1)
