@@ -589,3 +589,13 @@ def test_every_run_writes_a_label_free_quality_report(tiny_run):
     assert sorted(q["files"]) == sorted(f"frame_{t:06d}.png" for t in q["worst"])
     assert all(cv2.imread(str(out / "quality" / "worst" / f)) is not None for f in q["files"])
     assert "| explained |" in (out / "quality" / "quality.md").read_text()
+
+
+def test_identity_settings_are_validated_against_the_methods_the_code_has():
+    """nsd's config rules cannot import netepu (the layout), so they spell the identity
+    methods again: they must be exactly the code's (plus ``app``, the stage's own fill)."""
+    from netepu.reid.identities import FILL_METHODS, IDENTITY_METHODS
+    from nsd.core.validation import RULES
+
+    assert set(RULES["run"]["netepu.identities.method"].choices) == set(IDENTITY_METHODS)
+    assert set(RULES["run"]["netepu.identities.fill"].choices) == {*FILL_METHODS, "app"}
