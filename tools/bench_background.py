@@ -50,6 +50,12 @@ SCENES = [  # name, nsd-synth overrides (None: the built-in default scene), ling
     ("linger 0.85, seed 5", ["motion.linger=0.85", "seed=5"], 0.85),
     ("linger 0.6, 3 individuals, seed 7", ["motion.linger=0.6", "seed=7",
                                             "num_individuals=3"], 0.6),
+    # added after the subject-likeness rule was chosen on the three above; they set
+    # only MIN_PIXEL_SHARE (0.06 against 0.1) and the 3-frame floor of the pixel rule
+    ("linger 0.7, seed 11", ["motion.linger=0.7", "seed=11"], 0.7),
+    ("linger 0.8, seed 13", ["motion.linger=0.8", "seed=13"], 0.8),
+    ("linger 0.75, 3 individuals, seed 17", ["motion.linger=0.75", "seed=17",
+                                             "num_individuals=3"], 0.75),
 ]
 STEP = 3
 

@@ -9,23 +9,37 @@ densest cluster of its frames' colours) holds for one stretch of the recording, 
 another colour holds most of the frames outside the stretch. Subjects walking past give
 no such pattern: the colours they leave on a pixel are short and scattered.
 
-Which of the two is the background is decided per region of such pixels by **continuity
-with its surroundings**: the background continues the background around the region,
-while a subject ends at its silhouette. Each colour of the region is extrapolated a few
-pixels outwards (a normalised convolution over the region) and compared, along the
-region's border, with the background extrapolated inwards from outside; where the second
-colour continues the surroundings clearly better, the first is a subject's. The region's
-background is then the median of its pixels (and of those within ``BORDER`` of it) over
-the frames in which the subject was away (the frames most of the region's pixels do not
-show their first colour): rather than each pixel's own second colour, which at the
-region's edge, where a swaying subject shows only part of the time and the floor is the
-first colour, would be the subject's.
+Which of the two is the background is decided by **what subjects look like**. The
+recording itself shows it: wherever a pixel does not show its usual colour, a subject is
+passing (the lingering one too, when it walks). The *subject-likeness* of a colour is
+log p(colour | a subject passing) - log p(colour | the background), two colour histograms
+of the camera (``BINS`` bins a channel): one of every frame's colours that differ from
+their pixel's usual one, one of the usual colours, both outside the pixels with two
+stable colours. A region of such pixels (connected) holds a subject in its first colour
+when, summed over its pixels, the first colour is more subject-like than the second.
+(Deciding by continuity with the surroundings, the background continuing the floor
+around the region, was the earlier rule: a subject whose clothes resemble the floor
+breaks into many small regions, and each small region's border is too short to tell.)
+
+The region's background is then, at each of its pixels and those within ``BORDER`` of
+it, the densest colour of the frames in which the subject was away (the frames most of
+the region's pixels do not show their first colour): rather than each pixel's own second
+colour, which at the region's edge, where a swaying subject shows only part of the time
+and the floor is the first colour, would be the subject's; a pixel keeps its first colour
+where that is the more background-like by ``MARGIN``.
+
+Last, **pixel by pixel**: where a pixel's colour is still subject-like (likeness above 0)
+and another stable colour holds ``MIN_PIXEL_SHARE`` of its frames (a subject that stays
+85 % of the time, then walks off across its spot, leaves the floor in a few frames
+only, too few for a stretch), the pixel takes that colour when it is background-like
+(likeness below 0) by ``MARGIN`` more than its own.
 
 Reported as uncertain (the scene check and the background report,
 :mod:`nsd.io.background_report`, tell a user per camera, with the advice to give a
-background plate): the pixels where the second colour was taken, the clear cases where
-it was not (a stretch from the start or to the end of the recording, the other colour
-holding ``STEP_PURITY`` of the rest), and those where no colour holds half of the frames.
+background plate): the pixels whose colour was changed, those left with a subject-like
+colour beside another stable one, the clear cases of a stretch kept (from the start or to
+the end of the recording, the other colour holding ``STEP_PURITY`` of the rest), and
+those where no colour holds half of the frames.
 A subject that never moves in the whole recording leaves a single stable colour, its own:
 nothing label-free finds it, and only a plate helps.
 """
@@ -49,10 +63,12 @@ MODE_TOLERANCE = 24  # grey levels (largest over the channels): a sample belongs
 MIN_SECOND_SHARE = 0.15  # the stretch and the rest each span at least this share of frames
 STEP_PURITY = 0.7  # the stretch shows the first colour in this share of its frames at least
 MIN_OTHER = 0.4  # the second colour holds this share of the other part's frames at least
-BORDER = 3  # pixels on each side of a region's border where continuity is compared
-MIN_REGION = 1e-4  # smallest region, a share of the image (smaller ones keep the median)
+BORDER = 3  # pixels around a replaced region that take the subject-free frames' colour
 MAX_PIXELS = 512 * 512  # larger frames are analysed at about this size (then upsampled)
-SWITCH_MARGIN = 0.8  # the second colour must continue the surroundings this much better
+BINS = 16  # colour histogram bins a channel of the subject-likeness
+MARGIN = 1.0  # nats of subject-likeness a pixel's colour change must gain
+MIN_PIXEL_SHARE = 0.06  # a pixel's other colour holds this share of frames (and 3 frames)
+EPS = 1e-4  # added to the histograms' probabilities
 
 
 @dataclass
@@ -61,9 +77,10 @@ class BackgroundEstimate:
 
     Attributes:
         image: the background, (H, W, 3) uint8 RGB.
-        uncertain: (H, W) bool, the reported pixels: the second colour taken, a clear stay
-            kept, or no colour in half of the frames (see the module docstring).
-        replaced: (H, W) bool, where the second colour was taken instead of the first.
+        uncertain: (H, W) bool, the reported pixels: the colour changed, a subject-like
+            colour or a clear stay kept, or no colour in half of the frames (see the
+            module docstring).
+        replaced: (H, W) bool, where another colour was taken instead of the first.
         samples: how many frames the estimate read.
     """
 
@@ -185,51 +202,60 @@ def _two_colours(stack: np.ndarray, median: np.ndarray) -> tuple[np.ndarray, ...
     return first, second, step, stay, no_majority, shows_first
 
 
-def _spread(image: np.ndarray, region: np.ndarray, sigma: float) -> np.ndarray:
-    """``image`` over ``region`` extrapolated a few pixels beyond it (normalised
-    convolution): (H, W, 3) float, undefined (0) far from the region."""
-    w = region.astype(np.float32)
-    num = cv2.GaussianBlur(image.astype(np.float32) * w[..., None], (0, 0), sigma)
-    den = cv2.GaussianBlur(w, (0, 0), sigma)
-    return num / np.maximum(den, 1e-6)[..., None]
+def _bins(colours: np.ndarray) -> np.ndarray:
+    """Histogram bin of each colour: (..., 3) uint8 -> (...) int."""
+    q = colours.astype(np.int64) * BINS // 256
+    return (q[..., 0] * BINS + q[..., 1]) * BINS + q[..., 2]
 
 
-def _continuity_choice(first: np.ndarray, second: np.ndarray, two: np.ndarray) -> np.ndarray:
-    """Where the second colour continues the surroundings better than the first: (H, W) bool
-    over the regions of ``two`` (pixels with two stable colours)."""
-    H, W = two.shape
+def _histogram(colours: np.ndarray) -> np.ndarray:
+    """(M, 3) uint8 colours -> (BINS**3,) probabilities (zeros without colours)."""
+    counts = np.bincount(_bins(colours).ravel(), minlength=BINS**3).astype(np.float64)
+    return counts / max(counts.sum(), 1.0)
+
+
+def _subject_likeness(stack: np.ndarray, first: np.ndarray, two: np.ndarray,
+                      shows_first: np.ndarray) -> np.ndarray:
+    """The subject-likeness of each histogram bin (see the module docstring).
+
+    Args:
+        stack: (N, H, W, 3) uint8 frames; first: (H, W, 3) each pixel's usual colour;
+        two: (H, W) bool, the pixels with two stable colours (left out of both
+        histograms); shows_first: (N, H, W) bool.
+
+    Returns:
+        (BINS**3,) float: log p(bin | a subject passing) - log p(bin | the background).
+    """
+    passing = ~shows_first & ~two[None]
+    return (np.log(_histogram(stack[passing]) + EPS)
+            - np.log(_histogram(first[~two]) + EPS))
+
+
+def _likeness(colours: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """Subject-likeness of colours: (..., 3) uint8 -> (...) float."""
+    return table[_bins(colours)]
+
+
+def _appearance_choice(first: np.ndarray, second: np.ndarray, two: np.ndarray,
+                       table: np.ndarray) -> np.ndarray:
+    """The regions of ``two`` (pixels with two stable colours, 8-connected) whose first
+    colour is, summed over the region, more subject-like than the second: (H, W) bool."""
     n, labels = cv2.connectedComponents(two.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return np.zeros_like(two)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * BORDER + 1, 2 * BORDER + 1))
-    outside = ~two
-    band = (cv2.dilate(two.astype(np.uint8), kernel) > 0) & (cv2.erode(
-        two.astype(np.uint8), kernel) == 0)
-    sigma = BORDER / 1.5
-    around = _spread(first, outside, sigma)  # the surroundings, carried inwards
-    cost = []
-    for colour in (first, second):
-        inner = _spread(colour, two, sigma)  # the region's colour, carried outwards
-        cost.append(np.abs(inner - around).mean(-1))
-    # each band pixel counts for the region it touches (labels spread over the band)
-    near = cv2.dilate(labels.astype(np.float32), kernel).astype(np.int64)
-    near[~band] = 0
-    sums = [np.bincount(near.ravel(), weights=c.ravel(), minlength=n) for c in cost]
-    counts = np.bincount(near.ravel(), minlength=n)
-    areas = np.bincount(labels.ravel(), minlength=n)
-    switch = (sums[1] < SWITCH_MARGIN * sums[0]) & (counts > 0) & (areas >= MIN_REGION * H * W)
+    score = _likeness(first, table) - _likeness(second, table)
+    switch = np.bincount(labels.ravel(), weights=score.ravel(), minlength=n) > 0
     switch[0] = False
     return switch[labels]
 
 
 def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
-             switched: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The background of each region whose first colour was found to be a subject: the
-    median of the region's pixels (and of those within ``BORDER`` of it) over the frames
-    the subject was away.
+             switched: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The background of each region whose first colour was found to be a subject: at
+    each of its pixels (and of those within ``BORDER`` of it) the densest colour of the
+    frames the subject was away, unless the pixel's first colour is more background-like
+    by ``MARGIN``.
 
     The subject's presence is the region's vote: the frames in which most of its pixels
-    show their first colour. Taking the free frames' median, rather than each pixel's
+    show their first colour. Taking the free frames' colour, rather than each pixel's
     second colour, also gets right the pixels at the region's edge (where the floor is
     the first colour and the subject, swaying, the second) and those with no majority.
 
@@ -250,11 +276,55 @@ def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
         if len(free) < need:
             continue
         reach = cv2.dilate(region.astype(np.uint8), kernel) > 0
-        image[reach] = np.median(stack[:, reach][free], axis=0).round().astype(np.uint8)
+        samples = stack[:, reach].astype(np.int16)  # (N, K, 3)
+        allowed = np.zeros(samples.shape[:2], bool)
+        allowed[free] = True
+        colour, _, _ = _densest(samples, allowed)
+        image[reach] = np.round(colour).astype(np.uint8)
         regions |= region
         reached |= reach
+    keep = _likeness(first, table) < _likeness(image, table) - MARGIN  # the first is floor
+    image[keep] = first[keep]
     changed = np.abs(image.astype(np.int16) - first).max(-1) > MODE_TOLERANCE
-    return image, regions | (reached & changed)
+    return image, (regions | (reached & changed)) & ~keep
+
+
+def _pixel_by_pixel(stack: np.ndarray, image: np.ndarray, fixed: np.ndarray,
+                    table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels whose colour is still subject-like take a stable background-like colour of
+    their own (see the module docstring).
+
+    Args:
+        stack: (N, H, W, 3) uint8; image: (H, W, 3) uint8, the background so far;
+        fixed: (H, W) bool, pixels left alone (the replaced regions); table: the
+        subject-likeness.
+
+    Returns:
+        the background (H, W, 3) uint8 (``image`` where nothing changed) and (H, W) bool,
+        the pixels with a subject-like colour and another stable one (changed or not).
+    """
+    N = stack.shape[0]
+    need = max(3, int(np.ceil(MIN_PIXEL_SHARE * N)))
+    own = _likeness(image, table)
+    off = np.abs(stack.astype(np.int16) - image.astype(np.int16)).max(-1) > MODE_TOLERANCE
+    ys, xs = np.nonzero((off.sum(0) >= need) & ~fixed & (own > 0))
+    out, doubtful = image.copy(), np.zeros(image.shape[:2], bool)
+    chunk = max(1, 2_000_000 // (N * N))  # bounds the (N, N, K) neighbour table
+    for s in range(0, len(ys), chunk):
+        y, x = ys[s : s + chunk], xs[s : s + chunk]
+        samples = stack[:, y, x].astype(np.int16)  # (N, K, 3)
+        allowed = off[:, y, x]
+        best, best_like = image[y, x].astype(np.float64), own[y, x]
+        for _ in range(2):  # the two densest other colours
+            colour, support, members = _densest(samples, allowed)
+            colour = np.clip(np.nan_to_num(colour), 0, 255).round().astype(np.uint8)
+            like = _likeness(colour, table)
+            doubtful[y, x] |= support >= need
+            better = (support >= need) & (like < 0) & (like < best_like - MARGIN)
+            best[better], best_like[better] = colour[better], like[better]
+            allowed &= ~members
+        out[y, x] = np.round(best).astype(np.uint8)
+    return out, doubtful
 
 
 def estimate_background(
@@ -304,7 +374,13 @@ def estimate_background(
     image = median
     if method == "modes":
         image = first  # the most frequent colour where the median is none of the frames'
+        table = _subject_likeness(stack, first, step, shows_first)
         if step.any():
-            replaced = _continuity_choice(first, second, step)
-            image, replaced = _vacated(stack, first, shows_first, replaced)
+            switched = _appearance_choice(first, second, step, table)
+            image, replaced = _vacated(stack, first, shows_first, switched, table)
+        image_before = image
+        image, doubtful = _pixel_by_pixel(stack, image, replaced, table)
+        replaced = replaced | (np.abs(image.astype(np.int16) - image_before).max(-1)
+                               > MODE_TOLERANCE)
+        stay = stay | doubtful
     return BackgroundEstimate(image, stay | replaced | no_majority, replaced, int(N))

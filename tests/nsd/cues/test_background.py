@@ -9,7 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from nsd.cues.background import _step, estimate_background
+from nsd.cues.background import (
+    _likeness,
+    _step,
+    _subject_likeness,
+    _two_colours,
+    estimate_background,
+)
 from nsd.io.background_report import write_background_report
 from nsd.io.footage import MultiViewFootage
 from nsd.io.scene_check import check_scene
@@ -77,6 +83,45 @@ def test_a_swaying_subject_leaves_no_trace_at_its_edge():
     est = estimate_background(stack, "modes")
     assert not _wrong(est.image, floor).any()
     assert est.replaced[subject].all() and not est.replaced[~(subject | edge)].any()
+
+
+def test_subject_likeness_tells_passing_colours_from_the_floor():
+    """Colours seen only where a pixel does not show its usual colour (the walkers) are
+    subject-like (above 0), the floor's usual colours background-like (below 0)."""
+    stack, floor, _ = _recording(None)
+    median = np.median(stack, axis=0).round().astype(np.uint8)
+    first, _, step, _, _, shows = _two_colours(stack, median)
+    table = _subject_likeness(stack, first, step, shows)
+    walkers = stack[~shows]
+    floor_like = _likeness(floor.reshape(-1, 3), table)
+    assert np.median(floor_like) < -5 and (floor_like < 0).mean() > 0.95
+    passing = _likeness(walkers, table)
+    far = np.abs(walkers.astype(int) - 115).max(-1) > 40  # colours unlike any floor's
+    assert far.sum() > 100 and (passing[far] > 0).all()
+
+
+def test_a_subject_that_walks_off_across_its_spot_is_found_pixel_by_pixel():
+    """It stays 90 % of the time, then walks off to the right over part of its spot: the
+    floor shows in 2-5 frames there, too few for a stretch (``MIN_SECOND_SHARE``), but its
+    red is seen passing, the floor's grey is the background's: pixel by pixel the floor
+    (the median and the stretch rule keep the subject everywhere). A few pixels stay: the
+    histograms' bins are 16 grey levels wide, and a floor grey on a bin's edge (95 where
+    the floor is mostly 100 +- 5) is rare in the background's histogram, so not
+    background-like by ``MARGIN``."""
+    stack, floor, subject = _recording(range(0, 45))
+    yy, xx = np.mgrid[:H, :W]
+    for t in range(45, N):
+        stack[t][(abs(yy - 30) < 10) & (abs(xx - (32 + 6 * (t - 45))) < 6)] = (200, 60, 40)
+    assert _wrong(estimate_background(stack, "median").image, floor)[subject].all()
+    est = estimate_background(stack, "modes")
+    wrong = _wrong(est.image, floor)
+    assert wrong[subject].mean() < 0.02 and not wrong[~subject].any()
+    assert (est.replaced == subject & ~wrong).all() and est.uncertain[subject].all()
+    # with the floor in 2 frames only (the walk starts later) nothing is changed
+    stack, floor, subject = _recording(range(0, 48))
+    for t in range(48, N):
+        stack[t][(abs(yy - 30) < 10) & (abs(xx - (32 + 6 * (t - 45))) < 6)] = (200, 60, 40)
+    assert _wrong(estimate_background(stack, "modes").image, floor)[subject].all()
 
 
 def test_large_frames_are_analysed_smaller_and_upsampled():
