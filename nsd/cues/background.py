@@ -13,10 +13,11 @@ Which of the two is the background is decided by **what subjects look like**. Th
 recording itself shows it: wherever a pixel does not show its usual colour, a subject is
 passing (the lingering one too, when it walks). The *subject-likeness* of a colour is
 log p(colour | a subject passing) - log p(colour | the background), two colour histograms
-of the camera (``BINS`` bins a channel): one of every frame's colours that differ from
-their pixel's usual one, one of the usual colours, both outside the pixels with two
-stable colours. A region of such pixels (connected) holds a subject in its first colour
-when, summed over its pixels, the first colour is more subject-like than the second.
+of the camera (``BINS`` bins a channel) over its steady pixels (those showing their usual
+colour in all but ``MIN_SECOND_SHARE`` of the frames): one of the colours of the frames
+that differ from the usual one, one of the usual colours. A region of pixels with two
+stable colours (8-connected) holds a subject in its first colour when, summed over its
+pixels, the first colour is more subject-like than the second.
 (Deciding by continuity with the surroundings, the background continuing the floor
 around the region, was the earlier rule: a subject whose clothes resemble the floor
 breaks into many small regions, and each small region's border is too short to tell.)
@@ -29,10 +30,12 @@ and the floor is the first colour, would be the subject's; a pixel keeps its fir
 where that is the more background-like by ``MARGIN``.
 
 Last, **pixel by pixel**: where a pixel's colour is still subject-like (likeness above 0)
-and another stable colour holds ``MIN_PIXEL_SHARE`` of its frames (a subject that stays
-85 % of the time, then walks off across its spot, leaves the floor in a few frames
-only, too few for a stretch), the pixel takes that colour when it is background-like
-(likeness below 0) by ``MARGIN`` more than its own.
+and another stable colour holds ``MIN_SECOND_SHARE`` of its frames without forming a
+stretch (a subject that sways or is lit in changing shades while it stays, so that no
+colour holds ``STEP_PURITY`` of the stretch), the pixel takes that colour when it is
+background-like (likeness below 0) by ``MARGIN`` more than its own. (A share as low as
+6 % recovered more of a subject that stays 85 % of the time, but painted passing
+subjects' colours into scenes where nobody lingers.)
 
 Reported as uncertain (the scene check and the background report,
 :mod:`nsd.io.background_report`, tell a user per camera, with the advice to give a
@@ -67,7 +70,6 @@ BORDER = 3  # pixels around a replaced region that take the subject-free frames'
 MAX_PIXELS = 512 * 512  # larger frames are analysed at about this size (then upsampled)
 BINS = 16  # colour histogram bins a channel of the subject-likeness
 MARGIN = 1.0  # nats of subject-likeness a pixel's colour change must gain
-MIN_PIXEL_SHARE = 0.06  # a pixel's other colour holds this share of frames (and 3 frames)
 EPS = 1e-4  # added to the histograms' probabilities
 
 
@@ -214,21 +216,23 @@ def _histogram(colours: np.ndarray) -> np.ndarray:
     return counts / max(counts.sum(), 1.0)
 
 
-def _subject_likeness(stack: np.ndarray, first: np.ndarray, two: np.ndarray,
+def _subject_likeness(stack: np.ndarray, first: np.ndarray,
                       shows_first: np.ndarray) -> np.ndarray:
     """The subject-likeness of each histogram bin (see the module docstring).
 
     Args:
         stack: (N, H, W, 3) uint8 frames; first: (H, W, 3) each pixel's usual colour;
-        two: (H, W) bool, the pixels with two stable colours (left out of both
-        histograms); shows_first: (N, H, W) bool.
+        shows_first: (N, H, W) bool, the frames showing it. Only the steady pixels count
+        (another colour in fewer than ``MIN_SECOND_SHARE`` of the frames).
 
     Returns:
         (BINS**3,) float: log p(bin | a subject passing) - log p(bin | the background).
     """
-    passing = ~shows_first & ~two[None]
+    need = max(2, int(np.ceil(MIN_SECOND_SHARE * stack.shape[0])))
+    steady = (~shows_first).sum(0) < need
+    passing = ~shows_first & steady[None]
     return (np.log(_histogram(stack[passing]) + EPS)
-            - np.log(_histogram(first[~two]) + EPS))
+            - np.log(_histogram(first[steady]) + EPS))
 
 
 def _likeness(colours: np.ndarray, table: np.ndarray) -> np.ndarray:
@@ -304,7 +308,7 @@ def _pixel_by_pixel(stack: np.ndarray, image: np.ndarray, fixed: np.ndarray,
         the pixels with a subject-like colour and another stable one (changed or not).
     """
     N = stack.shape[0]
-    need = max(3, int(np.ceil(MIN_PIXEL_SHARE * N)))
+    need = max(2, int(np.ceil(MIN_SECOND_SHARE * N)))
     own = _likeness(image, table)
     off = np.abs(stack.astype(np.int16) - image.astype(np.int16)).max(-1) > MODE_TOLERANCE
     ys, xs = np.nonzero((off.sum(0) >= need) & ~fixed & (own > 0))
@@ -374,7 +378,7 @@ def estimate_background(
     image = median
     if method == "modes":
         image = first  # the most frequent colour where the median is none of the frames'
-        table = _subject_likeness(stack, first, step, shows_first)
+        table = _subject_likeness(stack, first, shows_first)
         if step.any():
             switched = _appearance_choice(first, second, step, table)
             image, replaced = _vacated(stack, first, shows_first, switched, table)
