@@ -24,7 +24,8 @@ breaks into many small regions, and each small region's border is too short to t
 
 The region's background is then, at each of its pixels and those within ``BORDER`` of
 it, the densest colour of the frames in which the subject was away (the frames most of
-the region's pixels do not show their first colour): rather than each pixel's own second
+the region's pixels do not show their first colour), or the second densest where that is
+more background-like by ``MARGIN``: rather than each pixel's own second
 colour, which at the region's edge, where a swaying subject shows only part of the time
 and the floor is the first colour, would be the subject's; a pixel keeps its first colour
 where that is the more background-like by ``MARGIN``.
@@ -255,8 +256,10 @@ def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
              switched: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The background of each region whose first colour was found to be a subject: at
     each of its pixels (and of those within ``BORDER`` of it) the densest colour of the
-    frames the subject was away, unless the pixel's first colour is more background-like
-    by ``MARGIN``.
+    frames the subject was away, or their second densest (seen in two frames at least)
+    where that is more background-like by ``MARGIN`` (the subject walking off, or swaying,
+    still covers the pixel in many of those frames), unless the pixel's first colour is
+    more background-like by ``MARGIN``.
 
     The subject's presence is the region's vote: the frames in which most of its pixels
     show their first colour. Taking the free frames' colour, rather than each pixel's
@@ -283,8 +286,12 @@ def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
         samples = stack[:, reach].astype(np.int16)  # (N, K, 3)
         allowed = np.zeros(samples.shape[:2], bool)
         allowed[free] = True
-        colour, _, _ = _densest(samples, allowed)
-        image[reach] = np.round(colour).astype(np.uint8)
+        colour, _, members = _densest(samples, allowed)
+        other, support, _ = _densest(samples, allowed & ~members)  # the free frames' second
+        colour, other = (np.clip(np.nan_to_num(c), 0, 255).round().astype(np.uint8)
+                         for c in (colour, other))
+        better = (support >= 2) & (_likeness(other, table) < _likeness(colour, table) - MARGIN)
+        image[reach] = np.where(better[:, None], other, colour)
         regions |= region
         reached |= reach
     keep = _likeness(first, table) < _likeness(image, table) - MARGIN  # the first is floor
