@@ -98,6 +98,16 @@ class BackgroundEstimate:
         return float(self.uncertain.mean()) if self.uncertain.size else 0.0
 
 
+def _need(n_frames: int) -> int:
+    """Frames a stable colour must hold: ``MIN_SECOND_SHARE`` of them, at least 2."""
+    return max(2, int(np.ceil(MIN_SECOND_SHARE * n_frames)))
+
+
+def _as_colour(colour: np.ndarray) -> np.ndarray:
+    """A :func:`_densest` colour (float, NaN without members) as uint8."""
+    return np.clip(np.nan_to_num(colour), 0, 255).round().astype(np.uint8)
+
+
 def _densest(samples: np.ndarray, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The densest colour of each pixel among its allowed frames.
 
@@ -174,7 +184,7 @@ def _two_colours(stack: np.ndarray, median: np.ndarray) -> tuple[np.ndarray, ...
             frames where the median is the one colour).
     """
     N = stack.shape[0]
-    need = max(2, int(np.ceil(MIN_SECOND_SHARE * N)))
+    need = _need(N)
     first, second = median.copy(), median.copy()
     step = np.zeros(median.shape[:2], bool)
     stay = np.zeros(median.shape[:2], bool)
@@ -229,7 +239,7 @@ def _subject_likeness(stack: np.ndarray, first: np.ndarray,
     Returns:
         (BINS**3,) float: log p(bin | a subject passing) - log p(bin | the background).
     """
-    need = max(2, int(np.ceil(MIN_SECOND_SHARE * stack.shape[0])))
+    need = _need(stack.shape[0])
     steady = (~shows_first).sum(0) < need
     passing = ~shows_first & steady[None]
     return (np.log(_histogram(stack[passing]) + EPS)
@@ -271,7 +281,7 @@ def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
         the pixels around them whose colour changed.
     """
     N = stack.shape[0]
-    need = max(2, int(np.ceil(MIN_SECOND_SHARE * N)))
+    need = _need(N)
     image = first.copy()
     regions, reached = np.zeros(first.shape[:2], bool), np.zeros(first.shape[:2], bool)
     n, labels = cv2.connectedComponents(switched.astype(np.uint8), connectivity=8)
@@ -288,8 +298,7 @@ def _vacated(stack: np.ndarray, first: np.ndarray, shows_first: np.ndarray,
         allowed[free] = True
         colour, _, members = _densest(samples, allowed)
         other, support, _ = _densest(samples, allowed & ~members)  # the free frames' second
-        colour, other = (np.clip(np.nan_to_num(c), 0, 255).round().astype(np.uint8)
-                         for c in (colour, other))
+        colour, other = _as_colour(colour), _as_colour(other)
         better = (support >= 2) & (_likeness(other, table) < _likeness(colour, table) - MARGIN)
         image[reach] = np.where(better[:, None], other, colour)
         regions |= region
@@ -315,7 +324,7 @@ def _pixel_by_pixel(stack: np.ndarray, image: np.ndarray, fixed: np.ndarray,
         the pixels with a subject-like colour and another stable one (changed or not).
     """
     N = stack.shape[0]
-    need = max(2, int(np.ceil(MIN_SECOND_SHARE * N)))
+    need = _need(N)
     own = _likeness(image, table)
     off = np.abs(stack.astype(np.int16) - image.astype(np.int16)).max(-1) > MODE_TOLERANCE
     ys, xs = np.nonzero((off.sum(0) >= need) & ~fixed & (own > 0))
@@ -325,16 +334,16 @@ def _pixel_by_pixel(stack: np.ndarray, image: np.ndarray, fixed: np.ndarray,
         y, x = ys[s : s + chunk], xs[s : s + chunk]
         samples = stack[:, y, x].astype(np.int16)  # (N, K, 3)
         allowed = off[:, y, x]
-        best, best_like = image[y, x].astype(np.float64), own[y, x]
+        best, best_like = image[y, x].copy(), own[y, x]
         for _ in range(2):  # the two densest other colours
             colour, support, members = _densest(samples, allowed)
-            colour = np.clip(np.nan_to_num(colour), 0, 255).round().astype(np.uint8)
+            colour = _as_colour(colour)  # (K, 3) uint8
             like = _likeness(colour, table)
             doubtful[y, x] |= support >= need
             better = (support >= need) & (like < 0) & (like < best_like - MARGIN)
             best[better], best_like[better] = colour[better], like[better]
             allowed &= ~members
-        out[y, x] = np.round(best).astype(np.uint8)
+        out[y, x] = best
     return out, doubtful
 
 
