@@ -1,6 +1,6 @@
 """Speed against torch's CPU threads: training steps, whole exports and one frame of inference.
 
-    .venv/bin/python tools/bench_threads.py        # ~4 minutes, nothing else running
+    .venv/bin/python tools/bench_threads.py        # ~6 minutes, nothing else running
 
 Each row runs in a fresh process (``threads`` as a command's ``threads=`` sets them) with
 its CPU affinity cut to that many cores (``taskset`` as a scheduler would), on the default
@@ -10,6 +10,10 @@ scene:
   128 x 128); ``train_step_ms_kornia_ssim`` the same with the structural loss computed by
   ``kornia.metrics.ssim`` (depthwise convolutions: the baseline before
   :mod:`nsd.ops.ssim`);
+* ``train_step_ms_unfused_adam``: the same step with Adam's per-parameter loop instead of
+  its fused kernel (the baseline before ``fused=True``);
+* ``train_step_ms_ranks``: the same 8 view pairs per step trained by ``n`` torchrun ranks of
+  one thread each (``8 // n`` pairs per rank, gradients averaged by gloo's ``all_reduce``);
 * ``export_frames_per_s``: a whole ``nsd-export`` of the 300 frames (decoding, model, files;
   median of 3), from a 20-step checkpoint, with the default ``workers: auto`` (one process
   per core decomposes batches, :mod:`nsd.export.parallel`);
@@ -67,9 +71,15 @@ def train_ms():
         task.opt.zero_grad(set_to_none=True)
         task.training_step(next(step_no), rng)["loss"].backward()
         task.opt.step()
-    return 1000 * median_time(step, repeats=30, warmup=5), task
+    return 1000 * median_time(step, repeats=60, warmup=5), task
 
 result["train_step_ms"], task = train_ms()
+fused_adam = torch.optim.Adam.__init__
+def unfused(self, *args, **kwargs):
+    fused_adam(self, *args, **{**kwargs, "fused": None})
+torch.optim.Adam.__init__ = unfused
+result["train_step_ms_unfused_adam"], _ = train_ms()
+torch.optim.Adam.__init__ = fused_adam
 own = nsd.training.losses.ssim_map
 nsd.training.losses.ssim_map = kornia.metrics.ssim
 result["train_step_ms_kornia_ssim"], _ = train_ms()
@@ -98,8 +108,56 @@ result["gemm_gflops"] = 2 * 2048**3 / median_time(lambda: torch.mm(a, b), repeat
 print(json.dumps(result))
 """
 
+RANK_CHILD = r"""
+import json, sys
+import numpy as np, torch
+from hydra import compose, initialize_config_module
+from nsd.core import distributed
+from nsd.core.threads import set_threads
+from nsd.io.scene_data import SceneData
+from nsd.io.scenes import resolve_scene
+from nsd.training.task import NSDTask
+from tools.benchlib import median_time
+
+distributed.init_from_env()
+set_threads(0)  # the cores shared out among the ranks: one thread each here
+world = distributed.world_size()
+with initialize_config_module("nsd.conf", version_base="1.3"):
+    cfg = compose("train", ["data.max_frames=40", f"batch_size={8 // world}"])
+d = cfg.data
+data = SceneData(resolve_scene(d.scene), d.image_size, d.cameras, d.val_fraction, d.max_frames)
+torch.manual_seed(0)
+task = NSDTask(cfg, data)
+rng = np.random.default_rng(distributed.rank())
+params = [p for g in task.opt.param_groups for p in g["params"]]
+step_no = iter(range(10**6))
+def step():
+    task.opt.zero_grad(set_to_none=True)
+    loss = task.training_step(next(step_no), rng)["loss"]
+    loss.backward()
+    distributed.average_gradients(params, loss.detach().reshape(1))
+    task.opt.step()
+ms = 1000 * median_time(step, repeats=60, warmup=5)
+if distributed.rank() == 0:
+    print(json.dumps(ms))
+distributed.shutdown()
+"""
+
+
+def ranks_ms(n: int, cpus: str) -> float:
+    """Median step of ``n`` torchrun ranks (one thread each) on ``cpus``, 8 // n pairs each."""
+    with tempfile.TemporaryDirectory() as tmp:
+        script = Path(tmp) / "rank_child.py"
+        script.write_text(f"import sys\nsys.path.insert(0, {str(ROOT)!r})\n{RANK_CHILD}")
+        out = subprocess.run(["taskset", "-c", cpus, sys.executable, "-m",
+                              "torch.distributed.run", "--standalone", f"--nproc_per_node={n}",
+                              str(script)], capture_output=True, text=True, check=True, cwd=ROOT)
+    return float(out.stdout.strip().splitlines()[-1])
+
+
 SPEED = {  # column -> True when larger is faster
-    "train_step_ms": False, "train_step_ms_kornia_ssim": False, "export_frames_per_s": True,
+    "train_step_ms": False, "train_step_ms_unfused_adam": False, "train_step_ms_ranks": False,
+    "train_step_ms_kornia_ssim": False, "export_frames_per_s": True,
 "export_frames_per_s_one_process": True, "frame_ms": False, "gemm_gflops": True,
 }
 
@@ -117,6 +175,8 @@ def main() -> None:
                                   str(run / "checkpoint.pt"), tmp],
                                  capture_output=True, text=True, check=True, cwd=ROOT)
             rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            rows[-1]["train_step_ms_ranks"] = (rows[-1]["train_step_ms"] if n == 1
+                                               else ranks_ms(n, cpus))
             print(rows[-1], flush=True)
     first = rows[0]
     for r in rows:
@@ -127,11 +187,17 @@ def main() -> None:
         "threads", "Speed against CPU threads", rows,
         extra={
             "train_ssim_gain_1_thread": first["train_step_ms_kornia_ssim"] / first["train_step_ms"],
+            "train_fused_adam_gain_1_thread": (first["train_step_ms_unfused_adam"]
+                                               / first["train_step_ms"]),
             "train_speed_up_vs_before": first["train_step_ms_kornia_ssim"] / last["train_step_ms"],
         },
         notes=("Each row a fresh process with that many threads on that many cores (taskset), "
-               "on the default scene. Training: medians of 30 steps after 5 warm-ups from a "
-               "fresh model (default batch, 128 x 128); `kornia_ssim`: the structural loss by "
+               "on the default scene. Training: medians of 60 steps after 5 warm-ups from a "
+               "fresh model (default batch, 128 x 128); `unfused_adam`: Adam's per-parameter loop "
+               "instead of its fused kernel (the baseline); `ranks`: the same 8 view pairs "
+               "per step over n torchrun ranks of one thread each (8 // n pairs per rank, "
+               "gradients averaged by all_reduce), rank 0's median of 60 steps; "
+               "`kornia_ssim`: the structural loss by "
                "kornia's depthwise convolutions instead of nsd/ops/ssim.py's matrix products "
                "(the baseline). Export: a whole `nsd-export` of the 300 frames from a 20-step "
                "checkpoint, median of 3, with `workers: auto` (one decomposing process per "
