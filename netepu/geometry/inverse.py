@@ -233,7 +233,7 @@ def _optimise(model, masks, camera, z0, centre0, steps, s: InverseSettings, rng,
         ctx = model.renderer.prepare(code.keypoints.repeat_interleave(V, 0),
                                      code.features.repeat_interleave(V, 0),
                                      code.z.repeat_interleave(V, 0), rep)
-        logit = model.query(ctx, uv.repeat(S, 1, 1))["logit"]  # (S V, P)
+        logit = model.query(ctx, uv.repeat(S, 1, 1), ("logit",))["logit"]  # (S V, P)
         with torch.no_grad():
             inside = torch.stack([torch.from_numpy(candidate_region(
                 ctx.frame.uv[b], float(ctx.frame.scale[b]), s.margin, (W, H)))[

@@ -10,7 +10,7 @@ trainer checkpoint with :func:`load_geometry_model`.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import Any
 
 from torch import Tensor, nn
@@ -22,7 +22,7 @@ from netepu.geometry.networks import (
     denormalise_keypoints,
     normalise_keypoints,
 )
-from netepu.geometry.renderer import NeuralRenderer2D, RenderContext
+from netepu.geometry.renderer import OUTPUTS, NeuralRenderer2D, RenderContext
 from nsd.cameras.batch import CameraBatch
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.trainer import load_checkpoint
@@ -97,9 +97,11 @@ class GeometryModel(nn.Module):
                          for x in (kps, code.features, code.z))
         return self.renderer.prepare(kps, feats, z, camera)
 
-    def query(self, ctx: RenderContext, uv: Tensor) -> dict[str, Tensor]:
+    def query(
+        self, ctx: RenderContext, uv: Tensor, outputs: Collection[str] = OUTPUTS
+    ) -> dict[str, Tensor]:
         """Render query pixels (B, Q, 2); see :meth:`NeuralRenderer2D.query`."""
-        return self.renderer.query(ctx, uv)
+        return self.renderer.query(ctx, uv, outputs)
 
 
 def _section(cfg: Mapping[str, Any], key: str) -> dict[str, Any]:

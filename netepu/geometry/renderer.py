@@ -31,6 +31,7 @@ Rendering
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import torch
@@ -41,6 +42,7 @@ from nsd.cameras.batch import CameraBatch
 from nsd.cameras.projection import project_points
 
 __all__ = [
+    "OUTPUTS",
     "NeuralRenderer2D",
     "RenderContext",
     "RenderHead",
@@ -50,6 +52,7 @@ __all__ = [
     "view_frame",
 ]
 
+OUTPUTS = ("logit", "depth", "nnopcs")  # what a query renders; separate heads in this order
 MIN_DEPTH = 1e-3  # keypoints closer to the camera than this (scene units) are rejected
 
 
@@ -205,7 +208,7 @@ class NeuralRenderer2D(nn.Module):
         vca_mode: str = "factorised",
         head_hidden: int = 64,
         head_blocks: int = 3,
-        shared_head: bool = True,
+        shared_head: bool = False,
     ) -> None:
         super().__init__()
         self.radius, self.k, self.n_freq = float(radius), k, n_freq
@@ -243,27 +246,44 @@ class NeuralRenderer2D(nn.Module):
         pos = frame.positions
         return RenderContext(frame, self.vca.prepare(self.down(z), x, pos[..., :2], pos[..., 2:]))
 
-    def query(self, ctx: RenderContext, uv: Tensor) -> dict[str, Tensor]:
+    def query(
+        self, ctx: RenderContext, uv: Tensor, outputs: Collection[str] = OUTPUTS
+    ) -> dict[str, Tensor]:
         """Render query pixels.
 
         Args:
             ctx: from :meth:`prepare`.
             uv: query pixels (B, Q, 2), same convention as :mod:`nsd.cameras.projection`.
+            outputs: which of :data:`OUTPUTS` to render. With separate heads
+                (``shared_head=False``) only their heads run: inverse rendering asks
+                for ``logit`` alone, training for ``logit`` at the silhouette points
+                and ``depth``, ``nnopcs`` at the in-mask points.
 
         Returns:
-            ``logit`` (B, Q) silhouette logit, ``depth_norm`` (B, Q) normalised
-            depth :math:`\\hat d`, ``depth`` (B, Q) camera depth Z, ``nnopcs`` (B, Q, 3)
-            (unclamped).
+            the requested of ``logit`` (B, Q) silhouette logit, ``depth_norm`` (B, Q)
+            normalised depth :math:`\\hat d` with ``depth`` (B, Q) camera depth Z,
+            ``nnopcs`` (B, Q, 3) (unclamped).
         """
+        unknown = set(outputs) - set(OUTPUTS)
+        if unknown or not outputs:
+            raise ValueError(f"outputs must be a non-empty subset of {OUTPUTS}, got {outputs}")
         y = self.vca(ctx.prepared, to_frame(uv, ctx.frame))
-        out = torch.cat([h(y) for h in self.heads], dim=-1)
-        depth_norm = out[..., 1]
-        return {
-            "logit": out[..., 0],
-            "depth_norm": depth_norm,
-            "depth": ctx.frame.depth_ref[:, None] + self.radius * depth_norm,
-            "nnopcs": out[..., 2:5],
-        }
+        if self.shared_head:
+            out = self.heads[0](y)
+            parts = {"logit": out[..., 0], "depth": out[..., 1], "nnopcs": out[..., 2:5]}
+        else:
+            parts = {name: head(y) for name, head in zip(OUTPUTS, self.heads, strict=True)
+                     if name in outputs}
+            parts = {k: v[..., 0] if k != "nnopcs" else v for k, v in parts.items()}
+        res = {}
+        if "logit" in outputs:
+            res["logit"] = parts["logit"]
+        if "depth" in outputs:
+            res["depth_norm"] = parts["depth"]
+            res["depth"] = ctx.frame.depth_ref[:, None] + self.radius * parts["depth"]
+        if "nnopcs" in outputs:
+            res["nnopcs"] = parts["nnopcs"]
+        return res
 
     def forward(
         self, keypoints: Tensor, features: Tensor, z: Tensor, camera: CameraBatch,

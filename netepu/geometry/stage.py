@@ -154,14 +154,15 @@ class GeometryTask:
         # the renderer's query and global token come from z as well
         render_code = code if reach else replace(code, z=code.z.detach())
         ctx = m.prepare(render_code, batch["camera"], keypoints=noisy)
-        S = batch["sil_uv"].shape[1]
-        out = m.query(ctx, torch.cat([batch["sil_uv"], batch["fg_uv"]], 1))
+        # each head only where it is supervised (separate heads: the others do not run)
+        sil = m.query(ctx, batch["sil_uv"], ("logit",))
+        fg = m.query(ctx, batch["fg_uv"], ("depth", "nnopcs"))
         target_depth = (batch["fg_depth"] - ctx.frame.depth_ref[:, None]) / r
         terms = {
-            "silhouette": silhouette_loss(out["logit"][:, :S], batch["sil_label"]),
+            "silhouette": silhouette_loss(sil["logit"], batch["sil_label"]),
             "keypoints": keypoint_loss(code.keypoints / (2 * r), kps / (2 * r)),
-            "depth": depth_loss(out["depth_norm"][:, S:], target_depth),
-            "nnopcs": nnopcs_loss(out["nnopcs"][:, S:], batch["fg_nnopcs"]),
+            "depth": depth_loss(fg["depth_norm"], target_depth),
+            "nnopcs": nnopcs_loss(fg["nnopcs"], batch["fg_nnopcs"]),
             "latent": latent_loss(code.z),
         }
         return geometry_loss(terms, self.weights)

@@ -73,7 +73,7 @@ def predicted_nnopcs(
         (B, N, 3), zeros where not kept.
     """
     ctx = _posed_context(geometry, keypoints, camera)
-    out = query_masked(lambda q: geometry.query(ctx, q)["nnopcs"], uv, keep)
+    out = query_masked(lambda q: geometry.query(ctx, q, ("nnopcs",))["nnopcs"], uv, keep)
     return out.clamp(0, 1)
 
 
@@ -158,7 +158,7 @@ def predicted_surface(
     ctx = _posed_context(geometry, keypoints, camera)
 
     def both(q: Tensor) -> Tensor:
-        out = geometry.query(ctx, q)
+        out = geometry.query(ctx, q, ("depth", "nnopcs"))
         return torch.cat([out["nnopcs"].clamp(0, 1), out["depth"][..., None]], -1)
 
     out = query_masked(both, flat_uv, flat_keep).reshape(B, S1, S2, 4)

@@ -34,12 +34,15 @@ class TestLosses(BaseTester):
                           torch.tensor(0.25))
         self.assert_close(latent_loss(torch.tensor([[3.0, 4.0], [0.0, 0.0]])), torch.tensor(2.5))
 
-    def test_weights_are_the_papers(self):
+    def test_shipped_weights(self):
+        """NePu's keypoint, depth and latent weights; silhouette 10 and NNOPCS 100 instead of
+        NePu's 3 and 1 (docs/benchmarks/netepu_geometry_recipe.md)."""
         w = GeometryLossWeights.defaults()
-        assert (w.silhouette, w.keypoints, w.depth, w.nnopcs, w.latent) == (3, 2, 1, 1, 1 / 16)
-        terms = {k: torch.tensor(1.0) for k in ("silhouette", "keypoints", "depth", "nnopcs",
-                                                "latent")}
-        self.assert_close(geometry_loss(terms, w)["loss"], torch.tensor(7.0625))
+        assert (w.silhouette, w.keypoints, w.depth, w.nnopcs, w.latent) == (10, 2, 1, 100, 1 / 16)
+        terms = {k: torch.tensor(v) for k, v in (("silhouette", 1.0), ("keypoints", 2.0),
+                                                  ("depth", 3.0), ("nnopcs", 4.0),
+                                                  ("latent", 16.0))}
+        self.assert_close(geometry_loss(terms, w)["loss"], torch.tensor(10 + 4 + 3 + 400 + 1.0))
 
 
 class TestMetrics(BaseTester):

@@ -110,6 +110,35 @@ class TestRenderer(BaseTester):
         out = model.query(ctx, torch.rand(1, 5, 2, dtype=torch.float64) * 40)
         self.assert_close(out["depth"], ctx.frame.depth_ref[:, None] + RADIUS * out["depth_norm"])
 
+    @pytest.mark.parametrize("shared", [True, False])
+    def test_selected_outputs_match_the_full_query(self, shared):
+        """A query of some outputs gives exactly those of the full query; with separate heads
+        the other heads do not run (their parameters get no gradient)."""
+        model = _tiny_model(shared_head=shared)
+        for head in model.renderer.heads:  # the last layers start at non-zero values
+            torch.nn.init.normal_(head.out.weight)
+        cam = {kk: v[None] for kk, v in ring(n=1)[0].tensors(torch.float64).items()}
+        kps = _kps()
+        ctx = model.prepare(model.encode(kps), cam, kps)
+        uv = torch.rand(1, 7, 2, dtype=torch.float64) * 40
+        full = model.query(ctx, uv)
+        assert set(full) == {"logit", "depth", "depth_norm", "nnopcs"}
+        cases = ((("logit",), {"logit"}), (("nnopcs",), {"nnopcs"}),
+                 (("depth", "nnopcs"), {"depth", "depth_norm", "nnopcs"}))
+        for outputs, keys in cases:
+            part = model.query(ctx, uv, outputs)
+            assert set(part) == keys
+            for k in keys:
+                self.assert_close(part[k], full[k])
+        model.zero_grad()
+        model.query(ctx, uv, ("logit",))["logit"].sum().backward(retain_graph=True)
+        grads = [h.out.weight.grad is not None for h in model.renderer.heads]
+        assert grads == ([True] if shared else [True, False, False])
+        with pytest.raises(ValueError, match="outputs"):
+            model.query(ctx, uv, ("colour",))
+        with pytest.raises(ValueError, match="outputs"):
+            model.query(ctx, uv, ())
+
     def test_reference_mode_same_function(self):
         model = _tiny_model()
         cam = {kk: v[None] for kk, v in ring(n=1)[0].tensors(torch.float64).items()}
