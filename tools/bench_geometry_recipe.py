@@ -22,11 +22,11 @@ Three sections per species, written to ``docs/benchmarks/netepu_geometry_recipe.
   steps on one core (one thread, two variants at a time, the trainer's fixed seed), its
   held-out figures at half and all of the steps. ``nepu`` is NePu's recipe as
   we shipped it before (loss weights silhouette 3, NNOPCS 1, depth 1; one head for all
-  five outputs); the variants change one thing at a time, ``ours`` is the shipped
-  default (``conf/netepu_train.yaml``, ``conf/netepu/model/fast.yaml``).
+  five outputs; keypoint noise 1 cm); each variant changes one thing, ``ours`` is the
+  shipped default (``conf/netepu_train.yaml``, ``conf/netepu/model/fast.yaml``).
 
-A variant's run folder (``--work``) is reused when its ``.hydra/overrides.yaml`` holds
-exactly the overrides this script would pass, so a re-run only trains what is missing.
+A variant's run folder (``--work``) is reused when its resolved ``.hydra/config.yaml`` is the
+config this script would train, so a re-run only trains what is missing.
 """
 
 from __future__ import annotations
@@ -61,16 +61,18 @@ SPECIES = {  # the data overrides of each species (tools/train_species_models.py
     "biped": ["netepu/data=biped", "netepu.model.renderer.k=12"],
     "quadruped": ["netepu/data=quadruped"],
 }
+NOISE = "netepu.points.keypoint_noise=0.01"  # the noise we shipped before, in metres
 NEPU = ["netepu.loss.silhouette=3", "netepu.loss.nnopcs=1",
-        "netepu.model.renderer.shared_head=true"]
-VARIANTS = {  # name -> overrides on top of the shipped defaults
+        "netepu.model.renderer.shared_head=true", NOISE]
+HEADS = "netepu.model.renderer.shared_head=false"
+VARIANTS = {  # name -> overrides on top of the shipped defaults; each changes one thing
     "nepu": NEPU,
-    "nepu + separate heads": [*NEPU[:2], "netepu.model.renderer.shared_head=false"],
+    "nepu + separate heads": [*NEPU[:2], HEADS, "netepu.points.keypoint_noise=0.01"],
     "nepu + NNOPCS weight 100": ["netepu.loss.silhouette=3", "netepu.loss.nnopcs=100",
-                                 NEPU[2]],
-    "nepu + NNOPCS 100 + silhouette 10": ["netepu.loss.silhouette=10",
-                                          "netepu.loss.nnopcs=100", NEPU[2]],
-    "ours (NNOPCS 100, silhouette 10, separate heads)": [],
+                                 NEPU[2], NOISE],
+    "nepu + NNOPCS 100 + silhouette 10": ["netepu.loss.nnopcs=100", NEPU[2], NOISE],
+    "+ separate heads": [NOISE],
+    "ours (+ keypoint noise 3 mm)": [],
 }
 OFFSET_SPREAD = 0.12  # nsd.synth.motion.sample_pose: random joint offsets, share of the range
 BAND_PX = 1.5  # "near the boundary": within this many pixels of it
@@ -190,18 +192,21 @@ def where(checkpoint: Path, species: str) -> dict:
 def _overrides(species: str, variant: str, steps: int, out: Path) -> list[str]:
     return [*SPECIES[species], *VARIANTS[variant], "threads=1", f"trainer.max_steps={steps}",
             f"trainer.eval_every={steps // 2}", "trainer.grid_every=0",
-            f"trainer.checkpoint_every={steps}", "trainer.max_minutes=0",
+            f"trainer.checkpoint_every={steps}",
             "netepu.eval.eval_views=64", f"hydra.run.dir={out}"]
 
 
 def _done(out: Path, overrides: list[str], steps: int) -> bool:
-    """The run folder holds a finished run with exactly these overrides."""
-    saved = out / ".hydra" / "overrides.yaml"
+    """The run folder holds a finished run whose resolved config is the one these overrides
+    give (a run made by hand with the same settings counts; its folder name does not)."""
+    saved = out / ".hydra" / "config.yaml"
     if not (saved.is_file() and (out / "metrics.csv").is_file()):
         return False
-    have = sorted(line[2:].strip() for line in saved.read_text().splitlines()
-                  if line.startswith("- "))
-    return have == sorted(overrides) and any(r["step"] == str(steps) for r in _curve(out))
+    want = OmegaConf.to_container(
+        compose_app("netepu_train", [o for o in overrides if not o.startswith("hydra.")]),
+        resolve=True)
+    return (OmegaConf.to_container(OmegaConf.load(saved), resolve=True) == want
+            and any(r["step"] == str(steps) for r in _curve(out)))
 
 
 def _curve(out: Path) -> list[dict]:
