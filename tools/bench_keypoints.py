@@ -34,17 +34,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from netepu.pipeline.species_models import MODELS  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 CHILD = r"""
 import json, sys, time
 import torch
 torch.set_num_threads(1)
-from netepu.pipeline.species_models import MODELS
 from netepu.pipeline.subject_keypoints import invert_export
 a = json.loads(sys.argv[1])
 t = time.perf_counter()
-s = invert_export(a["export"], a["scene"], MODELS / a["model"], a["out"], **a["kw"])
+s = invert_export(a["export"], a["scene"], a["model"], a["out"], **a["kw"])
 s["seconds"] = time.perf_counter() - t
 print(json.dumps(s))
 """
@@ -119,6 +119,12 @@ def main() -> None:
     ap.add_argument("--run", type=Path, required=True, help="an nsd-run folder (synthetic scene)")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: temporary)")
     ap.add_argument("--frame-step", type=int, default=10)
+    ap.add_argument("--variants", nargs="+", default=None,
+                    help="only these rows (their names; default: every row)")
+    ap.add_argument("--baseline-models", type=Path, default=None,
+                    help="a models folder (e.g. the previous shipped models): the rows again "
+                         "with its model, named '... [baseline model]'")
+    ap.add_argument("--report", default="keypoints", help="name of the report file")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-keypoints-"))
     pipeline = json.loads((args.run / "pipeline.json").read_text())
@@ -131,13 +137,20 @@ def main() -> None:
         truth_export(exports["export"], scene, exports[kind], kind)
     cores = sorted(os.sched_getaffinity(0))
     env = dict(os.environ, OMP_NUM_THREADS="1")
+    chosen = [v for v in VARIANTS if args.variants is None or v[0] in args.variants]
+    if args.variants is not None and len(chosen) != len(args.variants):
+        raise SystemExit(f"--variants: choose from {[v[0] for v in VARIANTS]}")
+    variants = [(name, masks, kw, MODELS / f"{species}.pt") for name, masks, kw in chosen]
+    if args.baseline_models is not None:
+        variants += [(f"{name} [baseline model]", masks, kw,
+                      args.baseline_models / f"{species}.pt") for name, masks, kw in chosen]
     rows, outs = [], {}
-    for first in range(0, len(VARIANTS), len(cores)):  # one variant per core at a time
+    for first in range(0, len(variants), len(cores)):  # one variant per core at a time
         batch = []
-        for cpu, (name, masks, kw) in zip(cores, VARIANTS[first:first + len(cores)],
-                                          strict=False):  # the last batch may be short
+        for cpu, (name, masks, kw, model) in zip(cores, variants[first:first + len(cores)],
+                                                 strict=False):  # the last batch may be short
             outs[name] = work / f"variant{len(outs)}"
-            arg = {"export": str(exports[masks]), "scene": scene, "model": f"{species}.pt",
+            arg = {"export": str(exports[masks]), "scene": scene, "model": str(model),
                    "out": str(outs[name]), "kw": {"frame_step": args.frame_step, **kw}}
             batch.append((name, masks, subprocess.Popen(
                 ["taskset", "-c", str(cpu), sys.executable, "-c", CHILD, json.dumps(arg)],
@@ -152,17 +165,20 @@ def main() -> None:
                          "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
                          "warm_share": s.get("warm_share"), "mean_loss": s["mean_loss"]})
             print(rows[-1], flush=True)
-    occ = outs["occluders (the default)"]
-    for sigma in SMOOTHING:
+    occ = outs.get("occluders (the default)")
+    for sigma in SMOOTHING if occ is not None and args.variants is None else ():
         path = smoothed(occ / "keypoints3d.npz", work / f"smooth{sigma:g}" / "keypoints3d.npz",
                         sigma)
         rows.append({"variant": f"occluders, smoothed (sigma {sigma:g} frames)",
                      **errors(exports["export"], scene, path)})
     write_report(
-        "keypoints", "Label-free keypoints from the pipeline's masks", rows,
+        args.report, "Label-free keypoints from the pipeline's masks", rows,
         notes=(f"Run `{args.run.name}` (scene `{Path(scene).name}`, {species}), every "
                f"{args.frame_step}th exported frame, every subject seen in >= 2 cameras, the "
-               "shipped geometry model; one process per row, one torch thread (two rows at a "
+               "shipped geometry model"
+               + (f" (rows marked [baseline model]: `{args.baseline_models}`)"
+                  if args.baseline_models else "")
+               + "; one process per row, one torch thread (two rows at a "
                "time on the two cores, so seconds are comparable across rows, not with a "
                "machine at rest). MPJPE in mm against the scene's 3D keypoints; percentiles "
                "over subject-frames. Ground-truth rows: the same rows' masks replaced by the "
