@@ -178,9 +178,9 @@ def main() -> None:
                "shipped geometry model"
                + (f" (rows marked [baseline model]: `{args.baseline_models}`)"
                   if args.baseline_models else "")
-               + "; one process per row, one torch thread (two rows at a "
-               "time on the two cores, so seconds are comparable across rows, not with a "
-               "machine at rest). MPJPE in mm against the scene's 3D keypoints; percentiles "
+               + f"; one process per row, one torch thread ({len(cores)} row(s) at a "
+               f"time on {len(cores)} core(s), so seconds are comparable across rows, not with "
+               "a machine at rest). MPJPE in mm against the scene's 3D keypoints; percentiles "
                "over subject-frames. Ground-truth rows: the same rows' masks replaced by the "
                "ground truth's visible (or amodal) masks of their matched individual, the "
                "floor the masks leave. Smoothing rows: the occlusion-aware fits smoothed "

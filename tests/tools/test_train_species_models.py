@@ -50,7 +50,7 @@ def test_species_model_is_reproduced_bit_for_bit(tmp_path):
                                     extra=_tiny(tmp_path / "cache"))
         atomic_save_torch(model, tmp_path / f"{run}.pt")
         digests.append(sha256_file(tmp_path / f"{run}.pt"))
-    assert made["steps"] == {"geometry": 6, "texture": 4}
+    assert made["steps"] == {"geometry": 12, "texture": 4}  # 6,000 and 2,083 steps x 0.002
     assert digests[0] == digests[1]
     # the one file serves both stages, as a geometry and as a texture checkpoint
     geo, _ = load_geometry_model(tmp_path / "a.pt")
