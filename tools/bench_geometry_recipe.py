@@ -37,6 +37,7 @@ import os
 import subprocess
 import sys
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -49,12 +50,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from netepu.geometry.data import build_geometry_data  # noqa: E402
-from netepu.geometry.evaluation import render_view_set  # noqa: E402
+from netepu.geometry.evaluation import evaluate_views, render_view_set  # noqa: E402
 from netepu.geometry.maps import MapSettings  # noqa: E402
 from netepu.geometry.model import load_geometry_model  # noqa: E402
+from netepu.pipeline.species_models import MODELS  # noqa: E402
 from nsd.core.config import compose_app  # noqa: E402
 from nsd.synth import make_individual, make_rig, render_views, sample_pose  # noqa: E402
 from nsd.synth.raycast import camera_rays  # noqa: E402
+from tools.bench_netepu_geometry import _body_length  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 SPECIES = {  # the data overrides of each species (tools/train_species_models.py's recipes)
@@ -126,7 +129,9 @@ def floor(species: str, poses: int, resamples: int, seed: int = 1) -> dict:
         m, nn, dp = np.stack(masks), np.stack(nnopcs), np.stack(depth)
         best = m.mean(0) > 0.5
         mean_nn = (nn * m[..., None]).sum(0) / np.maximum(m.sum(0), 1)[..., None]
-        med_d = np.nanmedian(np.where(m, dp, np.nan), axis=0)
+        with warnings.catch_warnings():  # pixels no resample covers: NaN, never counted
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med_d = np.nanmedian(np.where(m, dp, np.nan), axis=0)
         for i in range(resamples):
             both = m[i] & best
             inter += int(both.sum())
@@ -140,6 +145,22 @@ def floor(species: str, poses: int, resamples: int, seed: int = 1) -> dict:
 
 
 # ------------------------------------------------------------------ where
+def evaluate(checkpoint: Path, species: str) -> dict:
+    """IoU, NNOPCS MSE and depth MAE (also in % of the body) of a checkpoint on every view of
+    both held-out sets (192 each; training evaluates 16)."""
+    data = build_geometry_data(_data_config(species))
+    model, config = load_geometry_model(checkpoint)
+    settings = MapSettings.from_config(config["netepu"]["render"])
+    body = _body_length(data.evaluation["heldout_poses"].keypoints, species)
+    out = {}
+    for name in ("heldout_poses", "heldout_cameras"):
+        m = evaluate_views(model, data.evaluation[name], settings)
+        out.update({f"{name} IoU": m["iou"], f"{name} NNOPCS MSE": m["nnopcs_mse"],
+                    f"{name} depth MAE mm": m["depth_mae_mm"],
+                    f"{name} depth MAE % body": m["depth_mae_mm"] / 10 / body})
+    return out
+
+
 def where(checkpoint: Path, species: str) -> dict:
     """Where the errors of a checkpoint lie on the held-out poses (see the module docstring)."""
     data = build_geometry_data(_data_config(species))
@@ -210,15 +231,20 @@ def _done(out: Path, overrides: list[str], steps: int) -> bool:
 
 
 def _curve(out: Path) -> list[dict]:
+    """The evaluations of a run, one per step (the final one is logged twice)."""
     with (out / "metrics.csv").open() as f:
-        return [r for r in csv.DictReader(f) if r.get("eval/heldout_poses/iou")]
+        rows = {r["step"]: r for r in csv.DictReader(f) if r.get("eval/heldout_poses/iou")}
+    return list(rows.values())
 
 
-def ladder(species: list[str], steps: int, work: Path) -> list[dict]:
-    """Train every (species, variant) not yet in ``work``, two at a time on one core each."""
+def ladder(species: list[str], steps: int, work: Path, train: list[str]) -> list[dict]:
+    """Train every (species, variant in ``train``) not yet in ``work``, one run per core, and
+    return the rows of every finished variant."""
     jobs = [(s, v, work / f"{s}-{i}") for s in species for i, v in enumerate(VARIANTS)]
+    done = [j for j in jobs if _done(j[2], _overrides(j[0], j[1], steps, j[2]), steps)]
+    todo = [j for j in jobs if j not in done and j[1] in train]
+    jobs = [j for j in jobs if j in done or j in todo]
     cores = sorted(os.sched_getaffinity(0))
-    todo = [j for j in jobs if not _done(j[2], _overrides(j[0], j[1], steps, j[2]), steps)]
     running: dict[int, subprocess.Popen] = {}
     exe = str(Path(sys.executable).parent / "netepu-train")
     while todo or running:
@@ -235,21 +261,41 @@ def ladder(species: list[str], steps: int, work: Path) -> list[dict]:
                 if p.returncode != 0:
                     raise SystemExit(f"a ladder run failed (core {core}, exit {p.returncode})")
                 del running[core]
-    rows = []
-    for s, v, out in jobs:
-        for r in _curve(out):
-            rows.append({
-                "species": s, "variant": v, "step": int(r["step"]),
-                "minutes (one thread)": round(float(r["minutes"]), 1),
-                "IoU poses": float(r["eval/heldout_poses/iou"]),
-                "IoU cameras": float(r["eval/heldout_cameras/iou"]),
-                "NNOPCS MSE poses": float(r["eval/heldout_poses/nnopcs_mse"]),
-                "NNOPCS MSE cameras": float(r["eval/heldout_cameras/nnopcs_mse"]),
-                "depth MAE mm poses": float(r["eval/heldout_poses/depth_mae_mm"]),
-                "depth MAE mm cameras": float(r["eval/heldout_cameras/depth_mae_mm"]),
-                "run": out.name,
-            })
-    return rows
+    return [r for s, v, out in jobs for r in _rows(s, v, out, out.name)]
+
+
+def _rows(species: str, variant: str, out: Path, run: str) -> list[dict]:
+    """The table rows of a run's evaluations."""
+    return [{
+        "species": species, "variant": variant, "step": int(r["step"]),
+        "minutes": round(float(r["minutes"]), 1),
+        "IoU poses": float(r["eval/heldout_poses/iou"]),
+        "IoU cameras": float(r["eval/heldout_cameras/iou"]),
+        "NNOPCS MSE poses": float(r["eval/heldout_poses/nnopcs_mse"]),
+        "NNOPCS MSE cameras": float(r["eval/heldout_cameras/nnopcs_mse"]),
+        "depth MAE mm poses": float(r["eval/heldout_poses/depth_mae_mm"]),
+        "depth MAE mm cameras": float(r["eval/heldout_cameras/depth_mae_mm"]),
+        "run": run,
+    } for r in _curve(out)]
+
+
+def _run_rows(label: str, out: Path) -> list[dict]:
+    """Table rows of a run made by hand (``--run``): its species found from its data config."""
+    cfg = OmegaConf.load(out / ".hydra" / "config.yaml")
+    data = OmegaConf.to_container(cfg.netepu.data, resolve=True)
+    species = next((s for s in SPECIES if _data_config(s) == data), "?")
+    threads = f"{cfg.threads} thread" + ("s" if cfg.threads != 1 else "")
+    return _rows(species, f"{label} ({threads})", out, out.name)
+
+
+def _table(title: str, figures: dict[str, dict]) -> list[str]:
+    """A Markdown table: one row per key of ``figures``, one column per figure."""
+    cols = list(next(iter(figures.values())))
+    lines = [f"**{title}**", "", "| | " + " | ".join(cols) + " |",
+             "|---" * (len(cols) + 1) + "|"]
+    for name, row in figures.items():
+        lines.append(f"| {name} | " + " | ".join(f"{row[c]:.4g}" for c in cols) + " |")
+    return [*lines, ""]
 
 
 def main() -> None:
@@ -257,31 +303,56 @@ def main() -> None:
     ap.add_argument("--species", nargs="+", default=list(SPECIES), choices=list(SPECIES))
     ap.add_argument("--steps", type=int, default=1000, help="training steps of a ladder run")
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "geometry_recipe")
+    ap.add_argument("--previous-models", type=Path, default=None,
+                    help="a models folder to score beside the shipped one (the models before)")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS),
+                    help="ladder variants to train (finished runs in --work are always reported)")
+    ap.add_argument("--run", action="append", default=[], metavar="LABEL=DIR",
+                    help="a finished netepu-train run whose evaluations join the table")
     ap.add_argument("--floor-poses", type=int, default=6)
     ap.add_argument("--floor-resamples", type=int, default=8)
     args = ap.parse_args()
+    runs = [(label, Path(d)) for label, d in (r.split("=", 1) for r in args.run)]
+    for label, d in runs:
+        if not (d / "metrics.csv").is_file() or not (d / ".hydra" / "config.yaml").is_file():
+            raise SystemExit(f"--run {label}: {d} holds no finished netepu-train run")
     torch.set_num_threads(1)
-    rows = ladder(args.species, args.steps, args.work)
+    rows = ladder(args.species, args.steps, args.work, args.variants)
+    for label, d in runs:
+        rows.extend(_run_rows(label, d))
     extra: dict = {}
-    for s in args.species:
-        extra[f"{s} floor"] = floor(s, args.floor_poses, args.floor_resamples)
-        for i in (0, len(VARIANTS) - 1):
-            name = list(VARIANTS)[i]
-            extra[f"{s} where ({name}, {args.steps} steps)"] = where(
-                args.work / f"{s}-{i}" / "checkpoint.pt", s)
-        print(extra, flush=True)
     notes = [
         "Each ladder row is one evaluation of one run (64 views of each held-out set, "
         "coarse-to-fine renders, the trainer's fixed seed, one thread on one core, two runs "
-        "at a time). Targets of issue 26: IoU >= 0.95, NNOPCS MSE <= 1e-3, depth MAE <= 1 % "
-        "of the body (biped 1.61 m: 16 mm; quadruped ~2.3 m: 23 mm). `minutes` are one "
-        "thread's; the shipped models train 3,000 steps (tools/train_species_models.py).",
+        "at a time; rows with a thread count are runs made by hand, `--run`). Targets of "
+        "issue 26: IoU >= 0.95, NNOPCS MSE <= 1e-3, depth MAE <= 1 % of the body (biped "
+        "1.61 m: 16 mm; quadruped 2.24 m: 22 mm). `minutes` are the run's own wall time; the "
+        "shipped models train 3,000 steps on one thread (tools/train_species_models.py).",
         "",
     ]
-    for key, figures in extra.items():
-        notes.append(f"**{key}**: " + ", ".join(
-            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in figures.items()))
+    folders = {"shipped": MODELS, "previous": args.previous_models}
+    for s in args.species:
+        scores, places = {}, {}
+        for label, folder in folders.items():
+            if folder is not None:
+                scores[f"{label} model"] = evaluate(folder / f"{s}.pt", s)
+                places[f"{label} model"] = where(folder / f"{s}.pt", s)
+        for i in (0, len(VARIANTS) - 1):
+            name, run = list(VARIANTS)[i], args.work / f"{s}-{i}"
+            if any(r["species"] == s and r["run"] == run.name for r in rows):
+                places[f"{name}, {args.steps} steps"] = where(run / "checkpoint.pt", s)
+        extra[f"{s} floor"] = floor(s, args.floor_poses, args.floor_resamples)
+        extra[f"{s} all held-out views"] = scores
+        extra[f"{s} where"] = places
+        print(extra, flush=True)
+        notes.append(f"**{s} floor** (any keypoint-driven renderer): " + ", ".join(
+            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+            for k, v in extra[f"{s} floor"].items()))
         notes.append("")
+        if scores:
+            notes += _table(f"{s}, built-in models on all 192 views of each held-out set",
+                            scores)
+        notes += _table(f"{s}, where the errors lie (held-out poses)", places)
     notes.append(__doc__.split("\n\n", 2)[2])
     write_report("netepu_geometry_recipe", "NeTePu geometry: where the error is, and the recipe",
                  rows, notes="\n".join(notes), extra=extra)
