@@ -49,11 +49,11 @@ RECIPES = {
         "threads": 2,
     },
     "quadruped": {
-        "geometry": ["netepu/data=quadruped"],
-        "geometry_steps": 3000,
+        "geometry": ["netepu/data=quadruped", "netepu.optim.lr_decay_every=3500"],
+        "geometry_steps": 5000,
         "texture": ["netepu.texture.model.renderer.k=20"],
         "texture_steps": 2083,
-        "threads": 1,
+        "threads": 2,
     },
 }
 FIGURES = ("heldout_poses", "heldout_cameras", "reid")  # final evaluations kept in the manifest
