@@ -50,14 +50,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from netepu.geometry.data import build_geometry_data  # noqa: E402
-from netepu.geometry.evaluation import evaluate_views, render_view_set  # noqa: E402
+from netepu.geometry.evaluation import body_length, evaluate_views, render_view_set  # noqa: E402
 from netepu.geometry.maps import MapSettings  # noqa: E402
 from netepu.geometry.model import load_geometry_model  # noqa: E402
 from netepu.pipeline.species_models import MODELS  # noqa: E402
 from nsd.core.config import compose_app  # noqa: E402
 from nsd.synth import make_individual, make_rig, render_views, sample_pose  # noqa: E402
 from nsd.synth.raycast import camera_rays  # noqa: E402
-from tools.bench_netepu_geometry import _body_length  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 SPECIES = {  # the data overrides of each species (tools/train_species_models.py's recipes)
@@ -151,7 +150,7 @@ def evaluate(checkpoint: Path, species: str) -> dict:
     data = build_geometry_data(_data_config(species))
     model, config = load_geometry_model(checkpoint)
     settings = MapSettings.from_config(config["netepu"]["render"])
-    body = _body_length(data.evaluation["heldout_poses"].keypoints, species)
+    body = body_length(data.evaluation["heldout_poses"].keypoints, species)
     out = {}
     for name in ("heldout_poses", "heldout_cameras"):
         m = evaluate_views(model, data.evaluation[name], settings)

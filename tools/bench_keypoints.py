@@ -8,8 +8,9 @@ its ``pipeline.json``); the shipped geometry model of the scene's species invert
 one variant per fresh process with one torch thread, two at a time on two cores
 (``taskset``). The rows:
 
-* the pipeline's masks with each setting (occluders off/on, warm starts, fewer loss points,
-  earlier pruning of the starts);
+* the pipeline's masks with each setting (occluders off/on, the screened library of starting
+  poses against two templates at four headings, warm starts, fewer loss points, earlier
+  pruning of the starts);
 * the same subjects with the ground truth's visible masks and amodal masks instead of the
   exported ones (the floor that the masks, 4 cameras and the model leave);
 * temporal smoothing of the occlusion-aware fits (``smooth_frames``), applied afterwards.
@@ -52,6 +53,8 @@ print(json.dumps(s))
 VARIANTS = [  # (name, masks, invert_export settings)
     ("baseline: cold starts, no occluders", "export", {"occlusion": False}),
     ("occluders (the default)", "export", {}),
+    ("occluders, 2 templates x 4 headings, unscreened (the stage before)", "export",
+     {"templates": 2, "inverse": {"headings": 4}}),
     ("occluders + warm starts (40 steps)", "export", {"warm_steps": 40}),
     ("warm starts (40 steps), no occluders", "export", {"occlusion": False, "warm_steps": 40}),
     ("occluders, 192 points per view", "export", {"inverse": {"points_per_view": 192}}),

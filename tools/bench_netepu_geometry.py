@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from netepu.geometry.data import build_geometry_data, sample_batch  # noqa: E402
-from netepu.geometry.evaluation import evaluate_views  # noqa: E402
+from netepu.geometry.evaluation import body_length, evaluate_views  # noqa: E402
 from netepu.geometry.maps import MapSettings, render_maps  # noqa: E402
 from netepu.geometry.model import build_geometry_model, load_geometry_model  # noqa: E402
 from tools.benchlib import markdown_table, median_time, peak_rss_mb, write_report  # noqa: E402
@@ -57,23 +57,12 @@ def _config(overrides: list[str]):
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def _body_length(keypoints: torch.Tensor, species: str) -> float:
-    """Body size, metres: mean largest horizontal extent of the keypoints (nose to tail of
-    the cow, NeTePu's "2.2 m cow"); for bipeds the vertical extent (height)."""
-    if species == "biped":
-        z = keypoints[..., 2]
-        return float((z.amax(1) - z.amin(1)).mean())
-    xy = keypoints[..., :2]
-    d = (xy[:, :, None] - xy[:, None]).norm(dim=-1)
-    return float(d.flatten(1).max(1).values.mean())
-
-
 # ------------------------------------------------------------------ accuracy
 def accuracy(
     runs: dict[str, Path], data, slow_views: int, light: bool = False
 ) -> tuple[list[dict], dict]:
     rows, curves = [], {}
-    body = _body_length(data.evaluation["heldout_poses"].keypoints, data.config.species)
+    body = body_length(data.evaluation["heldout_poses"].keypoints, data.config.species)
     for name, run in runs.items():
         model, config = load_geometry_model(run / "checkpoint.pt")
         state = torch.load(run / "checkpoint.pt", weights_only=True, map_location="cpu")

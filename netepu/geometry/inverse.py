@@ -22,12 +22,17 @@ As in full renders, a point outside the renderer's candidate region
 (:func:`netepu.geometry.maps.candidate_region` of the current keypoints) is background.
 
 Initialisation (the loss has local minima: a body seen from the side looks
-alike facing left or right)
+alike facing left or right, and a limb far from its place is not pulled back)
     ``c`` is the point closest to the viewing rays through the silhouettes'
     centroids (:func:`triangulate_centroids`). ``z`` starts from the codes of
-    template poses (e.g. training poses) turned to ``headings`` directions
-    about the world's up axis; all starts are optimised as one batch, the
-    worse half is dropped every ``prune_every`` steps, and the best start wins.
+    template poses (e.g. poses of the model's own synthetic individual) turned to
+    ``headings`` directions about the world's up axis. Where there are more of
+    these candidates than ``screen_keep``, each is scored once, without gradients,
+    by the loss at ``screen_points`` points per view (the same points for all),
+    and the ``screen_keep`` lowest are kept: a library of poses is cheap to score
+    and puts the starts near the observed pose. The kept starts are optimised as
+    one batch, the worse half is dropped every ``prune_every`` steps, and the best
+    start wins.
 
 Warm starts (a subject followed over frames)
     Given the result of an earlier frame (``warm``), one start from its code, its
@@ -61,6 +66,8 @@ __all__ = [
     "triangulate_centroids",
 ]
 
+_SCREEN_CHUNK = 32  # candidates scored at a time by the screening
+
 
 @dataclass
 class InverseSettings:
@@ -73,6 +80,9 @@ class InverseSettings:
         points_per_view: loss points per view and step.
         headings: start directions per template.
         prune_every: steps between dropping the worse half of the starts (0: never).
+        screen_keep: candidates (templates x headings) kept for the optimisation after
+            scoring them once; 0, or no more candidates than this: no screening.
+        screen_points: loss points per view of the screening.
         latent_weight: :math:`\\lambda_z` (the training prior's weight).
         sigma_near: spread of the near-boundary points, pixels.
         margin: candidate-region margin (the renderer's), body radii.
@@ -87,8 +97,10 @@ class InverseSettings:
     steps: int = 120
     lr: float = 0.05
     points_per_view: int = 384
-    headings: int = 4
+    headings: int = 8
     prune_every: int = 25
+    screen_keep: int = 8
+    screen_points: int = 128
     latent_weight: float = 0.0625
     sigma_near: float = 1.5
     margin: float = 0.35
@@ -201,11 +213,51 @@ def _code_starts(model, masks, camera, templates, s: InverseSettings, anchor, wa
     return z0, anchor.expand(len(starts), 3).clone()
 
 
+def _start_losses(model, z, centre, cams, masks, ignored, uv, margin) -> Tensor:
+    """The module docstring's silhouette loss of each start, (S,), differentiable.
+
+    Args: codes ``z`` (S, d_z) at ``centre`` (S, 3); the views ``cams`` (batch V), their
+    observed ``masks`` and ``ignored`` pixels (V, H, W) bool; the points ``uv`` (V, P, 2).
+    """
+    S = z.shape[0]
+    V, H, W = masks.shape
+    px, py = uv[..., 0].long(), uv[..., 1].long()
+    rows = torch.arange(V)[:, None]
+    label, skip = masks[rows, py, px].float(), ignored[rows, py, px]
+    code = model.decode(z, centre)
+    ctx = model.renderer.prepare(code.keypoints.repeat_interleave(V, 0),
+                                 code.features.repeat_interleave(V, 0),
+                                 code.z.repeat_interleave(V, 0), cams.repeat(S))
+    logit = model.query(ctx, uv.repeat(S, 1, 1), ("logit",))["logit"]  # (S V, P)
+    with torch.no_grad():
+        inside = torch.stack([torch.from_numpy(candidate_region(
+            ctx.frame.uv[b], float(ctx.frame.scale[b]), margin, (W, H)))[
+            py[b % V], px[b % V]] for b in range(S * V)])
+    logit = torch.where(inside, logit, torch.full_like(logit, BACKGROUND_LOGIT))
+    per_view = occlusion_aware_silhouette_loss(logit, label.repeat(S, 1), skip.repeat(S, 1))
+    return per_view.reshape(S, V).mean(1)
+
+
+@torch.no_grad()
+def _screen(model, masks, camera, z0, centre0, s: InverseSettings, rng, ignored):
+    """The ``screen_keep`` starts of lowest loss at one draw of ``screen_points`` points per
+    view (module docstring), all of them where there are no more."""
+    if not s.screen_keep or len(z0) <= s.screen_keep:
+        return z0, centre0
+    regions = _regions(masks.numpy(), ignored.numpy())
+    uv = torch.from_numpy(_points(masks.numpy(), regions, s.screen_points, rng, s.sigma_near))
+    cams = CameraBatch.from_mapping(camera).to(torch.float32)
+    losses = torch.cat([
+        _start_losses(model, z0[i:i + _SCREEN_CHUNK], centre0[i:i + _SCREEN_CHUNK], cams, masks,
+                      ignored, uv, s.margin) for i in range(0, len(z0), _SCREEN_CHUNK)])
+    keep = losses.argsort()[: s.screen_keep]
+    return z0[keep], centre0[keep]
+
+
 def _optimise(model, masks, camera, z0, centre0, steps, s: InverseSettings, rng, ignored, lr):
     """The batched multi-start optimisation from codes ``z0`` (S, d_z) at ``centre0`` (S, 3);
     returns z (S', d_z), centre (S', 3), losses (S',), the best loss per step (steps,)
     and the start-steps done."""
-    V, H, W = masks.shape
     sigma = z0.pow(2).mean().sqrt().clamp(min=1e-8)
     w = (z0 / sigma).requires_grad_(True)  # z = sigma w
     centre = centre0.clone().requires_grad_(True)
@@ -216,7 +268,7 @@ def _optimise(model, masks, camera, z0, centre0, steps, s: InverseSettings, rng,
 
     opt = adam(w, centre)
     np_masks = masks.numpy()
-    regions = _regions(np_masks, ignored)
+    regions = _regions(np_masks, ignored.numpy())
     cams = CameraBatch.from_mapping(camera).to(torch.float32)
     losses = torch.zeros(len(z0))
     history, work = [], 0
@@ -225,22 +277,7 @@ def _optimise(model, masks, camera, z0, centre0, steps, s: InverseSettings, rng,
         work += S
         z = sigma * w
         uv = torch.from_numpy(_points(np_masks, regions, s.points_per_view, rng, s.sigma_near))
-        px, py = uv[..., 0].long(), uv[..., 1].long()
-        label = masks[torch.arange(V)[:, None], py, px].float()
-        skip = torch.from_numpy(ignored)[torch.arange(V)[:, None], py, px].repeat(S, 1)
-        code = model.decode(z, centre)
-        rep = cams.repeat(S)
-        ctx = model.renderer.prepare(code.keypoints.repeat_interleave(V, 0),
-                                     code.features.repeat_interleave(V, 0),
-                                     code.z.repeat_interleave(V, 0), rep)
-        logit = model.query(ctx, uv.repeat(S, 1, 1), ("logit",))["logit"]  # (S V, P)
-        with torch.no_grad():
-            inside = torch.stack([torch.from_numpy(candidate_region(
-                ctx.frame.uv[b], float(ctx.frame.scale[b]), s.margin, (W, H)))[
-                py[b % V], px[b % V]] for b in range(S * V)])
-        logit = torch.where(inside, logit, torch.full_like(logit, BACKGROUND_LOGIT))
-        per_view = occlusion_aware_silhouette_loss(logit, label.repeat(S, 1), skip)
-        per_start = per_view.reshape(S, V).mean(1)
+        per_start = _start_losses(model, z, centre, cams, masks, ignored, uv, s.margin)
         opt.zero_grad()
         (per_start + s.latent_weight * z.norm(dim=-1)).sum().backward()
         opt.step()
@@ -289,13 +326,14 @@ def invert_silhouettes(
     """
     s = settings or InverseSettings()
     rng = rng or np.random.default_rng(0)
+    masks = masks.bool()
     if not bool(masks.flatten(1).any(1).all()):
         raise ValueError("invert_silhouettes: every view needs a non-empty silhouette")
     if occluders is not None and occluders.shape != masks.shape:
         raise ValueError(f"invert_silhouettes: occluders {tuple(occluders.shape)} and masks "
                          f"{tuple(masks.shape)} differ")
-    ignored = np.zeros(masks.shape, bool) if occluders is None else (
-        occluders.numpy().astype(bool) & ~masks.numpy())
+    ignored = torch.zeros(masks.shape, dtype=torch.bool) if occluders is None else (
+        occluders.bool() & ~masks)
     anchor = triangulate_centroids(masks, camera).float()
     flags = [p.requires_grad for p in model.parameters()]
     for p in model.parameters():
@@ -303,6 +341,8 @@ def invert_silhouettes(
 
     def run(start: InverseResult | None, steps: int) -> tuple:
         z0, c0 = _code_starts(model, masks, camera, templates, s, anchor, start)
+        if start is None:
+            z0, c0 = _screen(model, masks, camera, z0, c0, s, rng, ignored)
         lr = s.warm_lr if start is not None else s.lr
         return _optimise(model, masks, camera, z0, c0, steps, s, rng, ignored, lr)
 

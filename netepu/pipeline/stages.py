@@ -34,6 +34,7 @@ from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
 from nsd.export.grids import write_grids
 from nsd.export.overlay import write_overlay_videos
+from nsd.export.parallel import resolve_workers
 from nsd.export.pose_tools import write_pose_tool_files
 from nsd.export.positions import read_positions, triangulate_positions, write_positions
 from nsd.export.subjects import export_subjects
@@ -256,7 +257,8 @@ _INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "m
 
 
 def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
-    """Fail before training on a keypoint source the scene cannot serve."""
+    """Fail before training on a keypoint source the scene cannot serve, or a bad
+    ``netepu.keypoints.workers``."""
     source = cfg.netepu.keypoints.source
     if source not in KEYPOINT_SOURCES:
         raise ConfigError(
@@ -268,6 +270,10 @@ def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
             "keypoint labels, and this scene has none (no gt/ folder); use source=inverse "
             "(label-free, needs netepu.geometry)"
         )
+    try:
+        resolve_workers(cfg.netepu.keypoints.workers, int(cfg.threads), "cpu")
+    except ConfigError as e:
+        raise ConfigError(f"netepu.keypoints.{e}") from None
 
 
 def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
@@ -287,8 +293,10 @@ def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
         if regress:
             summary = _regress_keypoints(cfg, scene, _checkpoint(up), export, out)
         else:
+            workers = resolve_workers(k.workers, int(cfg.threads), "cpu")  # inverts on the CPU
             summary = invert_export(
-                export, scene, models.geometry, out, **{name: k[name] for name in _INVERSE_KEYS}
+                export, scene, models.geometry, out, workers=workers,
+                **{name: k[name] for name in _INVERSE_KEYS},
             )
         if up["scene"].summary["ground_truth"]:
             summary["accuracy"] = keypoint_error(export, scene, out / "keypoints3d.npz")

@@ -13,16 +13,22 @@ subjects' visible masks of the same camera-frame are the inversion's occluders: 
 render is not penalised where another subject covers the image, only where the
 background is seen (:func:`netepu.geometry.inverse.invert_silhouettes`).
 
-Subjects are followed over the selected frames: a subject's first frame starts cold
-(templates turned to several headings, the best start wins); each later frame starts
-warm from the subject's previous fit (``warm_steps`` Adam steps of one start, checked
-against a cold start when its loss is much worse). ``smooth_frames`` > 0 then
+A cold start screens a library of template poses turned to several headings and
+optimises the best few (:func:`netepu.geometry.inverse.invert_silhouettes`). With
+``warm_steps`` > 0 subjects are followed over the selected frames: a subject's first frame
+starts cold, each later one warm from the subject's previous fit (``warm_steps`` Adam steps
+of one start, checked against a cold start when its loss is much worse). ``smooth_frames`` > 0 then
 smooths each subject's keypoints over time with a Gaussian of that standard
 deviation (frames of the footage), weighing each fit by :math:`1/\text{loss}^2` so that a
 failed frame pulls its neighbours little (:func:`smooth_tracks`).
 
 Templates (the inversion's starting poses) are poses of the geometry model's own
 synthetic individual (:func:`template_poses`), so no training data is needed at run time.
+
+Subject-frames are independent (a subject's chain of frames is, with warm starts), so
+``workers`` processes invert them side by side, the torch threads shared among them: on
+two cores two processes of one thread took 5.0 s per subject-frame of the default scene,
+one process of two threads 5.9 s (docs/netepu.md).
 """
 
 from __future__ import annotations
@@ -39,11 +45,12 @@ import torch
 from pycocotools import mask as mask_utils
 
 from netepu.geometry.data import DataConfig
-from netepu.geometry.inverse import InverseResult, InverseSettings, invert_silhouettes
+from netepu.geometry.inverse import InverseSettings, invert_silhouettes
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import load_geometry_model
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
+from nsd.export.parallel import BatchPool
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
 from nsd.synth import make_individual
 from nsd.synth.motion import sample_pose
@@ -78,12 +85,13 @@ def invert_export(
     min_views: int = 2,
     min_area: int = 16,
     steps: int = 120,
-    templates: int = 2,
+    templates: int = 16,
     max_subject_frames: int = 0,
     occlusion: bool = True,
     warm_steps: int = 0,
     smooth_frames: float = 0.0,
     inverse: dict[str, Any] | None = None,
+    workers: int = 1,
 ) -> dict[str, Any]:
     """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
 
@@ -96,7 +104,8 @@ def invert_export(
         min_views: subjects seen (visible area >= ``min_area`` pixels) in fewer cameras
             are skipped.
         steps: Adam steps per inversion.
-        templates: starting poses (each tried at 4 headings).
+        templates: candidate starting poses, each at ``inverse.headings`` headings
+            (8), screened to ``inverse.screen_keep`` starts (8).
         max_subject_frames: stop after this many inversions (0: no limit).
         occlusion: other subjects' masks are occluders (module docstring).
         warm_steps: Adam steps of a warm start from the subject's previous fit (0: every
@@ -105,14 +114,20 @@ def invert_export(
             footage (0: none).
         inverse: more :class:`netepu.geometry.inverse.InverseSettings` fields (e.g.
             ``points_per_view``; benchmarks vary them).
+        workers: processes that invert subject-frames side by side (forked, the torch
+            threads shared among them: :class:`nsd.export.parallel.BatchPool`); with warm
+            starts each subject's frames stay in one process. The result does not depend
+            on it.
 
     Returns:
-        counts, the mean final silhouette loss, seconds per subject-frame and the share
-        of subject-frames fitted from a warm start.
+        counts, the mean final silhouette loss, seconds per subject-frame (wall time over
+        all workers) and the share of subject-frames fitted from a warm start.
     """
 
     if frame_step < 1 or min_views < 1:
         raise ConfigError(f"frame_step and min_views must be >= 1, got {frame_step}, {min_views}")
+    if workers < 1:
+        raise ConfigError(f"keypoints: workers must be >= 1, got {workers}")
     if warm_steps < 0 or smooth_frames < 0:
         raise ConfigError(f"warm_steps and smooth_frames must be >= 0, got {warm_steps}, "
                           f"{smooth_frames}")
@@ -131,27 +146,46 @@ def invert_export(
     for _, anns in groups:
         for a in anns:
             in_image[int(a["image_id"])].append(a)
-    previous: dict[int, InverseResult] = {}  # subject -> its last fit
-    fits: list[tuple[int, int, list[dict], np.ndarray, float]] = []
-    warm_fits, start = 0, time.perf_counter()
+    tasks: list[tuple[int, int, list[dict]]] = []  # (frame, subject, its views), in order
     for (t, sid), anns in groups:
         anns = _views_of_one_size(anns, images)
         if len(anns) < min_views:
             continue
-        if max_subject_frames and len(fits) >= max_subject_frames:
+        if max_subject_frames and len(tasks) >= max_subject_frames:
             break
-        cam_idx = [rig.index(images[a["image_id"]]["camera"]) for a in anns]
-        masks = torch.from_numpy(np.stack([_decode(a) for a in anns]))
-        occluders = torch.from_numpy(np.stack([_others(a, in_image) for a in anns])) if (
-            occlusion) else None
-        warm = previous.get(sid) if warm_steps else None
-        res = invert_silhouettes(model, masks, cams[cam_idx], starts, settings,
-                                 np.random.default_rng(t), occluders, warm)
-        previous[sid] = res
-        warm_fits += res.warm
-        fits.append((t, sid, anns, res.keypoints.float().numpy(), res.loss))
-        log.info("keypoints: frame %d subject %d from %d views, loss %.3f (%s)",
-                 t, sid, len(anns), res.loss, "warm" if res.warm else "cold")
+        tasks.append((t, sid, anns))
+
+    def fit(chain: list[int]) -> list[tuple[np.ndarray, float, bool]]:
+        """Invert the subject-frames ``chain`` (indices into ``tasks``) in order, each later
+        one warm from the one before when ``warm_steps`` (then a chain is one subject's)."""
+        out, warm = [], None
+        for i in chain:
+            t, _sid, anns = tasks[i]
+            cam_idx = [rig.index(images[a["image_id"]]["camera"]) for a in anns]
+            masks = torch.from_numpy(np.stack([_decode(a) for a in anns]))
+            occluders = torch.from_numpy(np.stack([_others(a, in_image) for a in anns])) if (
+                occlusion) else None
+            warm = invert_silhouettes(model, masks, cams[cam_idx], starts, settings,
+                                      np.random.default_rng(t), occluders,
+                                      warm if warm_steps else None)
+            out.append((warm.keypoints.float().numpy(), warm.loss, warm.warm))
+        return out
+
+    chains: dict[int, list[int]] = defaultdict(list)  # warm starts: one chain per subject
+    for i, (_, sid, _) in enumerate(tasks):
+        chains[sid if warm_steps else i].append(i)
+    results: dict[int, tuple[np.ndarray, float, bool]] = {}
+    start = time.perf_counter()
+    with BatchPool(fit, max(1, min(workers, len(chains))), torch.get_num_threads(),
+                   "keypoints", "netepu.keypoints.workers=") as pool:
+        for chain, chain_fits in pool.map(list(chains.values())):
+            for i, (kp, loss, was_warm) in zip(chain, chain_fits, strict=True):
+                results[i] = (kp, loss, was_warm)
+                t, sid, anns = tasks[i]
+                log.info("keypoints: frame %d subject %d from %d views, loss %.3f (%s)",
+                         t, sid, len(anns), loss, "warm" if was_warm else "cold")
+    fits = [(t, sid, anns, *results[i][:2]) for i, (t, sid, anns) in enumerate(tasks)]
+    warm_fits = sum(r[2] for r in results.values())
     seconds = time.perf_counter() - start
     smoothed = smooth_tracks([(t, sid, kp, loss) for t, sid, _, kp, loss in fits],
                              smooth_frames)

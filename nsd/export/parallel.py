@@ -99,10 +99,13 @@ class BatchPool:
         function: the work of one item; inherited by the forked workers, not pickled.
         workers: processes (see :func:`resolve_workers`).
         threads: torch threads shared by the workers (each gets ``threads // workers``).
+        job, remedy: what the workers do and what to lower when one dies, for the message.
     """
 
-    def __init__(self, function: Callable[[Any], Any], workers: int, threads: int) -> None:
+    def __init__(self, function: Callable[[Any], Any], workers: int, threads: int,
+                 job: str = "export", remedy: str = "workers= or batch_size=") -> None:
         self.function, self.workers = function, int(workers)
+        self.job, self.remedy = job, remedy
         self.worker_threads = max(1, int(threads) // self.workers)
         self.worker_peak_mb = 0.0  # the largest peak resident size of one worker
         self._pool: ProcessPoolExecutor | None = None
@@ -156,7 +159,7 @@ class BatchPool:
             result, peak = future.result()
         except BrokenProcessPool:
             raise RuntimeError(
-                f"an export worker process died (killed by the system, e.g. out of memory, "
-                f"with {self.workers} workers): lower workers= or batch_size=") from None
+                f"{self.job}: a worker process died (killed by the system, e.g. out of memory, "
+                f"with {self.workers} workers): lower {self.remedy}") from None
         self.worker_peak_mb = max(self.worker_peak_mb, peak)
         return item, result

@@ -210,7 +210,7 @@ def test_warm_starts_converge_in_fewer_steps_on_a_smooth_sequence():
 
     def fit(own, steps, warm=None):
         s = InverseSettings(steps=steps, points_per_view=192, prune_every=25 if steps > 25 else 0,
-                            warm_steps=steps, warm_tolerance=1e9)
+                            warm_steps=steps, warm_tolerance=1e9, headings=4)
         res = invert_silhouettes(model, own, cam, starts, s, np.random.default_rng(1), warm=warm)
         return res, silhouette_iou(silhouettes(res.z[None], res.centre[None]), own).mean().item()
 
@@ -238,3 +238,34 @@ def test_a_bad_warm_start_falls_back_to_the_cold_starts():
     res = invert_silhouettes(model, own, cam, template, s, warm=wrong)
     assert not res.warm and res.start_steps > 2
     assert mpjpe(res.keypoints, code.keypoints[0]) < 0.05
+
+
+def test_screening_keeps_the_candidates_that_fit():
+    """The shipped biped's own renders of a pose, and 16 candidate poses (the true one
+    among them) at 4 headings: scored once, the kept start is the true pose, closer to the
+    truth than every other candidate; without screening (keep all 64) the first is kept."""
+    model, config = load_geometry_model(MODELS / "biped.pt")
+    net = config["netepu"]
+    cam = ring(4, size=(128, 128), radius=5.0, f=120.0).stacked(torch.float32)
+    candidates = template_poses(net["data"], 16, seed=3)
+    truth = candidates[11] - candidates[11].mean(0) + torch.tensor([0.2, -0.1, 0.9])
+    with torch.no_grad():
+        code = model.encode(truth[None])
+        own = render_maps(model.query, model.prepare(code, cam), (128, 128),
+                          MapSettings.from_config(net["render"])).silhouette
+    up = torch.tensor([0.0, 0.0, 1.0])
+
+    def centred(pose):  # starts sit at the silhouettes' triangulated centroid: compare shapes
+        return pose - pose.mean(0)
+
+    def start_error(pose, heading):
+        return mpjpe(rotate_about_up(centred(pose), 2 * math.pi * heading / 4, up), centred(truth))
+
+    s = InverseSettings(steps=0, headings=4, screen_keep=1, screen_points=256)
+    kept = invert_silhouettes(model, own, cam, candidates, s)
+    errors = sorted(start_error(p, h) for p in candidates for h in range(4))
+    assert errors[0] < 1e-6 and errors[1] > 0.05  # the true pose alone is a perfect start
+    assert mpjpe(centred(kept.keypoints), centred(code.keypoints[0])) < 0.5 * errors[1]
+    s.screen_keep = 64
+    first = invert_silhouettes(model, own, cam, candidates, s)  # no screening: all kept
+    assert len(first.start_losses) == 64

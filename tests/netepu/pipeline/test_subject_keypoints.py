@@ -38,3 +38,70 @@ def test_smoothing_known_values_and_outliers():
     assert np.abs(smooth_tracks(bad, 10.0)[1]).max() < 0.3  # a poor fit (10x loss) weighs 1/100
     far = [(0, 1, kp + 0.0, 0.5), (100, 1, kp + 9.0, 0.5)]
     np.testing.assert_allclose(smooth_tracks(far, 10.0)[0], kp)  # beyond 3 sigma: no weight
+
+
+def _hand_made_export(tmp_path, model, net):
+    """Two bipeds (the shipped model's own renders of two poses 1.2 m apart) in 2 frames of
+    4 cameras at 96 x 96: a scene folder with its calibration and an export folder."""
+    import json
+
+    import torch
+
+    from netepu.geometry.maps import MapSettings, render_maps
+    from netepu.pipeline.subject_keypoints import template_poses
+    from nsd.cameras.calibration_io import write_toml
+    from tests.netepu_world import ring
+
+    rig = ring(4, size=(96, 96), radius=5.0, f=90.0)
+    (tmp_path / "scene").mkdir()
+    write_toml(rig, tmp_path / "scene" / "calibration.toml")
+    cam = rig.stacked(torch.float32)
+    poses = template_poses(net["data"], 4, seed=5)
+    images, annotations = [], []
+    for t in range(2):
+        masks = []
+        for s, dx in enumerate((-0.6, 0.6)):
+            pose = poses[2 * t + s] - poses[2 * t + s].mean(0) + torch.tensor([dx, 0.0, 0.9])
+            with torch.no_grad():
+                maps = render_maps(model.query, model.prepare(model.encode(pose[None]), cam),
+                                   (96, 96), MapSettings.from_config(net["render"]))
+            masks.append(maps.silhouette.numpy())
+        for v, c in enumerate(rig):
+            images.append({"id": len(images), "frame": t, "camera": c.name, "height": 96,
+                           "width": 96})
+            for s in range(2):
+                m = masks[s][v] & ~(masks[1 - s][v] if s else False)  # subject 0 in front
+                if m.sum() < 16:
+                    continue
+                rle = mask_utils.encode(np.asfortranarray(m.astype(np.uint8)))
+                annotations.append({"id": len(annotations), "image_id": images[-1]["id"],
+                                    "subject_id": s, "area": float(m.sum()),
+                                    "segmentation": {"size": rle["size"],
+                                                     "counts": rle["counts"].decode()}})
+    (tmp_path / "export").mkdir()
+    (tmp_path / "export" / "subjects.coco.json").write_text(
+        json.dumps({"images": images, "annotations": annotations}))
+    return tmp_path / "scene", tmp_path / "export"
+
+
+def test_the_keypoints_do_not_depend_on_the_workers(tmp_path):
+    """Two processes (subject-frames side by side; with warm starts each subject's chain in
+    one) give the keypoints one process gives, in the same rows."""
+    from netepu.geometry.model import load_geometry_model
+    from netepu.pipeline.species_models import MODELS
+    from netepu.pipeline.subject_keypoints import invert_export
+
+    model, config = load_geometry_model(MODELS / "biped.pt")
+    scene, export = _hand_made_export(tmp_path, model, config["netepu"])
+    for warm in (0, 3):
+        out = {}
+        for workers in (1, 2):
+            folder = tmp_path / f"w{warm}_{workers}"
+            summary = invert_export(export, scene, MODELS / "biped.pt", folder, frame_step=1,
+                                    steps=4, templates=2, warm_steps=warm, workers=workers)
+            assert summary["subject_frames"] == 4
+            with np.load(folder / "keypoints3d.npz") as z:
+                out[workers] = {k: z[k] for k in z.files}
+        assert out[1].keys() == out[2].keys()
+        for k in out[1]:
+            np.testing.assert_allclose(out[1][k], out[2][k], atol=1e-3, err_msg=k)
