@@ -110,7 +110,9 @@ def main() -> None:
         "their texture codes and NNOPCS maps (`texture`), an identity for every exported row "
         "from the texture codes (`identities`), the label-free quality report (`quality`), "
         "the pose tools' files (`formats`), a video per camera (`overlays`) and 4 image grids "
-        f"(`grids`). One process, {args.threads} torch thread(s)."
+        f"(`grids`). Torch threads: {args.threads} set here, then the config's `threads` "
+        "(0: every core); the export and the keypoints run one worker process per core "
+        "(`workers: auto`)."
     )
     write_report(
         "pipeline", "nsd-run: wall time of the default pipeline, stage by stage", rows, notes, extra
