@@ -239,14 +239,12 @@ def _start_losses(model, z, centre, cams, masks, ignored, uv, margin) -> Tensor:
 
 
 @torch.no_grad()
-def _screen(model, masks, camera, z0, centre0, s: InverseSettings, rng, ignored):
+def _screen(model, masks, cams, regions, z0, centre0, s: InverseSettings, rng, ignored):
     """The ``screen_keep`` starts of lowest loss at one draw of ``screen_points`` points per
     view (module docstring), all of them where there are no more."""
     if not s.screen_keep or len(z0) <= s.screen_keep:
         return z0, centre0
-    regions = _regions(masks.numpy(), ignored.numpy())
     uv = torch.from_numpy(_points(masks.numpy(), regions, s.screen_points, rng, s.sigma_near))
-    cams = CameraBatch.from_mapping(camera).to(torch.float32)
     losses = torch.cat([
         _start_losses(model, z0[i:i + _SCREEN_CHUNK], centre0[i:i + _SCREEN_CHUNK], cams, masks,
                       ignored, uv, s.margin) for i in range(0, len(z0), _SCREEN_CHUNK)])
@@ -254,10 +252,12 @@ def _screen(model, masks, camera, z0, centre0, s: InverseSettings, rng, ignored)
     return z0[keep], centre0[keep]
 
 
-def _optimise(model, masks, camera, z0, centre0, steps, s: InverseSettings, rng, ignored, lr):
-    """The batched multi-start optimisation from codes ``z0`` (S, d_z) at ``centre0`` (S, 3);
-    returns z (S', d_z), centre (S', 3), losses (S',), the best loss per step (steps,)
-    and the start-steps done."""
+def _optimise(model, masks, cams, regions, z0, centre0, steps, s: InverseSettings, rng, ignored,
+              lr):
+    """The batched multi-start optimisation from codes ``z0`` (S, d_z) at ``centre0`` (S, 3)
+    in the views ``cams`` (float32, batch V), loss points uniform in ``regions``; returns
+    z (S', d_z), centre (S', 3), losses (S',), the best loss per step (steps,) and the
+    start-steps done."""
     sigma = z0.pow(2).mean().sqrt().clamp(min=1e-8)
     w = (z0 / sigma).requires_grad_(True)  # z = sigma w
     centre = centre0.clone().requires_grad_(True)
@@ -268,8 +268,6 @@ def _optimise(model, masks, camera, z0, centre0, steps, s: InverseSettings, rng,
 
     opt = adam(w, centre)
     np_masks = masks.numpy()
-    regions = _regions(np_masks, ignored.numpy())
-    cams = CameraBatch.from_mapping(camera).to(torch.float32)
     losses = torch.zeros(len(z0))
     history, work = [], 0
     for step in range(steps):
@@ -335,6 +333,8 @@ def invert_silhouettes(
     ignored = torch.zeros(masks.shape, dtype=torch.bool) if occluders is None else (
         occluders.bool() & ~masks)
     anchor = triangulate_centroids(masks, camera).float()
+    cams = CameraBatch.from_mapping(camera).to(torch.float32)
+    regions = _regions(masks.numpy(), ignored.numpy())  # where uniform loss points fall
     flags = [p.requires_grad for p in model.parameters()]
     for p in model.parameters():
         p.requires_grad_(False)
@@ -342,9 +342,9 @@ def invert_silhouettes(
     def run(start: InverseResult | None, steps: int) -> tuple:
         z0, c0 = _code_starts(model, masks, camera, templates, s, anchor, start)
         if start is None:
-            z0, c0 = _screen(model, masks, camera, z0, c0, s, rng, ignored)
+            z0, c0 = _screen(model, masks, cams, regions, z0, c0, s, rng, ignored)
         lr = s.warm_lr if start is not None else s.lr
-        return _optimise(model, masks, camera, z0, c0, steps, s, rng, ignored, lr)
+        return _optimise(model, masks, cams, regions, z0, c0, steps, s, rng, ignored, lr)
 
     try:
         z, centre, losses, history, work = run(warm, s.warm_steps if warm else s.steps)

@@ -158,17 +158,17 @@ def invert_export(
     def fit(chain: list[int]) -> list[tuple[np.ndarray, float, bool]]:
         """Invert the subject-frames ``chain`` (indices into ``tasks``) in order, each later
         one warm from the one before when ``warm_steps`` (then a chain is one subject's)."""
-        out, warm = [], None
+        out, previous = [], None
         for i in chain:
             t, _sid, anns = tasks[i]
             cam_idx = [rig.index(images[a["image_id"]]["camera"]) for a in anns]
             masks = torch.from_numpy(np.stack([_decode(a) for a in anns]))
             occluders = torch.from_numpy(np.stack([_others(a, in_image) for a in anns])) if (
                 occlusion) else None
-            warm = invert_silhouettes(model, masks, cams[cam_idx], starts, settings,
-                                      np.random.default_rng(t), occluders,
-                                      warm if warm_steps else None)
-            out.append((warm.keypoints.float().numpy(), warm.loss, warm.warm))
+            previous = invert_silhouettes(model, masks, cams[cam_idx], starts, settings,
+                                          np.random.default_rng(t), occluders,
+                                          previous if warm_steps else None)
+            out.append((previous.keypoints.float().numpy(), previous.loss, previous.warm))
         return out
 
     chains: dict[int, list[int]] = defaultdict(list)  # warm starts: one chain per subject
