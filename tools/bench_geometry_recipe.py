@@ -58,10 +58,11 @@ from nsd.core.config import compose_app  # noqa: E402
 from nsd.synth import make_individual, make_rig, render_views, sample_pose  # noqa: E402
 from nsd.synth.raycast import camera_rays  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
+from tools.train_species_models import RECIPES  # noqa: E402
 
-SPECIES = {  # the data overrides of each species (tools/train_species_models.py's recipes)
-    "biped": ["netepu/data=biped", "netepu.model.renderer.k=12"],
-    "quadruped": ["netepu/data=quadruped"],
+SPECIES = {  # each species' data and model overrides: the shipped recipes' without their
+    # optimiser schedule (the ladder's runs are 1,000 steps)
+    s: [o for o in r["geometry"] if not o.startswith("netepu.optim.")] for s, r in RECIPES.items()
 }
 NOISE = "netepu.points.keypoint_noise=0.01"  # the noise we shipped before, in metres
 NEPU = ["netepu.loss.silhouette=3", "netepu.loss.nnopcs=1",

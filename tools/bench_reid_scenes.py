@@ -4,6 +4,9 @@
     .venv/bin/python tools/bench_reid_scenes.py one --n 3 --minutes 10
     .venv/bin/python tools/bench_reid_scenes.py rescore     # score the stored runs again
     .venv/bin/python tools/bench_reid_scenes.py report      # docs/benchmarks/reid_scenes.{md,json}
+    .venv/bin/python tools/bench_reid_scenes.py keypoints --run runs/kp_three \
+        --scene /tmp/scene3 --n 3 --tag three   # an existing nsd-run folder, shipped models
+    .venv/bin/python tools/bench_reid_scenes.py keypoints-report  # reid_keypoints.{md,json}
 
 For N = 2 and 3 bipeds in close interaction (4 studio cameras, 300 frames at
 128 x 128), every individual wears a generated texture (ids >= 100) that the
@@ -52,6 +55,7 @@ sys.path.insert(0, str(ROOT))
 from tools.benchlib import write_report  # noqa: E402
 
 WORK = Path("/tmp/nsd-bench-reid")
+KEYPOINT_WORK = ROOT / "runs" / "reid_keypoints"
 GEOMETRY = ROOT / "runs/netepu/geometry_biped/checkpoint.pt"
 TEXTURES = {  # texture models (netepu-train stage=texture), all trained on the 16 pool textures
     "cross-view": ROOT / "runs/netepu/texture_full_xv/checkpoint.pt",
@@ -301,9 +305,84 @@ def report() -> None:
     )
 
 
+def keypoints(run: Path, scene: Path, n: int, tag: str) -> None:
+    """Identities of an existing ``nsd-run`` folder (the shipped models, its label-free
+    keypoints) against the same rows coded from the ground-truth keypoints."""
+    from netepu.pipeline.embed import embed_into_copy
+    from netepu.pipeline.species_models import MODELS
+    from nsd.io.embeddings import embeddings_path
+
+    stages = json.loads((run / "pipeline.json").read_text())
+    texture = MODELS / "biped.pt"  # what the run's texture stage used (the built-in biped)
+    export = run / "export"
+    out = KEYPOINT_WORK / tag
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    gt_kp = out / "gt_keypoints.npz"
+    _gt_keypoints(export, scene, run / "keypoints" / "keypoints3d.npz", gt_kp)
+    t0 = time.perf_counter()
+    embed_into_copy(export, out / "texture_gt", texture, gt_kp, scene)
+    tables = {
+        "label-free keypoints": embeddings_path(run / "texture"),
+        "ground-truth keypoints": embeddings_path(out / "texture_gt"),
+    }
+    kp = stages["keypoints"]["summary"]
+    record = {
+        "run": str(run), "individuals": n, "mpjpe_mm": kp["accuracy"]["mpjpe_mm"],
+        "mpjpe_mm_median": kp["accuracy"]["mpjpe_mm_median"],
+        "subject_frames": kp["subject_frames"],
+        "seconds_per_subject_frame": kp["seconds_per_subject_frame"],
+        "scores": _scores(export, scene, tables, n, "texture_reid"),
+        "ground_truth_texture_seconds": round(time.perf_counter() - t0, 1),
+    }  # fmt: skip
+    (KEYPOINT_WORK / f"result_{tag}.json").write_text(json.dumps(record, indent=1, default=float))
+    print(json.dumps(record, indent=1, default=float))
+
+
+def keypoints_report() -> None:
+    rows, records = [], {}
+    for path in sorted(KEYPOINT_WORK.glob("result_*.json")):
+        r = json.loads(path.read_text())
+        records[path.stem[len("result_"):]] = r
+        for variant, s in r["scores"].items():
+            free = variant.startswith("label")
+            rows.append({
+                "scene": path.stem[len("result_"):], "individuals": r["individuals"],
+                "keypoints": variant,
+                "MPJPE mean / median (mm)": (
+                    f"{r['mpjpe_mm']:.1f} / {r['mpjpe_mm_median']:.1f}" if free else "0"),
+                "rows": s["rows"], "cross-view rank-1": round(s["cross_view_rank1"], 4),
+                "cross-time rank-1": round(s["cross_time_rank1"], 4),
+                "identity accuracy": round(s["identity_accuracy"], 4),
+                "identity accuracy, per track": round(s["tracks_identity_accuracy"], 4),
+                "chance": round(1 / r["individuals"], 4),
+            })  # fmt: skip
+    notes = (
+        "Each scene is an existing `nsd-run` folder (the built-in NeTePu biped for the "
+        "keypoints and the texture codes; label-free keypoints from the screened inversion "
+        "of the exported visible masks). `ground-truth keypoints` codes the same exported rows "
+        "again (`netepu.pipeline.embed.embed_into_copy`) with the true 3D keypoints of the "
+        "individual each row matches, so the two rows of a scene differ only in the keypoints "
+        "that place the NNOPCS maps. Scored on the rows coded in both and matched to a "
+        "ground-truth visible mask (IoU >= 0.5); identities by `texture_reid` "
+        "(`tools/bench_reid_scenes.py keypoints`, docstring of `_scores`). The individuals "
+        "wear pool textures (the scenes' default `texture_ids: null`), which the texture "
+        "model was trained on; unseen textures are `reid_scenes.md`'s protocol."
+    )
+    write_report("reid_keypoints",
+                 "Identities from texture codes: label-free against ground-truth keypoints",
+                 rows, notes, extra={"runs": records})  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
+    k = sub.add_parser("keypoints", help="an existing nsd-run folder: label-free vs true keypoints")
+    k.add_argument("--run", type=Path, required=True)
+    k.add_argument("--scene", type=Path, required=True)
+    k.add_argument("--n", type=int, required=True)
+    k.add_argument("--tag", required=True)
+    sub.add_parser("keypoints-report", help="docs/benchmarks/reid_keypoints.{md,json}")
     o = sub.add_parser("one")
     o.add_argument("--n", type=int, required=True)
     o.add_argument("--minutes", type=float, default=10.0, help="NSD training minutes")
@@ -314,7 +393,12 @@ def main() -> None:
     sub.add_parser("rescore", help="score the stored runs again (e.g. new identity code)")
     sub.add_parser("report")
     args = ap.parse_args()
-    if args.cmd == "one":
+    if args.cmd == "keypoints":
+        KEYPOINT_WORK.mkdir(parents=True, exist_ok=True)
+        keypoints(args.run, args.scene, args.n, args.tag)
+    elif args.cmd == "keypoints-report":
+        keypoints_report()
+    elif args.cmd == "one":
         WORK.mkdir(parents=True, exist_ok=True)
         one(args.n, args.minutes, args.frame_step, args.threads, args.texture, args.keypoints)
     elif args.cmd == "rescore":

@@ -26,6 +26,7 @@ class TextureConfig(ConfigSection):
     use_nnopcs: bool
     use_normals: bool
     local_features: bool
+    renderer_geometry: bool
     crop_size: int
     crop_margin: float
     widths: list[int]

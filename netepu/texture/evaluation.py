@@ -9,8 +9,12 @@ r"""Evaluate a texture model: colour PSNR of held-out poses and cameras, codes, 
   background as well, which raises it). Two codes per rendered view:
   ``reconstruction`` (the code of the view itself, NeTePu's test) and
   ``novel`` (the code of another held-out pose seen by another camera:
-  novel pose and view synthesis). Sets: ``heldout_poses`` (training
-  cameras) and ``heldout_cameras``.
+  novel pose and view synthesis: the texture swapped onto another pose and
+  view). Sets: ``heldout_poses`` (training cameras) and ``heldout_cameras``.
+* **NeTePu's protocol** (:func:`nsd.evaluation.maps.image_psnr`): the same
+  renders as 8-bit whole images (zero outside the ground-truth mask) against
+  the whole ground-truth view, ``psnr_image_reconstruction`` and
+  ``psnr_image_novel``.
 * **Grids** (:func:`synthesis_grid`): for each texture, the source view whose
   code is used, then ground truth and rendering of novel poses/cameras.
 """
@@ -27,7 +31,7 @@ from netepu.texture.crops import query_masked
 from netepu.texture.data import TextureData
 from netepu.texture.model import TextureModel
 from nsd.cameras.batch import CameraBatch
-from nsd.evaluation.maps import colour_psnr
+from nsd.evaluation.maps import colour_psnr, image_psnr
 
 __all__ = [
     "evaluate_colour",
@@ -149,7 +153,7 @@ def evaluate_colour(
         rows = np.nonzero(h["heldout_camera"][psnr_views] == held)[0]
         if max_views is not None:
             rows = rows[:max_views]
-        res = {"reconstruction": [], "novel": []}
+        res = {k: [] for k in ("reconstruction", "novel", "image_reconstruction", "image_novel")}
         for r in rows:
             v = int(psnr_views[r])
             kps = torch.from_numpy(h["keypoints"][[v] * T])
@@ -159,6 +163,7 @@ def evaluate_colour(
             for kind, z in (("reconstruction", codes[v]), ("novel", codes[src[r]])):
                 pred = render_colour(texture, geometry, kps, cam, mask, torch.from_numpy(z))
                 res[kind].append(colour_psnr(pred, gt, mask))
+                res[f"image_{kind}"].append(image_psnr(pred, gt, mask))
         for kind, vals in res.items():
             if vals:
                 out[f"{name}/psnr_{kind}"] = float(torch.cat(vals).mean())

@@ -72,11 +72,14 @@ class TextureModel(nn.Module):
             if cfg.local_features
             else None
         )
-        feats = geometry_features + (cfg.features if cfg.local_features else 0)
+        feats = (geometry_features if cfg.renderer_geometry else 0) + (
+            cfg.features if cfg.local_features else 0
+        )
+        latent = (geometry_latent if cfg.renderer_geometry else 0) + cfg.latent
         try:
-            self.renderer = ColourRenderer(
-                feats, geometry_latent + cfg.latent, radius, **dict(cfg.renderer)
-            )
+            # no keypoint features at all (NeTePu's code without f_texture): a constant 1 per
+            # keypoint, so that the keypoints carry their positions only
+            self.renderer = ColourRenderer(max(feats, 1), latent, radius, **dict(cfg.renderer))
         except TypeError as e:
             raise ConfigError(f"netepu.texture.model.renderer: {e}") from e
         # re-identification embedding (u - reid_mean) @ reid_projection of the input
@@ -166,16 +169,20 @@ class TextureModel(nn.Module):
 
         Args:
             z_texture: (B, d_z) texture codes.
-            geometry_z, geometry_features: the frozen geometry code, (B, d_zg), (B, K, d_f).
+            geometry_z, geometry_features: the frozen geometry code, (B, d_zg), (B, K, d_f);
+                read only with ``cfg.renderer_geometry``.
             keypoints: world keypoints (B, K, 3) that drive the render.
             camera: per-view camera tensors (batch B).
         """
-        feats = geometry_features
+        feats, code = [], [z_texture]
+        if self.cfg.renderer_geometry:
+            feats.append(geometry_features)
+            code.insert(0, geometry_z)
         if self.decoder is not None:
-            feats = torch.cat([feats, self.decoder(z_texture)], -1)
-        return self.renderer.prepare(
-            keypoints, feats, torch.cat([geometry_z, z_texture], -1), camera
-        )
+            feats.append(self.decoder(z_texture))
+        if not feats:
+            feats.append(keypoints.new_ones(*keypoints.shape[:2], 1))
+        return self.renderer.prepare(keypoints, torch.cat(feats, -1), torch.cat(code, -1), camera)
 
     def query(self, ctx: RenderContext, uv: Tensor) -> Tensor:
         """Colour at query pixels (B, Q, 2) -> (B, Q, 3) (unclamped)."""
@@ -199,7 +206,7 @@ def build_texture_model(
 
 # Keys that texture checkpoints written before the key existed lack, with the behaviour those
 # models were trained with (not defaults: a new model takes conf/netepu/texture/default.yaml).
-LEGACY_TEXTURE_KEYS = {"use_normals": False, "reid_colour": False}
+LEGACY_TEXTURE_KEYS = {"use_normals": False, "reid_colour": False, "renderer_geometry": True}
 
 
 def load_texture_model(

@@ -13,10 +13,12 @@ Decoder and renderer (:class:`TextureDecoder`, :class:`ColourRenderer`)
     (:class:`netepu.geometry.renderer.NeuralRenderer2D`: same view frame, 2D blocks
     and factorised VCA) with a 3-channel colour head; its keypoint features
     are the frozen geometry features :math:`f` concatenated with
-    :math:`f_{texture}` and its global code is :math:`[z, z_{texture}]`.
-    The ablation without local texture features (``local_features: false``)
-    keeps only :math:`f`, so the texture reaches the renderer through the
-    global token alone. Only foreground pixels are ever rendered.
+    :math:`f_{texture}` and its global code is :math:`[z, z_{texture}]`
+    (``renderer_geometry: false``: :math:`f_{texture}` and :math:`z_{texture}`
+    only, as NeTePu's code does). The ablation without local texture features
+    (``local_features: false``) keeps only :math:`f`, so the texture reaches the
+    renderer through the global token alone (with neither, the keypoints carry
+    their positions only). Only foreground pixels are ever rendered.
 """
 
 from __future__ import annotations

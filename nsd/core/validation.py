@@ -213,6 +213,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.species": _r("str", choices=("auto", "biped", "quadruped")),
         "netepu.keypoints.frame_step": POS, "netepu.keypoints.min_views": _r("int", low=2),
         "netepu.keypoints.steps": POS, "netepu.keypoints.templates": POS,
+        "netepu.keypoints.workers": _r("int", low=1, allow=("auto",)),
         "netepu.keypoints.warm_steps": _r("int", low=0),
         "netepu.keypoints.smooth_frames": _r("number", low=0),
         "netepu.keypoints.source": _r("str", choices=("inverse", "regressor")),

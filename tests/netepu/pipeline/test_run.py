@@ -599,3 +599,17 @@ def test_identity_settings_are_validated_against_the_methods_the_code_has():
 
     assert set(RULES["run"]["netepu.identities.method"].choices) == set(IDENTITY_METHODS)
     assert set(RULES["run"]["netepu.identities.fill"].choices) == {*FILL_METHODS, "app"}
+
+
+@pytest.mark.parametrize(("prog", "app", "key"), [
+    ("nsd-run", "run", "netepu.keypoints.workers"), ("nsd-export", "export", "workers")])
+def test_worker_counts_take_a_number_or_auto_on_the_command_line(prog, app, key):
+    """``auto`` defaults must not make a number a type error (nsd-run refused
+    ``netepu.keypoints.workers=1`` as "must be a string")."""
+    from nsd.core.app import check_command_line
+
+    for good in ("1", "3", "auto"):
+        check_command_line(prog, app, [f"{key}={good}"])  # no SystemExit
+    for bad in ("0", "many"):
+        with pytest.raises(SystemExit):
+            check_command_line(prog, app, [f"{key}={bad}"])

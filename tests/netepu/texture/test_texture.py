@@ -27,7 +27,8 @@ TINY_TEXTURE_SIZES = {
 }  # fmt: skip
 # a whole netepu.texture.model section: the sizes above, NeTePu's encoder inputs otherwise
 TINY_TEXTURE = {**TINY_TEXTURE_SIZES, "use_nnopcs": True, "use_normals": False,
-                "local_features": True, "crop_margin": 0.1, "reid_colour": False}  # fmt: skip
+                "local_features": True, "renderer_geometry": True, "crop_margin": 0.1,
+                "reid_colour": False}  # fmt: skip
 TINY_GEOMETRY_DATA = {
     "species": "biped", "radius": R_BIPED, "image_size": [64, 48], "train_poses": 2,
     "rig": {"kind": "ring", "rings": [{"count": 3, "radius": 5.0, "height": 1.5}]},
@@ -319,8 +320,11 @@ def test_occlusion_keeps_a_quarter_and_only_removes_pixels():
 
 
 @pytest.mark.parametrize("local_features", [True, False])
-def test_texture_code_reaches_the_colour(local_features):
-    tex, geo = _models(local_features=local_features)
+@pytest.mark.parametrize("renderer_geometry", [True, False])
+def test_texture_code_reaches_the_colour(local_features, renderer_geometry):
+    """The code always reaches the colour; the geometry's features and code only when the
+    renderer reads them (``renderer_geometry: false`` is NeTePu's code: texture only)."""
+    tex, geo = _models(local_features=local_features, renderer_geometry=renderer_geometry)
     data = _tiny_data()
     h = data.heldout
     kps = torch.from_numpy(h["keypoints"][:2])
@@ -332,6 +336,8 @@ def test_texture_code_reaches_the_colour(local_features):
     b = tex.query(tex.prepare(z + 1, code.z, code.features, kps, cam), uv)
     assert a.shape == (2, 30, 3) and (a - b).abs().max() > 1e-4
     assert (tex.decoder is not None) == local_features
+    c = tex.query(tex.prepare(z, code.z + 1, code.features + 1, kps, cam), uv)
+    assert ((a - c).abs().max() > 1e-4) == renderer_geometry
 
 
 def test_netepu_train_texture_stage_end_to_end(tmp_path):
