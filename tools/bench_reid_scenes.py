@@ -309,11 +309,14 @@ def keypoints(run: Path, scene: Path, n: int, tag: str) -> None:
     """Identities of an existing ``nsd-run`` folder (the shipped models, its label-free
     keypoints) against the same rows coded from the ground-truth keypoints."""
     from netepu.pipeline.embed import embed_into_copy
-    from netepu.pipeline.species_models import MODELS
+    from netepu.pipeline.species_models import MODELS, scene_species
     from nsd.io.embeddings import embeddings_path
 
     stages = json.loads((run / "pipeline.json").read_text())
-    texture = MODELS / "biped.pt"  # what the run's texture stage used (the built-in biped)
+    species = scene_species(scene)
+    if len(species) != 1:
+        raise SystemExit(f"{scene}: one species expected, found {species}")
+    texture = MODELS / f"{species[0]}.pt"  # what the run's texture stage used (built in)
     export = run / "export"
     out = KEYPOINT_WORK / tag
     shutil.rmtree(out, ignore_errors=True)
@@ -328,7 +331,8 @@ def keypoints(run: Path, scene: Path, n: int, tag: str) -> None:
     }
     kp = stages["keypoints"]["summary"]
     record = {
-        "run": str(run), "individuals": n, "mpjpe_mm": kp["accuracy"]["mpjpe_mm"],
+        "run": str(run), "species": species[0], "individuals": n,
+        "mpjpe_mm": kp["accuracy"]["mpjpe_mm"],
         "mpjpe_mm_median": kp["accuracy"]["mpjpe_mm_median"],
         "subject_frames": kp["subject_frames"],
         "seconds_per_subject_frame": kp["seconds_per_subject_frame"],
@@ -347,7 +351,8 @@ def keypoints_report() -> None:
         for variant, s in r["scores"].items():
             free = variant.startswith("label")
             rows.append({
-                "scene": path.stem[len("result_"):], "individuals": r["individuals"],
+                "scene": path.stem[len("result_"):], "species": r.get("species", "biped"),
+                "individuals": r["individuals"],
                 "keypoints": variant,
                 "MPJPE mean / median (mm)": (
                     f"{r['mpjpe_mm']:.1f} / {r['mpjpe_mm_median']:.1f}" if free else "0"),
@@ -358,9 +363,10 @@ def keypoints_report() -> None:
                 "chance": round(1 / r["individuals"], 4),
             })  # fmt: skip
     notes = (
-        "Each scene is an existing `nsd-run` folder (the built-in NeTePu biped for the "
+        "Each scene is an existing `nsd-run` folder (the built-in NeTePu models for the "
         "keypoints and the texture codes; label-free keypoints from the screened inversion "
-        "of the exported visible masks). `ground-truth keypoints` codes the same exported rows "
+        "of the exported visible masks; the scene's species' model). `ground-truth keypoints` "
+        "codes the same exported rows "
         "again (`netepu.pipeline.embed.embed_into_copy`) with the true 3D keypoints of the "
         "individual each row matches, so the two rows of a scene differ only in the keypoints "
         "that place the NNOPCS maps. Scored on the rows coded in both and matched to a "
