@@ -114,16 +114,9 @@ def _load(run: str):
 
 def _task_for(run: str):
     """Rebuild the run's data and predicted NNOPCS crops (cached) from its config."""
-    from omegaconf import OmegaConf
+    from netepu.texture.stage import load_texture_task
 
-    from netepu.texture.stage import build_texture_stage
-
-    state = torch.load(ROOT / run / "checkpoint.pt", map_location="cpu", weights_only=True)
-    cfg = OmegaConf.create(state["config"])
-    task, _ = build_texture_stage(cfg)
-    task.texture.load_state_dict(state["modules"]["texture"])
-    task.texture.eval()
-    return task, state
+    return load_texture_task(ROOT / run / "checkpoint.pt")
 
 
 def _reid(codes: np.ndarray, cameras: np.ndarray, textures: np.ndarray) -> dict[str, float]:

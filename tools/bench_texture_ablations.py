@@ -43,7 +43,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tools.benchlib import write_report  # noqa: E402
+from tools.benchlib import markdown_table, write_report  # noqa: E402
 
 WORK = ROOT / "runs" / "texture_ablations"
 GEOMETRY = WORK / "geometry_biped.pt"
@@ -97,35 +97,18 @@ def train(name: str) -> None:
     print(json.dumps(run(cfg, WORK / name)))
 
 
-def _task(name: str, unseen: bool):
-    """The run's texture task (data, predicted NNOPCS crops) with its trained weights; with
-    ``unseen``, the held-out set of generated textures the model never saw (the same
-    poses and cameras: the data's random draws do not depend on the texture ids)."""
-    from omegaconf import OmegaConf
-
-    from netepu.texture.stage import build_texture_stage
-
-    state = torch.load(WORK / name / "checkpoint.pt", map_location="cpu", weights_only=True)
-    cfg = OmegaConf.create(state["config"])
-    if unseen:
-        n = len(cfg.netepu.texture.data.textures)
-        cfg.netepu.texture.data.textures = [FIRST_UNSEEN + i for i in range(n)]
-    task, _ = build_texture_stage(cfg)
-    task.texture.load_state_dict(state["modules"]["texture"])
-    task.texture.eval()
-    return task, state
-
-
 def evaluate(name: str, unseen: bool) -> None:
     """Both protocols on every held-out view with full maps; re-id; grid cells."""
     import cv2
 
     from netepu.texture.evaluation import evaluate_colour, synthesis_grid
+    from netepu.texture.stage import load_texture_task
     from nsd.evaluation.reid import reid_metrics
 
     torch.set_num_threads(1)
     t0 = time.time()
-    task, state = _task(name, unseen)
+    task, state = load_texture_task(WORK / name / "checkpoint.pt",
+                                    FIRST_UNSEEN if unseen else None)  # fmt: skip
     name += "_unseen" if unseen else ""
     codes = task.codes()
     row = evaluate_colour(task.texture, task.geometry, task.data, codes)
@@ -207,7 +190,7 @@ def report() -> None:
         "cameras (the paper's test set is novel poses of its 24 training cameras); on the 16 "
         "pool textures every model was trained on, and on 16 generated textures none saw "
         f"(ids {FIRST_UNSEEN}-{FIRST_UNSEEN + 15}, same poses and cameras).\n",
-        _markdown(gaps),
+        markdown_table(gaps),
         "",
         f"NeTePu's protocol: the render is stored as 8 bits with zeros outside the ground-truth "
         f"mask and compared with the whole 8-bit ground-truth image. The synthetic views "
@@ -234,15 +217,6 @@ def report() -> None:
         notes="\n".join(notes),
         extra={"runs": rows, "gaps": gaps, "paper": PAPER, "variants": VARIANTS},
     )
-
-
-def _markdown(rows: list[dict]) -> str:
-    if not rows:
-        return ""
-    keys = list(rows[0])
-    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-    lines += ["| " + " | ".join(str(r[k]) for k in keys) + " |" for r in rows]
-    return "\n".join(lines)
 
 
 def main() -> None:

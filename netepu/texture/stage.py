@@ -78,7 +78,13 @@ from nsd.evaluation.reid import reid_metrics
 
 FALLBACK_SHRINKAGE = 0.01  # reid_shrinkage=auto when the training codes cannot choose
 
-__all__ = ["TextureStageConfig", "TextureTask", "add_reid_whitening", "build_texture_stage"]
+__all__ = [
+    "TextureStageConfig",
+    "TextureTask",
+    "add_reid_whitening",
+    "build_texture_stage",
+    "load_texture_task",
+]
 
 log = logging.getLogger(__name__)
 
@@ -487,6 +493,26 @@ def _surface_crops(geometry, texture, data, weights: Path) -> tuple[np.ndarray, 
     )
     atomic_save_npz(nn_path, train=nn_train, heldout=nn_held)
     return nn_train, nn_held
+
+
+def load_texture_task(
+    checkpoint: str | Path, first_texture: int | None = None
+) -> tuple[TextureTask, dict[str, Any]]:
+    """A finished run's texture task (its data and predicted NNOPCS crops, cached) with the
+    trained weights, in eval mode, and the checkpoint's state. ``first_texture``: the data
+    shows as many textures as the model was trained on, with consecutive ids from this one
+    (e.g. generated textures it never saw) in the same poses and cameras (the data's random
+    draws do not depend on the ids)."""
+
+    state = load_checkpoint(checkpoint)
+    cfg = OmegaConf.create(state["config"])
+    if first_texture is not None:
+        n = len(cfg.netepu.texture.data.textures)
+        cfg.netepu.texture.data.textures = list(range(first_texture, first_texture + n))
+    task, _ = build_texture_stage(cfg)
+    task.texture.load_state_dict(state["modules"]["texture"])
+    task.texture.eval()
+    return task, state
 
 
 def add_reid_whitening(

@@ -427,6 +427,19 @@ def test_netepu_train_texture_stage_end_to_end(tmp_path):
         S, C = task.texture.cfg.crop_size, task.texture.cfg.surface_channels
         assert task.nnopcs_train.shape[1:] == (S, S, C)
         assert task.nnopcs_heldout.shape[1:] == (S, S, C)
+    # a finished run's task, and the same views with textures it never saw
+    from netepu.texture.stage import load_texture_task
+
+    task, state = load_texture_task(ckpt)
+    assert list(task.data.textures) == [0, 2] and state["step"] == 3
+    for k, v in tex3.state_dict().items():
+        assert torch.equal(task.texture.state_dict()[k], v), k
+    unseen, _ = load_texture_task(ckpt, first_texture=100)
+    assert list(unseen.data.textures) == [100, 101]
+    h, u = task.data.heldout, unseen.data.heldout
+    assert np.array_equal(h["keypoints"], u["keypoints"])
+    assert np.array_equal(h["camera"], u["camera"])
+    assert not np.array_equal(h["rgb"], u["rgb"])
 
 
 def test_texture_config_rejects_unknown_keys():
