@@ -1,16 +1,16 @@
 """Label-free keypoints from the pipeline's masks: occluders, warm starts, smoothing, speed.
 
-    .venv/bin/python tools/bench_keypoints.py --run RUN [--work DIR] [--frame-step 10]
+    .venv/bin/python tools/bench_keypoints.py --run RUN [RUN ...] [--work DIR] [--frame-step 10]
 
-``RUN`` is an ``nsd-run`` folder of a synthetic scene (its ``export/`` and the scene named in
+Each ``RUN`` is an ``nsd-run`` folder of a synthetic scene (its ``export/`` and the scene named in
 its ``pipeline.json``); the shipped geometry model of the scene's species inverts every
 ``frame-step``-th exported frame (:func:`netepu.pipeline.subject_keypoints.invert_export`),
 one variant per fresh process with one torch thread, two at a time on two cores
 (``taskset``). The rows:
 
 * the pipeline's masks with each setting (occluders off/on, the screened library of starting
-  poses against two templates at four headings, warm starts, fewer loss points, earlier
-  pruning of the starts);
+  poses against two templates at four headings, warm starts, fewer loss points, the point
+  budget shared by the starts against every start at full points, earlier pruning);
 * the same subjects with the ground truth's visible masks and amodal masks instead of the
   exported ones (the floor that the masks, 4 cameras and the model leave);
 * temporal smoothing of the occlusion-aware fits (``smooth_frames``), applied afterwards.
@@ -58,6 +58,8 @@ VARIANTS = [  # (name, masks, invert_export settings)
     ("occluders + warm starts (40 steps)", "export", {"warm_steps": 40}),
     ("warm starts (40 steps), no occluders", "export", {"occlusion": False, "warm_steps": 40}),
     ("occluders, 192 points per view", "export", {"inverse": {"points_per_view": 192}}),
+    ("occluders, 384 points per view for every start (no point budget; the stage before)",
+     "export", {"inverse": {"point_budget": 0}}),
     ("occluders, prune every 10 steps", "export", {"inverse": {"prune_every": 10}}),
     ("ground-truth visible masks + occluders", "visible", {}),
     ("ground-truth amodal masks", "amodal", {"occlusion": False}),
@@ -119,7 +121,9 @@ def smoothed(keypoints: Path, out: Path, sigma: float) -> Path:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--run", type=Path, required=True, help="an nsd-run folder (synthetic scene)")
+    ap.add_argument("--run", type=Path, nargs="+", required=True,
+                    help="nsd-run folders of synthetic scenes (several: rows prefixed by the "
+                         "run's name)")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: temporary)")
     ap.add_argument("--frame-step", type=int, default=10)
     ap.add_argument("--variants", nargs="+", default=None,
@@ -130,55 +134,63 @@ def main() -> None:
     ap.add_argument("--report", default="keypoints", help="name of the report file")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-keypoints-"))
-    pipeline = json.loads((args.run / "pipeline.json").read_text())
-    scene = pipeline["scene"]["summary"]["path"]
-    species = json.loads((Path(scene) / "gt" / "scene.json").read_text())["individuals"][0][
-        "species"]
-    exports = {"export": args.run / "export"}
-    for kind in ("visible", "amodal"):
-        exports[kind] = work / f"truth_{kind}"
-        truth_export(exports["export"], scene, exports[kind], kind)
-    cores = sorted(os.sched_getaffinity(0))
-    env = dict(os.environ, OMP_NUM_THREADS="1")
     chosen = [v for v in VARIANTS if args.variants is None or v[0] in args.variants]
     if args.variants is not None and len(chosen) != len(args.variants):
         raise SystemExit(f"--variants: choose from {[v[0] for v in VARIANTS]}")
-    variants = [(name, masks, kw, MODELS / f"{species}.pt") for name, masks, kw in chosen]
-    if args.baseline_models is not None:
-        variants += [(f"{name} [baseline model]", masks, kw,
+    jobs, exports, scenes = [], {}, {}  # (row name, run, masks, invert_export settings, model)
+    for run in args.run:
+        pipeline = json.loads((run / "pipeline.json").read_text())
+        scene = scenes[run] = pipeline["scene"]["summary"]["path"]
+        species = json.loads((Path(scene) / "gt" / "scene.json").read_text())[
+            "individuals"][0]["species"]
+        exports[run, "export"] = run / "export"
+        for kind in ("visible", "amodal"):
+            if any(masks == kind for _, masks, _ in chosen):
+                exports[run, kind] = work / f"{run.name}_truth_{kind}"
+                truth_export(exports[run, "export"], scene, exports[run, kind], kind)
+        prefix = f"{run.name}: " if len(args.run) > 1 else ""
+        jobs += [(prefix + name, run, masks, kw, MODELS / f"{species}.pt")
+                 for name, masks, kw in chosen]
+        if args.baseline_models is not None:
+            jobs += [(f"{prefix}{name} [baseline model]", run, masks, kw,
                       args.baseline_models / f"{species}.pt") for name, masks, kw in chosen]
+    cores = sorted(os.sched_getaffinity(0))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
     rows, outs = [], {}
-    for first in range(0, len(variants), len(cores)):  # one variant per core at a time
+    for first in range(0, len(jobs), len(cores)):  # one job per core at a time
         batch = []
-        for cpu, (name, masks, kw, model) in zip(cores, variants[first:first + len(cores)],
-                                                 strict=False):  # the last batch may be short
+        for cpu, (name, run, masks, kw, model) in zip(cores, jobs[first:first + len(cores)],
+                                                      strict=False):  # the last may be short
             outs[name] = work / f"variant{len(outs)}"
-            arg = {"export": str(exports[masks]), "scene": scene, "model": str(model),
+            arg = {"export": str(exports[run, masks]), "scene": scenes[run], "model": str(model),
                    "out": str(outs[name]), "kw": {"frame_step": args.frame_step, **kw}}
-            batch.append((name, masks, subprocess.Popen(
+            batch.append((name, run, masks, subprocess.Popen(
                 ["taskset", "-c", str(cpu), sys.executable, "-c", CHILD, json.dumps(arg)],
                 stdout=subprocess.PIPE, text=True, cwd=ROOT, env=env)))
-        for name, masks, proc in batch:
+        for name, run, masks, proc in batch:
             text, _ = proc.communicate()
             if proc.returncode:
                 raise SystemExit(f"{name}: the inversion failed")
             s = json.loads(text.strip().splitlines()[-1])
             rows.append({"variant": name,
-                         **errors(exports[masks], scene, outs[name] / "keypoints3d.npz"),
+                         **errors(exports[run, masks], scenes[run],
+                                  outs[name] / "keypoints3d.npz"),
                          "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
                          "warm_share": s.get("warm_share"), "mean_loss": s["mean_loss"]})
             print(rows[-1], flush=True)
-    occ = outs.get("occluders (the default)")
+    occ = outs.get("occluders (the default)")  # one run only
+    run = args.run[0]
     for sigma in SMOOTHING if occ is not None and args.variants is None else ():
         path = smoothed(occ / "keypoints3d.npz", work / f"smooth{sigma:g}" / "keypoints3d.npz",
                         sigma)
         rows.append({"variant": f"occluders, smoothed (sigma {sigma:g} frames)",
-                     **errors(exports["export"], scene, path)})
+                     **errors(exports[run, "export"], scenes[run], path)})
     write_report(
         args.report, "Label-free keypoints from the pipeline's masks", rows,
-        notes=(f"Run `{args.run.name}` (scene `{Path(scene).name}`, {species}), every "
+        notes=("Runs " + ", ".join(f"`{r.name}` (scene `{Path(scenes[r]).name}`)" for r in args.run)
+               + f", every "
                f"{args.frame_step}th exported frame, every subject seen in >= 2 cameras, the "
-               "shipped geometry model"
+               "shipped geometry model of the scene's species"
                + (f" (rows marked [baseline model]: `{args.baseline_models}`)"
                   if args.baseline_models else "")
                + f"; one process per row, one torch thread ({len(cores)} row(s) at a "

@@ -17,7 +17,10 @@ the subject's own visible pixels always count.
 
 The loss is evaluated at points per view and step: half straddling the
 observed silhouette's boundary (:func:`netepu.geometry.sampling.sample_silhouette_points`),
-half uniform over the observed silhouette's box enlarged by half its size.
+half uniform over the observed silhouette's box enlarged by half its size. While many
+starts are alive their step is spent on telling them apart, not on fine detail: the points
+per view of a step are ``point_budget`` shared among the ``S`` starts alive, between a
+quarter of ``points_per_view`` and all of it (:func:`points_per_step`).
 As in full renders, a point outside the renderer's candidate region
 (:func:`netepu.geometry.maps.candidate_region` of the current keypoints) is background.
 
@@ -62,6 +65,7 @@ __all__ = [
     "InverseResult",
     "InverseSettings",
     "invert_silhouettes",
+    "points_per_step",
     "rotate_about_up",
     "triangulate_centroids",
 ]
@@ -77,7 +81,10 @@ class InverseSettings:
         steps: Adam steps.
         lr: Adam learning rate of ``z`` in units of the codes' RMS entry (the
             translation uses ``lr * radius``).
-        points_per_view: loss points per view and step.
+        points_per_view: loss points per view and step, at most.
+        point_budget: loss points per view summed over the starts alive: a step of S starts
+            uses ``point_budget // S`` points per view, clamped to a quarter of
+            ``points_per_view`` and all of it (0: ``points_per_view`` always).
         headings: start directions per template.
         prune_every: steps between dropping the worse half of the starts (0: never).
         screen_keep: candidates (templates x headings) kept for the optimisation after
@@ -97,6 +104,7 @@ class InverseSettings:
     steps: int = 120
     lr: float = 0.05
     points_per_view: int = 384
+    point_budget: int = 768
     headings: int = 8
     prune_every: int = 25
     screen_keep: int = 8
@@ -175,6 +183,14 @@ def rotate_about_up(points: Tensor, angle: float, up: Tensor) -> Tensor:
     c, s = math.cos(angle), math.sin(angle)
     cross = torch.cross(u.expand_as(points), points, dim=-1)
     return points * c + cross * s + u * (points @ u)[..., None] * (1 - c)
+
+
+def points_per_step(s: InverseSettings, starts: int) -> int:
+    """Loss points per view of an optimisation step with ``starts`` starts alive
+    (:attr:`InverseSettings.point_budget`)."""
+    if s.point_budget <= 0:
+        return s.points_per_view
+    return min(s.points_per_view, max(s.points_per_view // 4, s.point_budget // max(1, starts)))
 
 
 def _regions(masks: np.ndarray, ignored: np.ndarray) -> np.ndarray:
@@ -274,7 +290,8 @@ def _optimise(model, masks, cams, regions, z0, centre0, steps, s: InverseSetting
         S = w.shape[0]
         work += S
         z = sigma * w
-        uv = torch.from_numpy(_points(np_masks, regions, s.points_per_view, rng, s.sigma_near))
+        uv = torch.from_numpy(_points(np_masks, regions, points_per_step(s, S), rng,
+                                      s.sigma_near))
         per_start = _start_losses(model, z, centre, cams, masks, ignored, uv, s.margin)
         opt.zero_grad()
         (per_start + s.latent_weight * z.norm(dim=-1)).sum().backward()

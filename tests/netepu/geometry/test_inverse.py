@@ -11,6 +11,7 @@ from netepu.geometry.inverse import (
     InverseResult,
     InverseSettings,
     invert_silhouettes,
+    points_per_step,
     rotate_about_up,
     triangulate_centroids,
 )
@@ -30,6 +31,14 @@ class TestHelpers(BaseTester):
         up = torch.tensor([0.0, 0.0, 1.0])
         out = rotate_about_up(torch.tensor([[1.0, 0.0, 2.0]]), math.pi / 2, up)
         self.assert_close(out, torch.tensor([[0.0, 1.0, 2.0]]), atol=1e-6, rtol=0)
+
+    def test_points_per_step(self):
+        """The budget is shared by the starts alive, between a quarter of the points and all."""
+        s = InverseSettings(points_per_view=384, point_budget=768)
+        got = [points_per_step(s, n) for n in (16, 8, 4, 2, 1)]
+        assert got == [96, 96, 192, 384, 384]
+        assert points_per_step(InverseSettings(points_per_view=384, point_budget=0), 8) == 384
+        assert points_per_step(InverseSettings(points_per_view=200, point_budget=600), 3) == 200
 
     def test_triangulate_known_point(self, random_cameras):
         """Masks centred on a point's projections (lens distortion included) give the point."""
