@@ -1,8 +1,8 @@
 """NSD training benchmark: metrics after 5, 15 and 30 minutes, ablations, throughput, memory.
 
     python tools/bench_nsd.py main                  # default config, evals at 5/15/30 min
-    python tools/bench_nsd.py ablations --minutes 15 --out DIR [--only NAME ...]
-    python tools/bench_nsd.py ablations_report --out DIR
+    python tools/bench_nsd.py ablations --minutes 15 --out DIR [--only NAME ...] [--report NAME]
+    python tools/bench_nsd.py ablations_report --out DIR [--report NAME]
     python tools/bench_nsd.py ablations_inference --out DIR   # re-score with today's inference
     python tools/bench_nsd.py inference_speed --out RUN_DIR   # single-image vs multi-view
     python tools/bench_nsd.py collapse_report --runs "LABEL=RUN_DIR" ... [--at 9]
@@ -84,6 +84,15 @@ ABLATIONS = {
     "a quarter of the pairs from the view itself, seed 2": [
         "data.same_view=0.25",
         "trainer.seed=2",
+    ],
+    "a quarter of the pairs from the view itself, hull mask prior": [
+        "data.same_view=0.25",
+        "prior_mask=hull",
+    ],
+    "a quarter of the pairs from the view itself, hull mask prior x 4": [
+        "data.same_view=0.25",
+        "prior_mask=hull",
+        "prior_mask.weight=4.0",
     ],
 }
 
@@ -205,7 +214,8 @@ def _slug(name: str) -> str:
     return name.replace(" ", "_").replace("(", "").replace(")", "")
 
 
-def bench_ablations(minutes: float, out_root: Path, only: list[str] | None) -> None:
+def bench_ablations(minutes: float, out_root: Path, only: list[str] | None,
+                    report: str = "nsd_ablations") -> None:
     """Train the named ablations (all by default) into ``out_root/<slug>/``.
 
     Each run leaves ``result.json``; the report is written from every result found
@@ -236,10 +246,10 @@ def bench_ablations(minutes: float, out_root: Path, only: list[str] | None) -> N
         tmp = out / "result.json.tmp"
         tmp.write_text(json.dumps(res))
         tmp.replace(out / "result.json")
-    ablations_report(out_root)
+    ablations_report(out_root, report)
 
 
-def ablations_report(out_root: Path) -> None:
+def ablations_report(out_root: Path, report: str = "nsd_ablations") -> None:
     """The ablation table from the ``result.json`` files under ``out_root``."""
     rows, raw = [], {}
     for name in ABLATIONS:
@@ -283,7 +293,7 @@ def ablations_report(out_root: Path) -> None:
             )
         curve.append(row)
     write_report(
-        "nsd_ablations",
+        report,
         f"NSD ablations on the default scene ({minutes:g} min each)",
         rows,
         "Each row changes one thing from the default config of the time, Bi-NVS pairs only "
@@ -476,6 +486,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--runs", nargs="*", default=[], help="LABEL=RUN_DIR (collapse_report)")
     ap.add_argument("--at", type=float, default=9.0, help="minutes (collapse_report)")
+    ap.add_argument("--report", default="nsd_ablations",
+                    help="report name (ablations, ablations_report): a subset of the rows "
+                         "trained into their own --out goes to its own report")
     a = ap.parse_args()
     if a.what == "collapse_report":
         collapse_report(a.runs, a.at)
@@ -484,9 +497,9 @@ def main() -> None:
     if a.what == "main":
         bench_main(a.minutes or [5, 15, 30], out)
     elif a.what == "ablations":
-        bench_ablations((a.minutes or [15])[0], out, a.only)
+        bench_ablations((a.minutes or [15])[0], out, a.only, a.report)
     elif a.what == "ablations_report":
-        ablations_report(out)
+        ablations_report(out, a.report)
     elif a.what == "ablations_inference":
         ablations_inference(out)
     elif a.what == "inference_speed":

@@ -330,8 +330,10 @@ def keypoints(run: Path, scene: Path, n: int, tag: str) -> None:
         "ground-truth keypoints": embeddings_path(out / "texture_gt"),
     }
     kp = stages["keypoints"]["summary"]
+    textures = [int(i["texture_id"]) for i in
+                json.loads((scene / "gt" / "scene.json").read_text())["individuals"]]
     record = {
-        "run": str(run), "species": species[0], "individuals": n,
+        "run": str(run), "species": species[0], "individuals": n, "texture_ids": textures,
         "mpjpe_mm": kp["accuracy"]["mpjpe_mm"],
         "mpjpe_mm_median": kp["accuracy"]["mpjpe_mm_median"],
         "subject_frames": kp["subject_frames"],
@@ -341,6 +343,13 @@ def keypoints(run: Path, scene: Path, n: int, tag: str) -> None:
     }  # fmt: skip
     (KEYPOINT_WORK / f"result_{tag}.json").write_text(json.dumps(record, indent=1, default=float))
     print(json.dumps(record, indent=1, default=float))
+
+
+def _texture_kind(ids: list[int] | None) -> str:
+    """``pool``, ``never seen`` or ``mixed`` for a scene's texture ids (records before the
+    ids were stored: pool)."""
+    unseen = [i >= FIRST_UNSEEN_TEXTURE for i in ids or []]
+    return "never seen" if unseen and all(unseen) else "mixed" if any(unseen) else "pool"
 
 
 def keypoints_report() -> None:
@@ -353,6 +362,7 @@ def keypoints_report() -> None:
             rows.append({
                 "scene": path.stem[len("result_"):], "species": r.get("species", "biped"),
                 "individuals": r["individuals"],
+                "textures": _texture_kind(r.get("texture_ids")),
                 "keypoints": variant,
                 "MPJPE mean / median (mm)": (
                     f"{r['mpjpe_mm']:.1f} / {r['mpjpe_mm_median']:.1f}" if free else "0"),
@@ -371,9 +381,10 @@ def keypoints_report() -> None:
         "individual each row matches, so the two rows of a scene differ only in the keypoints "
         "that place the NNOPCS maps. Scored on the rows coded in both and matched to a "
         "ground-truth visible mask (IoU >= 0.5); identities by `texture_reid` "
-        "(`tools/bench_reid_scenes.py keypoints`, docstring of `_scores`). The individuals "
-        "wear pool textures (the scenes' default `texture_ids: null`), which the texture "
-        "model was trained on; unseen textures are `reid_scenes.md`'s protocol."
+        "(`tools/bench_reid_scenes.py keypoints`, docstring of `_scores`). `textures`: "
+        "`pool` where the individuals wear textures of the 16-texture pool the texture model "
+        f"was trained on (the scenes' default `texture_ids: null`), `never seen` where every "
+        f"one wears a generated texture (id >= {FIRST_UNSEEN_TEXTURE}) that no model saw."
     )
     write_report("reid_keypoints",
                  "Identities from texture codes: label-free against ground-truth keypoints",
