@@ -296,8 +296,13 @@ def ablations_report(out_root: Path, report: str = "nsd_ablations") -> None:
         report,
         f"NSD ablations on the default scene ({minutes:g} min each)",
         rows,
-        "Each row changes one thing from the default config of the time, Bi-NVS pairs only "
-        "(`data.same_view=0`, passed explicitly; see conf/experiment/). "
+        ("Each row changes one thing from the default config of the time, Bi-NVS pairs only "
+         "(`data.same_view=0`, passed explicitly; see conf/experiment/). "
+         if report == "nsd_ablations" else
+         "Each row is the default config of the time with the overrides its name gives "
+         "(`ABLATIONS` in tools/bench_nsd.py; rows that do not set `data.same_view` pass 0), "
+         "scored with single-image inference and no colour agreement as in nsd_ablations.md. ")
+        +
         "'NSD as published' removes our label-free background-residual cues (residual "
         "input and loss weight, foreground-evidence and proposal priors), the "
         "proposal depth and association priors and the geometric association term, and "

@@ -90,6 +90,7 @@ def invert_export(
     occlusion: bool = True,
     warm_steps: int = 0,
     smooth_frames: float = 0.0,
+    point_budget: int = InverseSettings.point_budget,
     inverse: dict[str, Any] | None = None,
     workers: int = 1,
 ) -> dict[str, Any]:
@@ -112,6 +113,9 @@ def invert_export(
             frame starts cold).
         smooth_frames: standard deviation of the temporal smoothing, frames of the
             footage (0: none).
+        point_budget: loss points per view shared by the starts alive
+            (:attr:`netepu.geometry.inverse.InverseSettings.point_budget`; 0: every start
+            at full points).
         inverse: more :class:`netepu.geometry.inverse.InverseSettings` fields (e.g.
             ``points_per_view``; benchmarks vary them).
         workers: processes that invert subject-frames side by side (forked, the torch
@@ -131,12 +135,14 @@ def invert_export(
     if warm_steps < 0 or smooth_frames < 0:
         raise ConfigError(f"warm_steps and smooth_frames must be >= 0, got {warm_steps}, "
                           f"{smooth_frames}")
+    if point_budget < 0:
+        raise ConfigError(f"keypoints: point_budget must be >= 0, got {point_budget}")
     model, config = load_geometry_model(checkpoint)
     net = config["netepu"]
     starts = template_poses(net["data"], templates)
     render = net.get("render") or MapSettings.default_mapping()  # checkpoints before it: defaults
-    settings = InverseSettings(steps=steps, margin=float(render["margin"]),
-                               warm_steps=warm_steps, **(inverse or {}))
+    settings = InverseSettings(steps=steps, margin=float(render["margin"]), warm_steps=warm_steps,
+                               **{"point_budget": point_budget, **(inverse or {})})
     rig = read_calibration(scene)
     cams = rig.stacked(torch.float32)
     images, groups, n_frames = subject_groups(

@@ -215,6 +215,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.keypoints.steps": POS, "netepu.keypoints.templates": POS,
         "netepu.keypoints.workers": _r("int", low=1, allow=("auto",)),
         "netepu.keypoints.warm_steps": _r("int", low=0),
+        "netepu.keypoints.point_budget": _r("int", low=0),
         "netepu.keypoints.smooth_frames": _r("number", low=0),
         "netepu.keypoints.source": _r("str", choices=("inverse", "regressor")),
         "netepu.keypoints.label_fraction": _r("number", above=0, high=1),

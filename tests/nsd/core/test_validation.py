@@ -56,6 +56,8 @@ def test_every_shipped_group_option_passes(group, option):
         ("run", "train.model.crop_size=2", "train.model.crop_size = 2"),
         ("run", "+export.batch_size=0", "export.batch_size = 0"),
         ("run", "+export.nonsense=1", "export.nonsense: nsd-export has no such key"),
+        ("run", "netepu.keypoints.point_budget=-1",
+         "netepu.keypoints.point_budget = -1: must be an integer >= 0"),
         ("eval", "max_frames=-3", "max_frames = -3"),
         ("synth", "num_individuals=9", "num_individuals = 9: must be an integer >= 1 and <= 8"),
         ("netepu_train", "netepu.optim.lr=0", "netepu.optim.lr = 0: must be a finite number > 0"),
