@@ -1,6 +1,7 @@
 """Wall time of the whole default pipeline (``nsd-run``), stage by stage, on this machine.
 
     .venv/bin/python tools/bench_pipeline.py        # ~11 minutes on 2 cores, nothing else running
+    .venv/bin/python tools/bench_pipeline.py train.prior_mask=hull --report pipeline_mask_prior
 
 Runs ``nsd-run``'s default config (the built-in default scene, 10 minutes of
 training) into a fresh run folder, then runs it again to time a resume where
@@ -35,6 +36,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("overrides", nargs="*", help="nsd-run overrides (default: none)")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--report", default="pipeline",
+                    help="report name (a run with overrides beside the default's report)")
     args = ap.parse_args()
     import logging
 
@@ -114,9 +117,9 @@ def main() -> None:
         "(0: every core); the export and the keypoints run one worker process per core "
         "(`workers: auto`)."
     )
-    write_report(
-        "pipeline", "nsd-run: wall time of the default pipeline, stage by stage", rows, notes, extra
-    )
+    title = "nsd-run: wall time of the default pipeline, stage by stage" + (
+        f" ({' '.join(args.overrides)})" if args.overrides else "")
+    write_report(args.report, title, rows, notes, extra)
 
 
 if __name__ == "__main__":
