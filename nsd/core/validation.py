@@ -380,10 +380,17 @@ def check_config(app: str, cfg: DictConfig, overrides: Sequence[str] = (),
     """
     nested = _NESTED_APPS.get(app, {})
     defaults = _defaults(app, overrides)
+    groups = {k.rsplit(".", i)[0] for k in defaults for i in range(1, k.count(".") + 1)}
     for path, value in leaves(cfg):
         head = path.split(".", 1)[0]
         if head in nested:
             continue
+        if path in groups:  # a value where the config holds a group of settings
+            name = path.rsplit(".", 1)[-1]
+            raise ConfigError(
+                f"{prefix}{path} = {value!r}: {prefix}{path} is a group of settings, not one "
+                f"value; choose its option with {name}@{prefix}{path}={value}, or set one of "
+                f"its keys ({prefix}{path}.<key>=...)")
         rule = _rule(app, path, defaults.get(path, _ANY))
         if not rule.ok(value):
             raise ConfigError(f"{prefix}{path} = {value!r}: must be {rule.describe()}")

@@ -56,6 +56,9 @@ def test_every_shipped_group_option_passes(group, option):
         ("run", "train.model.crop_size=2", "train.model.crop_size = 2"),
         ("run", "+export.batch_size=0", "export.batch_size = 0"),
         ("run", "+export.nonsense=1", "export.nonsense: nsd-export has no such key"),
+        ("run", "train.prior_mask=hull",
+         "train.prior_mask is a group of settings, not one value; choose its option with "
+         "prior_mask@train.prior_mask=hull"),
         ("run", "netepu.keypoints.point_budget=-1",
          "netepu.keypoints.point_budget = -1: must be an integer >= 0"),
         ("eval", "max_frames=-3", "max_frames = -3"),
@@ -67,6 +70,13 @@ def test_a_bad_value_is_named_with_its_range(app, override, message):
     with pytest.raises(ConfigError) as e:
         check_config(app, compose_app(app, [override]), [override])
     assert message in str(e.value)
+
+
+@pytest.mark.parametrize(("app", "overrides"), [
+    ("run", ["prior_mask@train.prior_mask=hull"]), ("run", ["train.prior_mask.weight=2.0"]),
+    ("train", ["prior_mask=hull"]), ("run", ["netepu.keypoints.point_budget=0"])])
+def test_a_group_chosen_the_right_way_passes(app, overrides):
+    check_config(app, compose_app(app, overrides), overrides)  # no ConfigError
 
 
 def test_group_choice_selects_the_defaults_that_are_checked():
