@@ -1,7 +1,8 @@
 """Wall time of the whole default pipeline (``nsd-run``), stage by stage, on this machine.
 
     .venv/bin/python tools/bench_pipeline.py        # ~11 minutes on 2 cores, nothing else running
-    .venv/bin/python tools/bench_pipeline.py train.prior_mask=hull --report pipeline_mask_prior
+    .venv/bin/python tools/bench_pipeline.py prior_mask@train.prior_mask=hull \
+        --report pipeline_mask_prior               # with overrides, its own report
 
 Runs ``nsd-run``'s default config (the built-in default scene, 10 minutes of
 training) into a fresh run folder, then runs it again to time a resume where
@@ -44,6 +45,9 @@ def main() -> None:
     import torch
 
     from netepu.pipeline.run import load_run_config, run_pipeline
+    from nsd.core.app import check_command_line
+
+    check_command_line("nsd-run", "run", args.overrides)  # nsd-run's refusal of bad overrides
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     torch.set_num_threads(args.threads)
