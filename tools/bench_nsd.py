@@ -94,6 +94,12 @@ ABLATIONS = {
         "prior_mask=hull",
         "prior_mask.weight=4.0",
     ],
+    "a quarter of the pairs from the view itself, hull mask prior x 4, 64 x 64 crops": [
+        "data.same_view=0.25",
+        "prior_mask=hull",
+        "prior_mask.weight=4.0",
+        "model.crop_size=64",
+    ],
 }
 
 CHILD = r"""
