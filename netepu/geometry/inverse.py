@@ -54,6 +54,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from netepu.geometry.initialiser import PoseInitialiser, initial_keypoints
 from netepu.geometry.losses import occlusion_aware_silhouette_loss
 from netepu.geometry.maps import BACKGROUND_LOGIT, candidate_region
 from netepu.geometry.model import GeometryModel
@@ -99,6 +100,8 @@ class InverseSettings:
             frame's loss is checked against the cold multi-start.
         warm_lr: ``lr`` of a warm start (Adam's steps are about ``lr`` per code entry
             whatever the gradient, so a long warm chain random-walks at a high rate).
+        init_steps: Adam steps of the one start a learned initialiser gives.
+        init_templates: screened template starts optimised beside it (0: none).
     """
 
     steps: int = 120
@@ -116,6 +119,8 @@ class InverseSettings:
     warm_steps: int = 40
     warm_tolerance: float = 1.25
     warm_lr: float = 0.05
+    init_steps: int = 40
+    init_templates: int = 0
 
 
 @dataclass
@@ -213,11 +218,17 @@ def _points(masks: np.ndarray, regions: np.ndarray, n: int, rng: np.random.Gener
                      for m, r in zip(masks, regions, strict=True)])
 
 
-def _code_starts(model, masks, camera, templates, s: InverseSettings, anchor, warm):
+def _code_starts(model, masks, camera, templates, s: InverseSettings, anchor, warm,
+                 learned=None):
     """Starting codes (S, d_z) and translations (S, 3): the templates turned to every
-    heading at the anchor, or the earlier frame's fit moved with the anchor."""
+    heading at the anchor, the earlier frame's fit moved with the anchor, or the learned
+    initialiser's keypoints ``learned`` (K, 3)."""
     if warm is not None:
         return warm.z[None].float(), (warm.centre + anchor - warm.anchor)[None].float()
+    if learned is not None:
+        with torch.no_grad():
+            code = model.encode(learned[None].float())
+        return code.z.float(), code.centre.float()
     up = torch.tensor(s.up, dtype=torch.float32)
     starts = []
     for tpl in templates.float():
@@ -255,17 +266,20 @@ def _start_losses(model, z, centre, cams, masks, ignored, uv, margin) -> Tensor:
 
 
 @torch.no_grad()
-def _screen(model, masks, cams, regions, z0, centre0, s: InverseSettings, rng, ignored):
-    """The ``screen_keep`` starts of lowest loss at one draw of ``screen_points`` points per
-    view (module docstring), all of them where there are no more."""
-    if not s.screen_keep or len(z0) <= s.screen_keep:
+def _screen(model, masks, cams, regions, z0, centre0, s: InverseSettings, rng, ignored,
+            keep: int | None = None):
+    """The ``keep`` (default ``screen_keep``) starts of lowest loss at one draw of
+    ``screen_points`` points per view (module docstring), all of them where there are no
+    more."""
+    keep = s.screen_keep if keep is None else keep
+    if not keep or len(z0) <= keep:
         return z0, centre0
     uv = torch.from_numpy(_points(masks.numpy(), regions, s.screen_points, rng, s.sigma_near))
     losses = torch.cat([
         _start_losses(model, z0[i:i + _SCREEN_CHUNK], centre0[i:i + _SCREEN_CHUNK], cams, masks,
                       ignored, uv, s.margin) for i in range(0, len(z0), _SCREEN_CHUNK)])
-    keep = losses.argsort()[: s.screen_keep]
-    return z0[keep], centre0[keep]
+    best = losses.argsort()[:keep]
+    return z0[best], centre0[best]
 
 
 def _optimise(model, masks, cams, regions, z0, centre0, steps, s: InverseSettings, rng, ignored,
@@ -321,6 +335,7 @@ def invert_silhouettes(
     rng: np.random.Generator | None = None,
     occluders: Tensor | None = None,
     warm: InverseResult | None = None,
+    initialiser: PoseInitialiser | None = None,
 ) -> InverseResult:
     """Recover the keypoints of one individual from its silhouettes in V calibrated views.
 
@@ -335,6 +350,8 @@ def invert_silhouettes(
         occluders: other subjects' visible masks, (V, H, W) bool: background labels there
             are ignored (the module docstring's :math:`o`).
         warm: this individual's result at an earlier frame: start from it (module docstring).
+        initialiser: a learned initialiser: a cold start is its one prediction refined
+            ``init_steps`` steps instead of the screened templates (module docstring).
 
     Returns:
         :class:`InverseResult`.
@@ -356,10 +373,20 @@ def invert_silhouettes(
     for p in model.parameters():
         p.requires_grad_(False)
 
+    learned = None if initialiser is None else initial_keypoints(
+        initialiser, masks, ignored, camera, anchor)
+
     def run(start: InverseResult | None, steps: int) -> tuple:
-        z0, c0 = _code_starts(model, masks, camera, templates, s, anchor, start)
-        if start is None:
+        z0, c0 = _code_starts(model, masks, camera, templates, s, anchor, start, learned)
+        if start is None and learned is None:
             z0, c0 = _screen(model, masks, cams, regions, z0, c0, s, rng, ignored)
+        elif start is None:
+            steps = s.init_steps
+            if s.init_templates:
+                zt, ct = _code_starts(model, masks, camera, templates, s, anchor, None)
+                zt, ct = _screen(model, masks, cams, regions, zt, ct, s, rng, ignored,
+                                 s.init_templates)
+                z0, c0 = torch.cat([z0, zt]), torch.cat([c0, ct])
         lr = s.warm_lr if start is not None else s.lr
         return _optimise(model, masks, cams, regions, z0, c0, steps, s, rng, ignored, lr)
 

@@ -107,8 +107,9 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
     def models() -> SpeciesModels:  # the NeTePu models of the scene's species (after scene)
         if not resolved:  # once, for the keypoints and the texture stage
             n = cfg.netepu
-            resolved.append(resolve_species_models(str(n.species), n.geometry, n.texture,
-                                                   runner.results["scene"].summary["path"]))
+            resolved.append(resolve_species_models(
+                str(n.species), n.geometry, n.texture, runner.results["scene"].summary["path"],
+                initialiser=n.keypoints.initialiser))
         return resolved[0]
 
     return [

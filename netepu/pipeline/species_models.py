@@ -28,7 +28,9 @@ __all__ = [
     "MODELS",
     "SPECIES",
     "SpeciesModels",
+    "builtin_initialisers",
     "builtin_models",
+    "resolve_initialiser",
     "resolve_species_models",
     "scene_species",
 ]
@@ -44,6 +46,15 @@ def builtin_models(folder: Path = MODELS) -> dict[str, dict]:
     if not path.is_file():
         return {}
     return json.loads(path.read_text())["models"]
+
+
+def builtin_initialisers(folder: Path = MODELS) -> dict[str, dict]:
+    """The shipped learned initialisers of inverse rendering, ``{species: {"file", "sha256",
+    ...}}`` (``initialisers`` in ``models.json``, made by ``tools/train_initialisers.py``)."""
+    path = folder / "models.json"
+    if not path.is_file():
+        return {}
+    return json.loads(path.read_text()).get("initialisers", {})
 
 
 def scene_species(scene: str | Path) -> list[str]:
@@ -62,7 +73,8 @@ def scene_species(scene: str | Path) -> list[str]:
 @dataclass(frozen=True)
 class SpeciesModels:
     """The checkpoints the keypoints and texture stages use (None: that stage is off, and
-    ``why`` says why), and the settings that key those stages (a shipped file by its hash)."""
+    ``why`` says why), and the settings that key those stages (a shipped file by its hash);
+    the keypoints stage's learned initialiser (None: cold starts screen the templates)."""
 
     geometry: str | None
     texture: str | None
@@ -70,6 +82,9 @@ class SpeciesModels:
     why_texture: str
     key_geometry: str | None
     key_texture: str | None
+    initialiser: str | None = None
+    key_initialiser: str | None = None
+    why_initialiser: str = "netepu.keypoints.initialiser=null"
 
 
 def _builtin(species: str, scene: str | Path, folder: Path) -> tuple[dict | None, str]:
@@ -91,10 +106,11 @@ def _builtin(species: str, scene: str | Path, folder: Path) -> tuple[dict | None
 
 def resolve_species_models(
     species: str, geometry: str | None, texture: str | None, scene: str | Path,
-    folder: Path = MODELS,
+    folder: Path = MODELS, initialiser: str | None = None,
 ) -> SpeciesModels:
-    """The NeTePu checkpoints of a run from ``netepu.species``, ``netepu.geometry`` and
-    ``netepu.texture`` (each ``builtin``, a path or None).
+    """The NeTePu checkpoints of a run from ``netepu.species``, ``netepu.geometry``,
+    ``netepu.texture`` and ``netepu.keypoints.initialiser`` (each ``builtin``, a path or
+    None).
 
     Raises:
         ConfigError: an unknown species.
@@ -118,4 +134,26 @@ def resolve_species_models(
             paths.append(str(value))
             whys.append("")
             keys.append(str(value))
-    return SpeciesModels(paths[0], paths[1], whys[0], whys[1], keys[0], keys[1])
+    init, init_key, init_why = resolve_initialiser(initialiser, species, scene, folder)
+    return SpeciesModels(paths[0], paths[1], whys[0], whys[1], keys[0], keys[1], init, init_key,
+                         init_why)
+
+
+def resolve_initialiser(value: str | None, species: str, scene: str | Path,
+                        folder: Path = MODELS) -> tuple[str | None, str | None, str]:
+    """The learned initialiser of the keypoints stage from ``netepu.keypoints.initialiser``
+    (``builtin``, a checkpoint path, or None): (path, the stage's key, why there is none).
+
+    Without one, cold starts screen the template poses (:mod:`netepu.geometry.inverse`).
+    """
+    if value is None:
+        return None, None, "netepu.keypoints.initialiser=null"
+    if str(value) != BUILTIN:
+        return str(value), str(value), ""
+    entry, why = _builtin(species, scene, folder)
+    if entry is None:
+        return None, None, why
+    init = builtin_initialisers(folder).get(entry["species"])
+    if init is None:
+        return None, None, f"no built-in {entry['species']} initialiser is shipped"
+    return str(folder / init["file"]), f"builtin:{init['sha256']}", ""

@@ -253,7 +253,7 @@ KEYPOINT_SOURCES = ("inverse", "regressor")
 
 
 _INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "max_subject_frames",
-                 "occlusion", "warm_steps", "smooth_frames", "point_budget")
+                 "occlusion", "warm_steps", "smooth_frames", "point_budget", "init_steps")
 
 
 def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
@@ -286,6 +286,7 @@ def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
         settings |= {"label_fraction": k.label_fraction, "regressor_steps": k.regressor_steps}
     else:
         settings["geometry"] = models.key_geometry
+        settings["initialiser"] = models.key_initialiser
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         scene = up["scene"].summary["path"]
@@ -294,9 +295,12 @@ def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
             summary = _regress_keypoints(cfg, scene, _checkpoint(up), export, out)
         else:
             workers = resolve_workers(k.workers, int(cfg.threads), "cpu")  # inverts on the CPU
+            if models.initialiser is None:
+                log.info("keypoints: no learned initialiser (%s); cold starts screen the "
+                         "template poses", models.why_initialiser)
             summary = invert_export(
                 export, scene, models.geometry, out, workers=workers,
-                **{name: k[name] for name in _INVERSE_KEYS},
+                initialiser=models.initialiser, **{name: k[name] for name in _INVERSE_KEYS},
             )
         if up["scene"].summary["ground_truth"]:
             summary["accuracy"] = keypoint_error(export, scene, out / "keypoints3d.npz")

@@ -45,6 +45,7 @@ import torch
 from pycocotools import mask as mask_utils
 
 from netepu.geometry.data import DataConfig
+from netepu.geometry.initialiser import load_initialiser
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import load_geometry_model
@@ -76,6 +77,26 @@ def template_poses(data_cfg: dict[str, Any], n: int = 2, seed: int = 0) -> torch
     )
 
 
+def _initialiser(path: str | os.PathLike, model, config: dict[str, Any]):
+    """The learned initialiser at ``path``, checked against the geometry model it starts.
+
+    Raises:
+        ConfigError: not an initialiser, or one made for another body (keypoints, radius).
+    """
+    try:
+        net = load_initialiser(path)
+    except (OSError, ValueError, RuntimeError) as e:
+        raise ConfigError(f"netepu.keypoints.initialiser: {e}") from None
+    radius = float(config["netepu"]["data"]["radius"])
+    if net.cfg.n_keypoints != model.n_keypoints or abs(net.cfg.radius - radius) > 1e-6:
+        raise ConfigError(
+            f"netepu.keypoints.initialiser: {path} was made for {net.cfg.n_keypoints} keypoints "
+            f"and a body radius of {net.cfg.radius}, the geometry model has "
+            f"{model.n_keypoints} and {radius}; give the initialiser of that model's species "
+            "or netepu.keypoints.initialiser=null")
+    return net
+
+
 def invert_export(
     export: str | os.PathLike,
     scene: str | os.PathLike,
@@ -91,8 +112,10 @@ def invert_export(
     warm_steps: int = 0,
     smooth_frames: float = 0.0,
     point_budget: int = InverseSettings.point_budget,
+    init_steps: int = InverseSettings.init_steps,
     inverse: dict[str, Any] | None = None,
     workers: int = 1,
+    initialiser: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
 
@@ -116,8 +139,13 @@ def invert_export(
         point_budget: loss points per view shared by the starts alive
             (:attr:`netepu.geometry.inverse.InverseSettings.point_budget`; 0: every start
             at full points).
+        init_steps: Adam steps refining the learned initialiser's start (with
+            ``initialiser``).
         inverse: more :class:`netepu.geometry.inverse.InverseSettings` fields (e.g.
             ``points_per_view``; benchmarks vary them).
+        initialiser: a learned initialiser's checkpoint (:mod:`netepu.geometry.initialiser`):
+            cold starts refine its prediction instead of screening the templates (None: the
+            templates).
         workers: processes that invert subject-frames side by side (forked, the torch
             threads shared among them: :class:`nsd.export.parallel.BatchPool`); with warm
             starts each subject's frames stay in one process. The result does not depend
@@ -137,12 +165,16 @@ def invert_export(
                           f"{smooth_frames}")
     if point_budget < 0:
         raise ConfigError(f"keypoints: point_budget must be >= 0, got {point_budget}")
+    if init_steps < 1:
+        raise ConfigError(f"keypoints: init_steps must be >= 1, got {init_steps}")
     model, config = load_geometry_model(checkpoint)
+    learned = None if initialiser is None else _initialiser(initialiser, model, config)
     net = config["netepu"]
     starts = template_poses(net["data"], templates)
     render = net.get("render") or MapSettings.default_mapping()  # checkpoints before it: defaults
     settings = InverseSettings(steps=steps, margin=float(render["margin"]), warm_steps=warm_steps,
-                               **{"point_budget": point_budget, **(inverse or {})})
+                               **{"point_budget": point_budget, "init_steps": init_steps,
+                                  **(inverse or {})})
     rig = read_calibration(scene)
     cams = rig.stacked(torch.float32)
     images, groups, n_frames = subject_groups(
@@ -173,7 +205,7 @@ def invert_export(
                 occlusion) else None
             previous = invert_silhouettes(model, masks, cams[cam_idx], starts, settings,
                                           np.random.default_rng(t), occluders,
-                                          previous if warm_steps else None)
+                                          previous if warm_steps else None, learned)
             out.append((previous.keypoints.float().numpy(), previous.loss, previous.warm))
         return out
 
