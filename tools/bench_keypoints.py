@@ -10,7 +10,8 @@ one variant per fresh process with one torch thread, two at a time on two cores
 
 * the pipeline's masks with each setting (occluders off/on, the screened library of starting
   poses against two templates at four headings, warm starts, fewer loss points, the point
-  budget shared by the starts against every start at full points, earlier pruning);
+  budget shared by the starts against every start at full points, earlier pruning, the
+  learned initialiser's one start against the screened templates);
 * the same subjects with the ground truth's visible masks and amodal masks instead of the
   exported ones (the floor that the masks, 4 cameras and the model leave);
 * temporal smoothing of the occlusion-aware fits (``smooth_frames``), applied afterwards.
@@ -35,7 +36,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from netepu.pipeline.species_models import MODELS  # noqa: E402
+from netepu.pipeline.species_models import MODELS, builtin_initialisers  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 CHILD = r"""
@@ -52,7 +53,7 @@ print(json.dumps(s))
 
 VARIANTS = [  # (name, masks, invert_export settings)
     ("baseline: cold starts, no occluders", "export", {"occlusion": False}),
-    ("occluders (the default)", "export", {}),
+    ("occluders, screened template starts", "export", {}),
     ("occluders, 2 templates x 4 headings, unscreened (the stage before)", "export",
      {"templates": 2, "inverse": {"headings": 4}}),
     ("occluders + warm starts (40 steps)", "export", {"warm_steps": 40}),
@@ -61,10 +62,26 @@ VARIANTS = [  # (name, masks, invert_export settings)
     ("occluders, 384 points per view for every start (no point budget; the stage before)",
      "export", {"inverse": {"point_budget": 0}}),
     ("occluders, prune every 10 steps", "export", {"inverse": {"prune_every": 10}}),
+    ("learned initialiser, 40 steps", "export",
+     {"initialiser": "builtin", "init_steps": 40}),
+    ("learned initialiser, 80 steps", "export", {"initialiser": "builtin", "init_steps": 80}),
+    ("learned initialiser + 1 screened template, 40 steps", "export",
+     {"initialiser": "builtin", "init_steps": 40, "inverse": {"init_templates": 1,
+                                                             "prune_every": 20}}),
+    ("learned initialiser + 2 screened templates, 60 steps", "export",
+     {"initialiser": "builtin", "init_steps": 60, "inverse": {"init_templates": 2,
+                                                             "prune_every": 30}}),
     ("ground-truth visible masks + occluders", "visible", {}),
     ("ground-truth amodal masks", "amodal", {"occlusion": False}),
 ]
 SMOOTHING = (5.0, 10.0, 20.0)
+
+
+def _initialiser(kw: dict, species: str) -> dict:
+    """``kw`` with ``initialiser: builtin`` replaced by the shipped initialiser's path."""
+    if kw.get("initialiser") != "builtin":
+        return kw
+    return {**kw, "initialiser": str(MODELS / builtin_initialisers()[species]["file"])}
 
 
 def truth_export(export: Path, scene: str, out: Path, kind: str) -> None:
@@ -149,10 +166,10 @@ def main() -> None:
                 exports[run, kind] = work / f"{run.name}_truth_{kind}"
                 truth_export(exports[run, "export"], scene, exports[run, kind], kind)
         prefix = f"{run.name}: " if len(args.run) > 1 else ""
-        jobs += [(prefix + name, run, masks, kw, MODELS / f"{species}.pt")
+        jobs += [(prefix + name, run, masks, _initialiser(kw, species), MODELS / f"{species}.pt")
                  for name, masks, kw in chosen]
         if args.baseline_models is not None:
-            jobs += [(f"{prefix}{name} [baseline model]", run, masks, kw,
+            jobs += [(f"{prefix}{name} [baseline model]", run, masks, _initialiser(kw, species),
                       args.baseline_models / f"{species}.pt") for name, masks, kw in chosen]
     cores = sorted(os.sched_getaffinity(0))
     env = dict(os.environ, OMP_NUM_THREADS="1")
@@ -178,7 +195,7 @@ def main() -> None:
                          "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
                          "warm_share": s.get("warm_share"), "mean_loss": s["mean_loss"]})
             print(rows[-1], flush=True)
-    occ = outs.get("occluders (the default)")  # one run only
+    occ = outs.get("occluders, screened template starts")  # one run only
     run = args.run[0]
     for sigma in SMOOTHING if occ is not None and args.variants is None else ():
         path = smoothed(occ / "keypoints3d.npz", work / f"smooth{sigma:g}" / "keypoints3d.npz",

@@ -31,6 +31,7 @@ data that turns bodies at random (:mod:`netepu.geometry.initialiser_training`).
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -188,9 +189,13 @@ def load_initialiser(path) -> PoseInitialiser:
     """A :class:`PoseInitialiser` from its checkpoint (``weights_only``).
 
     Raises:
-        ValueError: not an initialiser checkpoint.
+        ValueError: not an initialiser checkpoint, or not a readable file.
     """
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, EOFError, RuntimeError, pickle.UnpicklingError) as e:
+        raise ValueError(f"{path}: cannot be read as a checkpoint ({e.__class__.__name__}: "
+                         f"{str(e).splitlines()[0] if str(e) else ''})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != INITIALISER_FORMAT:
         raise ValueError(f"{path}: not a NeTePu initialiser checkpoint ({INITIALISER_FORMAT})")
     net = PoseInitialiser(InitialiserConfig.from_dict(ckpt["config"]))

@@ -101,7 +101,7 @@ def _builtin(species: str, scene: str | Path, folder: Path) -> tuple[dict | None
     entry = builtin_models(folder).get(species)
     if entry is None:
         return None, f"no built-in {species} model is shipped (give netepu.geometry / texture)"
-    return {**entry, "path": str(folder / entry["file"])}, ""
+    return {**entry, "species": species, "path": str(folder / entry["file"])}, ""
 
 
 def resolve_species_models(

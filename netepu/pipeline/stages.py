@@ -18,8 +18,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from netepu.pipeline.embed import embed_into_copy
 from netepu.pipeline.pose_keypoints import regress_export
-from netepu.pipeline.species_models import SpeciesModels
-from netepu.pipeline.subject_keypoints import invert_export
+from netepu.pipeline.species_models import BUILTIN, SpeciesModels
+from netepu.pipeline.subject_keypoints import invert_export, load_initialiser_checked
 from netepu.reid.identities import assign_identities, transfer_identities
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_text
@@ -257,8 +257,8 @@ _INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "m
 
 
 def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
-    """Fail before training on a keypoint source the scene cannot serve, or a bad
-    ``netepu.keypoints.workers``."""
+    """Fail before training on a keypoint source the scene cannot serve, a bad
+    ``netepu.keypoints.workers`` or an initialiser file that is not one."""
     source = cfg.netepu.keypoints.source
     if source not in KEYPOINT_SOURCES:
         raise ConfigError(
@@ -274,6 +274,9 @@ def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
         resolve_workers(cfg.netepu.keypoints.workers, int(cfg.threads), "cpu")
     except ConfigError as e:
         raise ConfigError(f"netepu.keypoints.{e}") from None
+    init = cfg.netepu.keypoints.get("initialiser")
+    if source == "inverse" and init is not None and str(init) != BUILTIN:
+        load_initialiser_checked(init)  # a missing or foreign file: now, not after training
 
 
 def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:

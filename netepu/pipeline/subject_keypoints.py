@@ -45,7 +45,7 @@ import torch
 from pycocotools import mask as mask_utils
 
 from netepu.geometry.data import DataConfig
-from netepu.geometry.initialiser import load_initialiser
+from netepu.geometry.initialiser import PoseInitialiser, load_initialiser
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import load_geometry_model
@@ -56,7 +56,7 @@ from nsd.io.keypoints import SubjectKeypoints, subject_groups
 from nsd.synth import make_individual
 from nsd.synth.motion import sample_pose
 
-__all__ = ["invert_export", "smooth_tracks", "template_poses"]
+__all__ = ["invert_export", "load_initialiser_checked", "smooth_tracks", "template_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -77,16 +77,25 @@ def template_poses(data_cfg: dict[str, Any], n: int = 2, seed: int = 0) -> torch
     )
 
 
-def _initialiser(path: str | os.PathLike, model, config: dict[str, Any]):
+def load_initialiser_checked(path: str | os.PathLike) -> PoseInitialiser:
+    """The learned initialiser at ``path``.
+
+    Raises:
+        ConfigError: a missing file or not an initialiser, naming the key.
+    """
+    try:
+        return load_initialiser(path)
+    except ValueError as e:
+        raise ConfigError(f"netepu.keypoints.initialiser: {e}") from None
+
+
+def _initialiser(path: str | os.PathLike, model, config: dict[str, Any]) -> PoseInitialiser:
     """The learned initialiser at ``path``, checked against the geometry model it starts.
 
     Raises:
         ConfigError: not an initialiser, or one made for another body (keypoints, radius).
     """
-    try:
-        net = load_initialiser(path)
-    except (OSError, ValueError, RuntimeError) as e:
-        raise ConfigError(f"netepu.keypoints.initialiser: {e}") from None
+    net = load_initialiser_checked(path)
     radius = float(config["netepu"]["data"]["radius"])
     if net.cfg.n_keypoints != model.n_keypoints or abs(net.cfg.radius - radius) > 1e-6:
         raise ConfigError(

@@ -123,6 +123,11 @@ def test_regressor_source_needs_3d_labels_and_fails_before_training(tiny_scene, 
     with pytest.raises(ConfigError, match=r"netepu\.keypoints\.workers: a number >= 1 or auto"):
         run_pipeline(_cfg(tiny_scene, tmp_path / "run3", "netepu.keypoints.workers=0"))
     assert not (tmp_path / "run3" / "train").exists()
+    missing = tmp_path / "no_such_initialiser.pt"
+    with pytest.raises(ConfigError, match=r"netepu\.keypoints\.initialiser: .*no_such_init"):
+        run_pipeline(_cfg(tiny_scene, tmp_path / "run4",
+                          f"netepu.keypoints.initialiser={missing}"))  # fmt: skip
+    assert not (tmp_path / "run4" / "train").exists()
 
 
 def test_a_decomposition_checkpoint_is_not_a_pose_checkpoint(regressor_run):

@@ -11,7 +11,9 @@ from netepu.geometry.model import load_geometry_model
 from netepu.pipeline.species_models import (
     BUILTIN,
     MODELS,
+    builtin_initialisers,
     builtin_models,
+    resolve_initialiser,
     resolve_species_models,
     scene_species,
 )
@@ -50,6 +52,44 @@ def test_builtin_takes_the_model_of_the_scenes_species(synth_scene, tmp_path):
     own = resolve_species_models("auto", "my/geo.pt", None, synth_scene, folder)
     assert (own.geometry, own.key_geometry, own.texture) == ("my/geo.pt", "my/geo.pt", None)
     assert own.why_texture == "netepu.texture=null"
+
+
+def test_the_initialiser_of_the_scenes_species(synth_scene, tiny_scene, tmp_path):
+    """builtin: the shipped initialiser of the scene's species, keyed by its hash; a path as
+    given; null, footage without a species, or a species without one shipped: none, and why."""
+    folder = _folder(tmp_path / "models", ("biped", "quadruped"))
+    manifest = json.loads((folder / "models.json").read_text())
+    manifest["initialisers"] = {"biped": {"file": "biped_initialiser.pt", "sha256": "b-init"}}
+    (folder / "models.json").write_text(json.dumps(manifest))
+    assert resolve_initialiser(BUILTIN, "auto", synth_scene, folder) == (
+        str(folder / "biped_initialiser.pt"), "builtin:b-init", "")
+    assert resolve_initialiser("my/init.pt", "auto", tiny_scene, folder)[:2] == (
+        "my/init.pt", "my/init.pt")
+    none, key, why = resolve_initialiser(None, "auto", synth_scene, folder)
+    assert none is None and key is None and why == "netepu.keypoints.initialiser=null"
+    assert "does not declare its species" in resolve_initialiser(
+        BUILTIN, "auto", tiny_scene, folder)[2]
+    path, _, why = resolve_initialiser(BUILTIN, "quadruped", synth_scene, folder)
+    assert path is None and why == "no built-in quadruped initialiser is shipped"
+    m = resolve_species_models("auto", BUILTIN, BUILTIN, synth_scene, folder, initialiser=BUILTIN)
+    assert (m.initialiser, m.key_initialiser) == (str(folder / "biped_initialiser.pt"),
+                                                  "builtin:b-init")
+
+
+def test_shipped_initialisers_fit_their_species_models():
+    """Every shipped initialiser loads with weights_only, matches its manifest hash, and was
+    made for its species model's keypoints and body radius."""
+    from netepu.geometry.initialiser import load_initialiser
+
+    inits = builtin_initialisers()
+    assert set(inits) <= set(builtin_models())
+    for species, entry in inits.items():
+        path = MODELS / entry["file"]
+        assert sha256_file(path) == entry["sha256"]
+        net = load_initialiser(path)
+        model, config = load_geometry_model(MODELS / builtin_models()[species]["file"])
+        assert net.cfg.n_keypoints == model.n_keypoints
+        assert net.cfg.radius == pytest.approx(float(config["netepu"]["data"]["radius"]))
 
 
 def test_builtin_says_why_when_no_model_fits(synth_scene, tiny_scene, tmp_path):

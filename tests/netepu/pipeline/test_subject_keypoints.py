@@ -105,3 +105,30 @@ def test_the_keypoints_do_not_depend_on_the_workers(tmp_path):
         assert out[1].keys() == out[2].keys()
         for k in out[1]:
             np.testing.assert_allclose(out[1][k], out[2][k], atol=1e-3, err_msg=k)
+
+
+def test_an_initialiser_of_another_body_or_no_initialiser_is_refused(tmp_path):
+    """An initialiser made for other keypoints, or a file that is none, stops the stage with
+    the key to change before any inversion."""
+    import pytest
+
+    from netepu.geometry.initialiser import InitialiserConfig, PoseInitialiser
+    from netepu.geometry.model import load_geometry_model
+    from netepu.pipeline.species_models import MODELS
+    from netepu.pipeline.subject_keypoints import invert_export
+    from nsd.core.atomic import atomic_save_torch
+    from nsd.core.errors import ConfigError
+
+    model, config = load_geometry_model(MODELS / "biped.pt")
+    scene, export = _hand_made_export(tmp_path, model, config["netepu"])
+    cfg = InitialiserConfig(n_keypoints=25, radius=1.1, grid=16, width=8)
+    atomic_save_torch({"format": "netepu-initialiser-v1", "config": cfg.to_dict(),
+                       "state": PoseInitialiser(cfg).state_dict()}, tmp_path / "cow.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    for path, says in ((tmp_path / "cow.pt", "made for 25 keypoints"),
+                       (tmp_path / "junk.pt", "junk.pt")):
+        with pytest.raises(ConfigError, match=r"netepu\.keypoints\.initialiser") as e:
+            invert_export(export, scene, MODELS / "biped.pt", tmp_path / "out", frame_step=1,
+                          steps=4, templates=2, initialiser=path)
+        assert says in str(e.value)
+        assert not (tmp_path / "out" / "keypoints3d.npz").exists()
