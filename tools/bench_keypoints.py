@@ -68,7 +68,7 @@ VARIANTS = [  # (name, masks, invert_export settings)
     ("learned initialiser + 1 screened template, 40 steps", "export",
      {"initialiser": "builtin", "init_steps": 40, "inverse": {"init_templates": 1,
                                                              "prune_every": 20}}),
-    ("learned initialiser + 2 screened templates, 60 steps", "export",
+    ("learned initialiser + 2 screened templates, 60 steps (the default)", "export",
      {"initialiser": "builtin", "init_steps": 60, "inverse": {"init_templates": 2,
                                                              "prune_every": 30}}),
     ("ground-truth visible masks + occluders", "visible", {}),

@@ -48,7 +48,7 @@ Warm starts (a subject followed over frames)
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -101,7 +101,11 @@ class InverseSettings:
         warm_lr: ``lr`` of a warm start (Adam's steps are about ``lr`` per code entry
             whatever the gradient, so a long warm chain random-walks at a high rate).
         init_steps: Adam steps of the one start a learned initialiser gives.
-        init_templates: screened template starts optimised beside it (0: none).
+        init_templates: screened template starts optimised beside it (0: none); with more
+            than one start the worse half is dropped after half of ``init_steps``.
+        init_turns: the learned start at this many headings about the up axis through its
+            centre (1: as predicted; 2: also turned 180 degrees, the heading a silhouette tells
+            worst), all optimised.
     """
 
     steps: int = 120
@@ -121,6 +125,7 @@ class InverseSettings:
     warm_lr: float = 0.05
     init_steps: int = 40
     init_templates: int = 0
+    init_turns: int = 1
 
 
 @dataclass
@@ -226,8 +231,13 @@ def _code_starts(model, masks, camera, templates, s: InverseSettings, anchor, wa
     if warm is not None:
         return warm.z[None].float(), (warm.centre + anchor - warm.anchor)[None].float()
     if learned is not None:
+        up = torch.tensor(s.up, dtype=torch.float32)
+        centre = learned.float().mean(0)
+        turned = torch.stack([rotate_about_up(learned.float() - centre, 2 * math.pi * h /
+                                              s.init_turns, up) + centre
+                              for h in range(max(1, s.init_turns))])
         with torch.no_grad():
-            code = model.encode(learned[None].float())
+            code = model.encode(turned)
         return code.z.float(), code.centre.float()
     up = torch.tensor(s.up, dtype=torch.float32)
     starts = []
@@ -377,18 +387,20 @@ def invert_silhouettes(
         initialiser, masks, ignored, camera, anchor)
 
     def run(start: InverseResult | None, steps: int) -> tuple:
+        run_s = s
         z0, c0 = _code_starts(model, masks, camera, templates, s, anchor, start, learned)
         if start is None and learned is None:
             z0, c0 = _screen(model, masks, cams, regions, z0, c0, s, rng, ignored)
         elif start is None:
             steps = s.init_steps
+            run_s = replace(s, prune_every=max(1, steps // 2))
             if s.init_templates:
                 zt, ct = _code_starts(model, masks, camera, templates, s, anchor, None)
                 zt, ct = _screen(model, masks, cams, regions, zt, ct, s, rng, ignored,
                                  s.init_templates)
                 z0, c0 = torch.cat([z0, zt]), torch.cat([c0, ct])
         lr = s.warm_lr if start is not None else s.lr
-        return _optimise(model, masks, cams, regions, z0, c0, steps, s, rng, ignored, lr)
+        return _optimise(model, masks, cams, regions, z0, c0, steps, run_s, rng, ignored, lr)
 
     try:
         z, centre, losses, history, work = run(warm, s.warm_steps if warm else s.steps)

@@ -253,7 +253,8 @@ KEYPOINT_SOURCES = ("inverse", "regressor")
 
 
 _INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "max_subject_frames",
-                 "occlusion", "warm_steps", "smooth_frames", "point_budget", "init_steps")
+                 "occlusion", "warm_steps", "smooth_frames", "point_budget", "init_steps",
+                 "init_templates")
 
 
 def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:

@@ -122,6 +122,7 @@ def invert_export(
     smooth_frames: float = 0.0,
     point_budget: int = InverseSettings.point_budget,
     init_steps: int = InverseSettings.init_steps,
+    init_templates: int = InverseSettings.init_templates,
     inverse: dict[str, Any] | None = None,
     workers: int = 1,
     initialiser: str | os.PathLike | None = None,
@@ -150,6 +151,7 @@ def invert_export(
             at full points).
         init_steps: Adam steps refining the learned initialiser's start (with
             ``initialiser``).
+        init_templates: screened template starts refined beside the initialiser's.
         inverse: more :class:`netepu.geometry.inverse.InverseSettings` fields (e.g.
             ``points_per_view``; benchmarks vary them).
         initialiser: a learned initialiser's checkpoint (:mod:`netepu.geometry.initialiser`):
@@ -174,8 +176,9 @@ def invert_export(
                           f"{smooth_frames}")
     if point_budget < 0:
         raise ConfigError(f"keypoints: point_budget must be >= 0, got {point_budget}")
-    if init_steps < 1:
-        raise ConfigError(f"keypoints: init_steps must be >= 1, got {init_steps}")
+    if init_steps < 1 or init_templates < 0:
+        raise ConfigError(f"keypoints: init_steps must be >= 1 and init_templates >= 0, got "
+                          f"{init_steps}, {init_templates}")
     model, config = load_geometry_model(checkpoint)
     learned = None if initialiser is None else _initialiser(initialiser, model, config)
     net = config["netepu"]
@@ -183,7 +186,7 @@ def invert_export(
     render = net.get("render") or MapSettings.default_mapping()  # checkpoints before it: defaults
     settings = InverseSettings(steps=steps, margin=float(render["margin"]), warm_steps=warm_steps,
                                **{"point_budget": point_budget, "init_steps": init_steps,
-                                  **(inverse or {})})
+                                  "init_templates": init_templates, **(inverse or {})})
     rig = read_calibration(scene)
     cams = rig.stacked(torch.float32)
     images, groups, n_frames = subject_groups(

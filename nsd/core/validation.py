@@ -217,6 +217,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.keypoints.warm_steps": _r("int", low=0),
         "netepu.keypoints.point_budget": _r("int", low=0),
         "netepu.keypoints.initialiser": NULL_TEXT, "netepu.keypoints.init_steps": POS,
+        "netepu.keypoints.init_templates": _r("int", low=0),
         "netepu.keypoints.smooth_frames": _r("number", low=0),
         "netepu.keypoints.source": _r("str", choices=("inverse", "regressor")),
         "netepu.keypoints.label_fraction": _r("number", above=0, high=1),
