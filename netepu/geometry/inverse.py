@@ -37,6 +37,12 @@ alike facing left or right, and a limb far from its place is not pulled back)
     one batch, the worse half is dropped every ``prune_every`` steps, and the best
     start wins.
 
+A learned initialiser (:mod:`netepu.geometry.initialiser`)
+    predicts the keypoints from the subject's visual hull; their code and centre are one
+    start. ``init_templates`` screened template starts run beside it for ``init_steps``
+    steps, the worse half dropped after half of them (``init_turns`` > 1 adds the learned
+    start turned about the up axis).
+
 Warm starts (a subject followed over frames)
     Given the result of an earlier frame (``warm``), one start from its code, its
     translation moved by the change of the triangulated centroid, runs ``warm_steps``
@@ -123,8 +129,8 @@ class InverseSettings:
     warm_steps: int = 40
     warm_tolerance: float = 1.25
     warm_lr: float = 0.05
-    init_steps: int = 40
-    init_templates: int = 0
+    init_steps: int = 60
+    init_templates: int = 2
     init_turns: int = 1
 
 
@@ -360,8 +366,9 @@ def invert_silhouettes(
         occluders: other subjects' visible masks, (V, H, W) bool: background labels there
             are ignored (the module docstring's :math:`o`).
         warm: this individual's result at an earlier frame: start from it (module docstring).
-        initialiser: a learned initialiser: a cold start is its one prediction refined
-            ``init_steps`` steps instead of the screened templates (module docstring).
+        initialiser: a learned initialiser: a cold start is its prediction (and
+            ``init_templates`` screened templates) refined ``init_steps`` steps instead of the
+            ``screen_keep`` screened templates for ``steps`` (module docstring).
 
     Returns:
         :class:`InverseResult`.

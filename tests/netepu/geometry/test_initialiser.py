@@ -169,7 +169,49 @@ def test_inversion_refines_one_learned_start():
     local = (shifted - anchor) / (cfg.extent * cfg.radius)
     template = torch.from_numpy(toy_pose(np.random.default_rng(7))).float()[None]
     res = invert_silhouettes(model, own, cam, template,
-                             InverseSettings(points_per_view=256, init_steps=30),
+                             InverseSettings(points_per_view=256, init_steps=30,
+                                             init_templates=0),
                              initialiser=_Fixed(cfg, local))
+    assert res.start_steps == 30 and len(res.start_losses) == 1
+    assert mpjpe(res.keypoints, code.keypoints[0]) < 0.05
+
+
+def test_the_pipeline_defaults_are_the_inversions():
+    """conf/run.yaml's keypoint settings that are InverseSettings fields hold its defaults."""
+    from dataclasses import fields
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    conf = OmegaConf.load(Path(__file__).parents[3] / "conf" / "run.yaml").netepu.keypoints
+    shared = [f for f in fields(InverseSettings)  # (warm_steps: 0 there turns warm starts off)
+              if f.name in ("steps", "point_budget", "init_steps", "init_templates")]
+    for f in shared:
+        assert conf[f.name] == f.default, f.name
+
+
+def test_screened_templates_beside_a_wrong_learned_start_win():
+    """A learned start 3 m above the body (no view sees it), alone, ends far off;
+    with one screened template (the true pose's shape) beside it both run, the worse is
+    dropped after half the steps (2 x 10 + 10 start-steps) and the template's fit is kept."""
+    model, data, _ = trained_toy()
+    views = data.evaluation["train"]
+    truth = views.keypoints[0]
+    cam = views.camera[[0, 2, 4]]
+    from netepu.geometry.maps import MapSettings, render_maps
+
+    with torch.no_grad():
+        code = model.encode(truth[None])
+        own = render_maps(model.query, model.prepare(code, cam), views.size,
+                          MapSettings.defaults()).silhouette
+    anchor = triangulate_centroids(own, cam).float()
+    cfg = InitialiserConfig(truth.shape[0], model.radius, grid=16, extent=2.0)
+    far = code.keypoints[0] + torch.tensor([0.0, 0.0, 3.0])
+    wrong = _Fixed(cfg, (far - anchor) / (cfg.extent * cfg.radius))
+    alone = invert_silhouettes(model, own, cam, code.keypoints[0][None], InverseSettings(
+        points_per_view=256, init_steps=20, init_templates=0), initialiser=wrong)
+    assert mpjpe(alone.keypoints, code.keypoints[0]) > 0.1
+    s = InverseSettings(points_per_view=256, init_steps=20, init_templates=1, headings=1)
+    res = invert_silhouettes(model, own, cam, code.keypoints[0][None], s, initialiser=wrong)
     assert res.start_steps == 30 and len(res.start_losses) == 1
     assert mpjpe(res.keypoints, code.keypoints[0]) < 0.05
