@@ -13,8 +13,11 @@ subjects' visible masks of the same camera-frame are the inversion's occluders: 
 render is not penalised where another subject covers the image, only where the
 background is seen (:func:`netepu.geometry.inverse.invert_silhouettes`).
 
-A cold start screens a library of template poses turned to several headings and
-optimises the best few (:func:`netepu.geometry.inverse.invert_silhouettes`). With
+A cold start refines the prediction of a learned initialiser (``initialiser``: the shipped one
+of the species in ``nsd-run``, :mod:`netepu.geometry.initialiser`) beside ``init_templates``
+screened template poses; without one it screens a library of template poses turned to
+several headings and optimises the best few
+(:func:`netepu.geometry.inverse.invert_silhouettes`). With
 ``warm_steps`` > 0 subjects are followed over the selected frames: a subject's first frame
 starts cold, each later one warm from the subject's previous fit (``warm_steps`` Adam steps
 of one start, checked against a cold start when its loss is much worse). ``smooth_frames`` > 0 then
