@@ -39,7 +39,8 @@ from tools.benchlib import git_commit, machine_info  # noqa: E402
 
 # the same for both species: 3,000 rendered poses x 12 cameras, 3,000 steps of 32 samples
 # (about 30 minutes on one core here; docs/netepu.md "A learned initialiser")
-RECIPE = {"poses": 3000, "cameras": 12, "steps": 3000, "batch": 32, "seed": 0, "threads": 1}
+RECIPE = {"poses": 3000, "cameras": 12, "steps": 3000, "batch": 32, "heldout": 256, "seed": 0,
+          "threads": 1}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -60,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
         name = f"{args.species}_initialiser.pt"
         target = Path(tmp) / name if args.check else args.out / name
         res = train_initialiser(bank, cfg, 0.0, str(target), seed=RECIPE["seed"],
-                                batch=RECIPE["batch"], max_steps=RECIPE["steps"])
+                                batch=RECIPE["batch"], heldout=RECIPE["heldout"],
+                                max_steps=RECIPE["steps"])
         digest = sha256_file(target)
         manifest_path = args.out / "models.json"
         manifest = json.loads(manifest_path.read_text())  # read now: the other species may
