@@ -134,7 +134,12 @@ def resolve_species_models(
             paths.append(str(value))
             whys.append("")
             keys.append(str(value))
-    init, init_key, init_why = resolve_initialiser(initialiser, species, scene, folder)
+    if str(initialiser) == BUILTIN and str(geometry) != BUILTIN:  # made for another body
+        init, init_key, init_why = None, None, (
+            "the built-in initialiser goes with the built-in geometry model; with your own "
+            "netepu.geometry give netepu.keypoints.initialiser a checkpoint of your own")
+    else:
+        init, init_key, init_why = resolve_initialiser(initialiser, species, scene, folder)
     return SpeciesModels(paths[0], paths[1], whys[0], whys[1], keys[0], keys[1], init, init_key,
                          init_why)
 

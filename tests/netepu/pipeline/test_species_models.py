@@ -74,6 +74,9 @@ def test_the_initialiser_of_the_scenes_species(synth_scene, tiny_scene, tmp_path
     m = resolve_species_models("auto", BUILTIN, BUILTIN, synth_scene, folder, initialiser=BUILTIN)
     assert (m.initialiser, m.key_initialiser) == (str(folder / "biped_initialiser.pt"),
                                                   "builtin:b-init")
+    own = resolve_species_models("auto", "my/geo.pt", BUILTIN, synth_scene, folder,
+                                 initialiser=BUILTIN)  # another body: no shipped initialiser
+    assert own.initialiser is None and "your own netepu.geometry" in own.why_initialiser
 
 
 def test_shipped_initialisers_fit_their_species_models():
