@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from netepu.geometry.data import DataConfig, GeometryData, ViewSet, make_point_pools
+from netepu.geometry.maps import MapSettings, render_maps
 from nsd.cameras.calibration import Camera, CameraRig
 from nsd.cameras.projection import pixel_to_normalized
 from tests.conftest import look_at_camera
@@ -202,3 +203,12 @@ def trained_toy(steps: int = 300):
     trainer.fit()
     model.eval()
     return model, data, trainer
+
+
+def own_renders(model, keypoints, cam, size):
+    """A geometry model's own silhouettes (V, H, W) of ``keypoints`` (K, 3) in the views
+    ``cam``, and the pose's code."""
+    with torch.no_grad():
+        code = model.encode(keypoints[None])
+        return render_maps(model.query, model.prepare(code, cam), size,
+                           MapSettings.defaults()).silhouette, code

@@ -28,7 +28,7 @@ from nsd.core.memory import peak_rss_mb  # one reader of VmHWM, re-exported for 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_DIR = ROOT / "docs" / "benchmarks"
 
-__all__ = ["BENCH_DIR", "machine_info", "median_time", "peak_rss_mb", "write_report"]
+__all__ = ["BENCH_DIR", "machine_info", "median_time", "peak_rss_mb", "ship_file", "write_report"]
 
 
 def git_commit() -> str:
@@ -76,6 +76,19 @@ def machine_info() -> dict[str, Any]:
         "torch_threads": torch.get_num_threads(),
         "platform": platform.platform(),
     }
+
+
+def ship_file(manifest_path: Path, manifest: dict, section: str, key: str, target: Path,
+              digest: str, made: dict[str, Any]) -> None:
+    """Record a shipped model file in ``manifest[section][key]`` (its name, SHA-256, size,
+    ``made``, the torch build, CPU, commit and date) and write the manifest atomically."""
+    manifest.setdefault(section, {})[key] = {
+        "file": target.name, "sha256": digest, "bytes": target.stat().st_size, **made,
+        "torch": machine_info()["torch"], "machine": machine_info()["cpu"],
+        "commit": git_commit(), "date": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+    }
+    atomic_write_text(manifest_path, json.dumps(manifest, indent=2) + "\n")
+    print(f"wrote {target} ({target.stat().st_size / 1e6:.1f} MB, sha256 {digest[:16]}...)")
 
 
 def median_time(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> float:

@@ -16,7 +16,6 @@ The same torch build, CPU kind and thread count reproduce the file bit for bit (
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import logging
 import sys
@@ -33,9 +32,8 @@ from netepu.geometry.initialiser import InitialiserConfig  # noqa: E402
 from netepu.geometry.initialiser_training import render_bank, train_initialiser  # noqa: E402
 from netepu.geometry.model import load_geometry_model  # noqa: E402
 from netepu.pipeline.species_models import MODELS, builtin_models  # noqa: E402
-from nsd.core.atomic import atomic_write_text  # noqa: E402
 from nsd.export.manifest import sha256_file  # noqa: E402
-from tools.benchlib import git_commit, machine_info  # noqa: E402
+from tools.benchlib import ship_file  # noqa: E402
 
 # the same for both species: 3,000 rendered poses x 12 cameras, 3,000 steps of 32 samples
 # (about 30 minutes on one core here; docs/netepu.md "A learned initialiser")
@@ -71,16 +69,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.species}: retrained {digest}\n  shipped {shipped}\n"
                   f"{'bit for bit the same' if digest == shipped else 'DIFFERENT'}")
             return 0 if digest == shipped else 1
-    manifest.setdefault("initialisers", {})[args.species] = {
-        "file": name, "sha256": digest, "bytes": target.stat().st_size, **RECIPE,
-        "config": cfg.to_dict(), "minutes": round((time.perf_counter() - start) / 60, 1),
+    ship_file(manifest_path, manifest, "initialisers", args.species, target, digest, {
+        **RECIPE, "config": cfg.to_dict(),
+        "minutes": round((time.perf_counter() - start) / 60, 1),
         "heldout_mpjpe_mm": {"mean": round(res.heldout_mean, 1),
-                             "median": round(res.heldout_median, 1)},
-        "torch": machine_info()["torch"], "machine": machine_info()["cpu"],
-        "commit": git_commit(), "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-    }
-    atomic_write_text(manifest_path, json.dumps(manifest, indent=2) + "\n")
-    print(f"wrote {target} ({target.stat().st_size / 1e6:.1f} MB, sha256 {digest[:16]}...)")
+                             "median": round(res.heldout_median, 1)}})
     return 0
 
 

@@ -18,7 +18,6 @@ may round matrix products differently and give a different, equally good file).
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import sys
 import tempfile
@@ -30,11 +29,11 @@ sys.path.insert(0, str(ROOT))
 
 from netepu.cli.train import run  # noqa: E402
 from netepu.pipeline.species_models import MODELS  # noqa: E402
-from nsd.core.atomic import atomic_save_torch, atomic_write_text  # noqa: E402
+from nsd.core.atomic import atomic_save_torch  # noqa: E402
 from nsd.core.config import compose_app  # noqa: E402
 from nsd.core.trainer import CHECKPOINT_FORMAT, load_checkpoint  # noqa: E402
 from nsd.export.manifest import sha256_file  # noqa: E402
-from tools.benchlib import git_commit, machine_info  # noqa: E402
+from tools.benchlib import ship_file  # noqa: E402
 
 # netepu-train overrides, step budgets and threads per species (docs/netepu.md, "Built-in
 # models"; the biped's 6,000 geometry steps on two threads are the 30 minutes of issue 26,
@@ -134,13 +133,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.species}: retrained {digest}\n{'':>{len(args.species)}}  shipped  "
                   f"{shipped}\n{'bit for bit the same' if same else 'DIFFERENT'}")
             return 0 if same else 1
-    manifest["models"][args.species] = {
-        "file": target.name, "sha256": digest, "bytes": target.stat().st_size, **made,
-        "torch": machine_info()["torch"], "machine": machine_info()["cpu"],
-        "commit": git_commit(), "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-    }
-    atomic_write_text(manifest_path, json.dumps(manifest, indent=2) + "\n")
-    print(f"wrote {target} ({target.stat().st_size / 1e6:.1f} MB, sha256 {digest[:16]}...)")
+    ship_file(manifest_path, manifest, "models", args.species, target, digest, made)
     return 0
 
 

@@ -7,9 +7,9 @@ evidence the silhouettes give in 3D, so that a few refining steps of one start r
 
 Input: the subject's visual hull around the triangulated centroid ``a`` of its silhouettes
 (:func:`subject_volume`), a cube of :math:`G^3` voxels of half side ``extent`` body radii
-``r``, its axes :math:`(e_1, e_2, u)` with :math:`u` the world's up (:func:`up_frame`). Two
-channels per voxel, over the views :math:`v` that see it (it projects into the image, in
-front of the camera):
+``r``, its axes :math:`(e_1, e_2, u)` with :math:`u` the world's up
+(:func:`nsd.ops.vectors.up_frame`). Two channels per voxel, over the views :math:`v` that
+see it (it projects into the image, in front of the camera):
 
 * the hull: 1 where every such view shows the subject *or an occluder* there (a pixel
   covered by another subject cannot carve), 0 elsewhere and where no view sees it;
@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import pickle
 from dataclasses import asdict, dataclass
+from functools import lru_cache
 from typing import Any
 
 import torch
@@ -41,6 +42,7 @@ from torch.nn import functional as F
 
 from nsd.cameras.batch import CameraBatch
 from nsd.cameras.projection import project_points
+from nsd.ops.vectors import up_frame
 
 __all__ = [
     "INITIALISER_FORMAT",
@@ -49,7 +51,6 @@ __all__ = [
     "initial_keypoints",
     "load_initialiser",
     "subject_volume",
-    "up_frame",
 ]
 
 INITIALISER_FORMAT = "netepu-initialiser-v1"  # the checkpoint's "format"
@@ -83,19 +84,10 @@ class InitialiserConfig:
         return InitialiserConfig(**{**d, "up": tuple(float(x) for x in d["up"])})
 
 
-def up_frame(up: Tensor) -> Tensor:
-    """Orthonormal basis (3, 3), columns :math:`(e_1, e_2, u)`, with :math:`u` along ``up``
-    and :math:`e_1` the world axis least aligned with it, projected (deterministic)."""
-    u = up.double() / up.double().norm()
-    axis = torch.zeros(3, dtype=torch.float64)
-    axis[int(u.abs().argmin())] = 1.0
-    e1 = axis - u * (axis @ u)
-    e1 = e1 / e1.norm()
-    return torch.stack([e1, torch.cross(u, e1, dim=0), u], 1)
-
-
+@lru_cache(maxsize=4)
 def _cell_centres(n: int) -> Tensor:
-    """Centres of an n^3 grid over [-1, 1]^3, (n^3, 3), first axis slowest."""
+    """Centres of an n^3 grid over [-1, 1]^3, (n^3, 3) float64, first axis slowest (cached:
+    do not modify)."""
     ax = (torch.arange(n, dtype=torch.float64) + 0.5) * (2.0 / n) - 1.0
     return torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
 
@@ -116,7 +108,7 @@ def subject_volume(masks: Tensor, ignored: Tensor, camera: CameraBatch, anchor: 
     """
     V, H, W = masks.shape
     G = cfg.grid
-    basis = up_frame(torch.tensor(cfg.up))
+    basis = up_frame(torch.tensor(cfg.up, dtype=torch.float64))
     pts = anchor.double() + (cfg.extent * cfg.radius) * _cell_centres(G) @ basis.T  # (M, 3)
     cams = CameraBatch.from_mapping(camera).to(torch.float64)
     uv, z = project_points(pts.expand(V, -1, -1), cams.K, cams.R, cams.t, cams.dist)
@@ -181,7 +173,7 @@ def initial_keypoints(net: PoseInitialiser, masks: Tensor, ignored: Tensor,
     cfg = net.cfg
     vol = subject_volume(masks.bool(), ignored.bool(), camera, anchor, cfg)
     local = net(vol[None])[0].double()  # (K, 3)
-    basis = up_frame(torch.tensor(cfg.up))
+    basis = up_frame(torch.tensor(cfg.up, dtype=torch.float64))
     return (anchor.double() + (cfg.extent * cfg.radius) * local @ basis.T).float()
 
 

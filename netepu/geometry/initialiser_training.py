@@ -30,6 +30,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -41,12 +42,12 @@ from netepu.geometry.initialiser import (
     InitialiserConfig,
     PoseInitialiser,
     subject_volume,
-    up_frame,
 )
 from netepu.geometry.inverse import triangulate_centroids
 from nsd.cameras.batch import CameraBatch
 from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_save_torch
+from nsd.ops.vectors import up_frame
 from nsd.synth import make_individual, render_views, sample_pose
 from nsd.synth.rigs import look_at
 
@@ -69,6 +70,11 @@ class Bank:
     R: Tensor
     t: Tensor
     keypoints: Tensor
+
+    @cached_property
+    def view_areas(self) -> Tensor:
+        """Silhouette pixels of every pose and camera, (P, C)."""
+        return self.masks.flatten(2).sum(-1)
 
     def cameras(self, p: int, views: Tensor) -> CameraBatch:
         return CameraBatch(self.K[p, views], self.R[p, views], self.t[p, views])
@@ -140,11 +146,11 @@ def training_batch(bank: Bank, cfg: InitialiserConfig, size: int, rng: np.random
                    poses: np.ndarray | None = None) -> tuple[Tensor, Tensor]:
     """``size`` samples (module docstring): volumes (B, 2, G, G, G) and the true keypoints in
     the volume's frame and units (B, K, 3)."""
-    basis = up_frame(torch.tensor(cfg.up))
+    basis = up_frame(torch.tensor(cfg.up, dtype=torch.float64))
     vols, targets = [], []
     while len(vols) < size:
         p = int(rng.choice(poses) if poses is not None else rng.integers(len(bank.masks)))
-        valid = torch.nonzero(bank.masks[p].flatten(1).sum(1) >= 16)[:, 0].numpy()
+        valid = torch.nonzero(bank.view_areas[p] >= 16)[:, 0].numpy()
         if len(valid) < 2:
             continue
         n = int(rng.integers(2, min(8, len(valid)) + 1))

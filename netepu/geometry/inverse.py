@@ -236,24 +236,24 @@ def _code_starts(model, masks, camera, templates, s: InverseSettings, anchor, wa
     initialiser's keypoints ``learned`` (K, 3)."""
     if warm is not None:
         return warm.z[None].float(), (warm.centre + anchor - warm.anchor)[None].float()
-    if learned is not None:
-        up = torch.tensor(s.up, dtype=torch.float32)
-        centre = learned.float().mean(0)
-        turned = torch.stack([rotate_about_up(learned.float() - centre, 2 * math.pi * h /
-                                              s.init_turns, up) + centre
-                              for h in range(max(1, s.init_turns))])
-        with torch.no_grad():
-            code = model.encode(turned)
-        return code.z.float(), code.centre.float()
     up = torch.tensor(s.up, dtype=torch.float32)
-    starts = []
-    for tpl in templates.float():
-        centred = tpl - tpl.mean(0)
-        for h in range(s.headings):
-            starts.append(rotate_about_up(centred, 2 * math.pi * h / s.headings, up))
+    if learned is not None:
+        centre = learned.float().mean(0)
+        with torch.no_grad():
+            code = model.encode(_turned(learned.float(), max(1, s.init_turns), up) + centre)
+        return code.z.float(), code.centre.float()
+    starts = torch.cat([_turned(tpl, s.headings, up) for tpl in templates.float()])
     with torch.no_grad():
-        z0 = model.encode(torch.stack(starts) + anchor).z
+        z0 = model.encode(starts + anchor).z
     return z0, anchor.expand(len(starts), 3).clone()
+
+
+def _turned(pose: Tensor, turns: int, up: Tensor) -> Tensor:
+    """``pose`` (K, 3) centred on its centroid and turned to ``turns`` headings evenly about
+    ``up``, (turns, K, 3)."""
+    centred = pose - pose.mean(0)
+    return torch.stack([rotate_about_up(centred, 2 * math.pi * h / turns, up)
+                        for h in range(turns)])
 
 
 def _start_losses(model, z, centre, cams, masks, ignored, uv, margin) -> Tensor:

@@ -45,6 +45,7 @@ from torch import Tensor
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.projection import project_points
 from nsd.core.errors import ConfigError
+from nsd.ops.vectors import up_frame
 
 __all__ = [
     "MultiviewProposals",
@@ -215,14 +216,6 @@ GHOST_SPREAD = 3.0
 KMEANS_ITERATIONS = 10
 
 
-def _plane_basis(up: Tensor) -> Tensor:
-    """Two unit vectors (2, 3) spanning the plane orthogonal to ``up``."""
-    a = torch.tensor([1.0, 0.0, 0.0]) if abs(float(up[0])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
-    e1 = a - (a @ up) * up
-    e1 = e1 / e1.norm()
-    return torch.stack([e1, torch.linalg.cross(up, e1)])
-
-
 def _weighted_rms(x: np.ndarray, centre: np.ndarray, w: np.ndarray, floor: float) -> float:
     """Weighted RMS distance of points ``x`` (C, 2) to ``centre``, at least ``floor``."""
     return max(floor, float(np.sqrt(np.average(((x - centre) ** 2).sum(1), weights=w))))
@@ -311,7 +304,7 @@ def cluster_individuals(
     holds, instead of cutting one individual into ``k`` parts.
     """
 
-    xy = points @ _plane_basis(up).T  # (P, 2)
+    xy = points @ up_frame(up)[:, :2]  # (P, 2): coordinates in the plane orthogonal to up
     ij = torch.floor((xy - xy.min(0).values) / cell).long()
     shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
     counts = np.zeros(shape)

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
+from torch import Tensor
 
-__all__ = ["unit_vectors"]
+__all__ = ["unit_vectors", "up_frame"]
 
 
 def unit_vectors(x: np.ndarray, eps: float = 1e-8) -> np.ndarray:
@@ -25,3 +27,23 @@ def unit_vectors(x: np.ndarray, eps: float = 1e-8) -> np.ndarray:
     """
     x = np.asarray(x)
     return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), eps)
+
+
+def up_frame(up: Tensor) -> Tensor:
+    """Right-handed orthonormal basis whose last axis is ``up``: columns
+    :math:`(e_1, e_2, u)`, :math:`e_1` the world x axis (y when ``up`` is within ~25 degrees
+    of x) made orthogonal to :math:`u`, :math:`e_2 = u \\times e_1`.
+
+    Shape:
+        (3,) -> (3, 3), in ``up``'s dtype.
+
+    Example:
+        >>> up_frame(torch.tensor([0.0, 0.0, 1.0])).tolist()
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    u = up / up.norm()
+    a = torch.zeros_like(u)
+    a[0 if abs(float(u[0])) < 0.9 else 1] = 1.0
+    e1 = a - (a @ u) * u
+    e1 = e1 / e1.norm()
+    return torch.stack([e1, torch.linalg.cross(u, e1), u], 1)

@@ -13,14 +13,14 @@ from netepu.geometry.initialiser import (
     initial_keypoints,
     load_initialiser,
     subject_volume,
-    up_frame,
 )
 from netepu.geometry.initialiser_training import heatmap_targets, render_bank, training_batch
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes, triangulate_centroids
 from nsd.core.atomic import atomic_save_torch
 from nsd.evaluation.pose import mpjpe
+from nsd.ops.vectors import up_frame
 from tests.base import BaseTester
-from tests.netepu_world import ring, toy_pose, trained_toy
+from tests.netepu_world import own_renders, ring, toy_pose, trained_toy
 
 CFG = InitialiserConfig(n_keypoints=3, radius=0.5, grid=16, extent=1.0, width=8)
 
@@ -32,10 +32,10 @@ def _rig(n: int = 3):
 class TestVolume(BaseTester):
     @pytest.mark.parametrize("up", [(0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (0.3, -0.5, 0.8)])
     def test_up_frame_is_orthonormal_with_up_last(self, up):
-        B = up_frame(torch.tensor(up))
+        B = up_frame(torch.tensor(up, dtype=torch.float64))
         self.assert_close(B.T @ B, torch.eye(3, dtype=torch.float64), atol=1e-12, rtol=0)
         u = torch.tensor(up, dtype=torch.float64)
-        self.assert_close(B[:, 2], u / u.norm(), atol=1e-7, rtol=0)  # up given in float32
+        self.assert_close(B[:, 2], u / u.norm(), atol=1e-12, rtol=0)
         assert torch.linalg.det(B) > 0
 
     def test_full_empty_and_covered_silhouettes(self):
@@ -150,21 +150,23 @@ def test_training_batches_hold_the_true_keypoints_and_the_network_learns_them():
     assert last < 0.5 * first, (first, last)
 
 
+def _toy_case():
+    """The toy model's own silhouettes of a training pose in 3 views: the model, silhouettes,
+    cameras, the pose's code, the silhouettes' triangulated centroid and an initialiser
+    config for the model."""
+    model, data, _ = trained_toy()
+    views = data.evaluation["train"]
+    cam = views.camera[[0, 2, 4]]
+    own, code = own_renders(model, views.keypoints[0], cam, views.size)
+    anchor = triangulate_centroids(own, cam).float()
+    return (model, own, cam, code, anchor,
+            InitialiserConfig(views.keypoints.shape[1], model.radius, grid=16, extent=2.0))
+
+
 def test_inversion_refines_one_learned_start():
     """An initialiser that answers the true pose moved by 10 cm: inverse rendering runs its one
     start for init_steps steps (no templates screened) and lands on the pose."""
-    model, data, _ = trained_toy()
-    views = data.evaluation["train"]
-    truth = views.keypoints[0]
-    cam = views.camera[[0, 2, 4]]
-    from netepu.geometry.maps import MapSettings, render_maps
-
-    with torch.no_grad():
-        code = model.encode(truth[None])
-        own = render_maps(model.query, model.prepare(code, cam), views.size,
-                          MapSettings.defaults()).silhouette
-    anchor = triangulate_centroids(own, cam).float()
-    cfg = InitialiserConfig(truth.shape[0], model.radius, grid=16, extent=2.0)
+    model, own, cam, code, anchor, cfg = _toy_case()
     shifted = code.keypoints[0] + torch.tensor([0.1, 0.0, 0.0])
     local = (shifted - anchor) / (cfg.extent * cfg.radius)
     template = torch.from_numpy(toy_pose(np.random.default_rng(7))).float()[None]
@@ -194,18 +196,7 @@ def test_screened_templates_beside_a_wrong_learned_start_win():
     """A learned start 3 m above the body (no view sees it), alone, ends far off;
     with one screened template (the true pose's shape) beside it both run, the worse is
     dropped after half the steps (2 x 10 + 10 start-steps) and the template's fit is kept."""
-    model, data, _ = trained_toy()
-    views = data.evaluation["train"]
-    truth = views.keypoints[0]
-    cam = views.camera[[0, 2, 4]]
-    from netepu.geometry.maps import MapSettings, render_maps
-
-    with torch.no_grad():
-        code = model.encode(truth[None])
-        own = render_maps(model.query, model.prepare(code, cam), views.size,
-                          MapSettings.defaults()).silhouette
-    anchor = triangulate_centroids(own, cam).float()
-    cfg = InitialiserConfig(truth.shape[0], model.radius, grid=16, extent=2.0)
+    model, own, cam, code, anchor, cfg = _toy_case()
     far = code.keypoints[0] + torch.tensor([0.0, 0.0, 3.0])
     wrong = _Fixed(cfg, (far - anchor) / (cfg.extent * cfg.radius))
     alone = invert_silhouettes(model, own, cam, code.keypoints[0][None], InverseSettings(

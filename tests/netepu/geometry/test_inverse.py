@@ -23,7 +23,7 @@ from netepu.pipeline.subject_keypoints import template_poses
 from nsd.evaluation.maps import silhouette_iou
 from nsd.evaluation.pose import mpjpe
 from tests.base import BaseTester
-from tests.netepu_world import ring, toy_pose, trained_toy
+from tests.netepu_world import own_renders, ring, toy_pose, trained_toy
 
 
 class TestHelpers(BaseTester):
@@ -58,7 +58,7 @@ class TestHelpers(BaseTester):
         assert np.linalg.norm(est.numpy() - point) < 0.03  # pixel rounding at ~300 px focal
 
 
-def test_recovers_known_pose_from_own_renders():
+def test_recovers_known_pose_fromown_renders():
     """Silhouettes rendered by the model at a known pose lead back to that pose."""
     model, data, _ = trained_toy()
     views = data.evaluation["train"]
@@ -152,13 +152,6 @@ def test_occlusion_aware_loss_ignores_covered_points():
     assert occlusion_aware_silhouette_loss(logit, label, ignored)[1] == 0
 
 
-def _own_renders(model, keypoints, cam, size):
-    with torch.no_grad():
-        code = model.encode(keypoints[None])
-        return render_maps(model.query, model.prepare(code, cam), size,
-                           MapSettings.defaults()).silhouette, code
-
-
 def test_occluders_keep_a_partly_hidden_subject_whole():
     """A band of another subject hides the middle half of the silhouette in every view: with
     the band as an occluder the recovered pose is the true one (its render fills the hidden
@@ -167,7 +160,7 @@ def test_occluders_keep_a_partly_hidden_subject_whole():
     views = data.evaluation["train"]
     truth, sel = views.keypoints[0], [0, 2, 4]
     cam = views.camera[sel]
-    whole, code = _own_renders(model, truth, cam, views.size)
+    whole, code = own_renders(model, truth, cam, views.size)
     band = torch.zeros_like(whole)
     for v in range(3):
         cols = torch.nonzero(whole[v].any(0))[:, 0]
@@ -238,7 +231,7 @@ def test_a_bad_warm_start_falls_back_to_the_cold_starts():
     views = data.evaluation["train"]
     truth, sel = views.keypoints[0], [0, 2, 4]
     cam = views.camera[sel]
-    own, code = _own_renders(model, truth, cam, views.size)
+    own, code = own_renders(model, truth, cam, views.size)
     template = torch.from_numpy(toy_pose(np.random.default_rng(7))).float()[None]
     s = InverseSettings(steps=60, points_per_view=256, headings=4, warm_steps=2)
     good = invert_silhouettes(model, own, cam, template, s)
