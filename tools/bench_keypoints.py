@@ -11,13 +11,18 @@ one variant per fresh process with one torch thread, two at a time on two cores
 * the pipeline's masks with each setting (occluders off/on, the screened library of starting
   poses against two templates at four headings, warm starts, fewer loss points, the point
   budget shared by the starts against every start at full points, earlier pruning, the
-  learned initialiser's one start against the screened templates);
+  learned initialiser's one start against the screened templates, a cheaper screening beside
+  it);
 * the same subjects with the ground truth's visible masks and amodal masks instead of the
   exported ones (the floor that the masks, 4 cameras and the model leave);
 * temporal smoothing of the occlusion-aware fits (``smooth_frames``), applied afterwards.
 
 MPJPE (mm) against the scene's 3D keypoints (:func:`nsd.evaluation.pose.keypoint_error`),
-its percentiles over subject-frames, and seconds per subject-frame. Writes
+its percentiles over subject-frames, and seconds per subject-frame; ``mirrored_share``: the
+subject-frames closer to the truth with their left and right keypoints swapped (the body
+fitted turned front to back, :func:`nsd.evaluation.pose.mirror_errors`), and
+``best_of_mirror_mm`` the mean had each taken the closer of the two (what telling front from
+back would be worth). Writes
 ``docs/benchmarks/keypoints.{md,json}``.
 """
 
@@ -37,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from netepu.pipeline.species_models import MODELS, builtin_initialisers  # noqa: E402
+from nsd.synth.skeleton import get_species  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 CHILD = r"""
@@ -70,6 +76,10 @@ VARIANTS = [  # (name, masks, invert_export settings)
      {"initialiser": "builtin", "init_steps": 40, "init_templates": 1}),
     ("learned initialiser + 2 screened templates, 60 steps (the default)", "export",
      {"initialiser": "builtin", "init_steps": 60, "init_templates": 2}),
+    ("learned initialiser + 2 templates screened cheaply (4 headings, 64 points), point "
+     "budget 576, 40 steps", "export",
+     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2, "point_budget": 576,
+      "inverse": {"headings": 4, "screen_points": 64}}),
     ("ground-truth visible masks + occluders", "visible", {}),
     ("ground-truth amodal masks", "amodal", {"occlusion": False}),
 ]
@@ -110,15 +120,23 @@ def truth_export(export: Path, scene: str, out: Path, kind: str) -> None:
     (out / "subjects.coco.json").write_text(json.dumps(coco))
 
 
-def errors(export: Path, scene: str, keypoints: Path) -> dict[str, float]:
-    """MPJPE summary and its percentiles over subject-frames."""
-    from nsd.evaluation.pose import subject_frame_errors
+def errors(export: Path, scene: str, keypoints: Path,
+           mirror: tuple[int, ...] | None = None) -> dict[str, float]:
+    """MPJPE summary and its percentiles over subject-frames; with the species' ``mirror``
+    index also the share of subject-frames closer to the truth with left and right swapped
+    (a body turned front to back) and the mean MPJPE had each taken the closer of the two."""
+    from nsd.evaluation.pose import mirror_errors, subject_frame_errors
 
     _, e = subject_frame_errors(export, scene, keypoints)
     mean, median, p25, p75, p90 = ((np.mean(e), *np.percentile(e, [50, 25, 75, 90])) if e
                                    else (np.nan,) * 5)
-    return {"mpjpe_mm": float(mean), "median_mm": float(median), "p25_mm": float(p25),
-            "p75_mm": float(p75), "p90_mm": float(p90), "scored": float(len(e))}
+    out = {"mpjpe_mm": float(mean), "median_mm": float(median), "p25_mm": float(p25),
+           "p75_mm": float(p75), "p90_mm": float(p90), "scored": float(len(e))}
+    if mirror is not None and e:
+        pairs = np.array(mirror_errors(export, scene, keypoints, mirror))
+        out["mirrored_share"] = float((pairs[:, 1] < pairs[:, 0]).mean())
+        out["best_of_mirror_mm"] = float(pairs.min(1).mean())
+    return out
 
 
 def smoothed(keypoints: Path, out: Path, sigma: float) -> Path:
@@ -154,11 +172,13 @@ def main() -> None:
     if args.variants is not None and len(chosen) != len(args.variants):
         raise SystemExit(f"--variants: choose from {[v[0] for v in VARIANTS]}")
     jobs, exports, scenes = [], {}, {}  # (row name, run, masks, invert_export settings, model)
+    mirrors = {}  # run -> its species' left/right index
     for run in args.run:
         pipeline = json.loads((run / "pipeline.json").read_text())
         scene = scenes[run] = pipeline["scene"]["summary"]["path"]
         species = json.loads((Path(scene) / "gt" / "scene.json").read_text())[
             "individuals"][0]["species"]
+        mirrors[run] = get_species(species).mirror_index()
         exports[run, "export"] = run / "export"
         for kind in ("visible", "amodal"):
             if any(masks == kind for _, masks, _ in chosen):
@@ -190,7 +210,7 @@ def main() -> None:
             s = json.loads(text.strip().splitlines()[-1])
             rows.append({"variant": name,
                          **errors(exports[run, masks], scenes[run],
-                                  outs[name] / "keypoints3d.npz"),
+                                  outs[name] / "keypoints3d.npz", mirrors[run]),
                          "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
                          "warm_share": s.get("warm_share"), "mean_loss": s["mean_loss"]})
             print(rows[-1], flush=True)

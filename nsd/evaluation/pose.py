@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 from collections import Counter, defaultdict
+from collections.abc import Sequence
 
 import numpy as np
 from torch import Tensor
@@ -15,7 +16,7 @@ from nsd.core.errors import ConfigError
 from nsd.evaluation.identity import ground_truth_identities
 from nsd.io.ground_truth import GroundTruth
 
-__all__ = ["keypoint_error", "mpjpe", "subject_frame_errors"]
+__all__ = ["keypoint_error", "mirror_errors", "mpjpe", "subject_frame_errors"]
 
 
 def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
@@ -23,13 +24,12 @@ def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).double().norm(dim=-1).mean()
 
 
-def subject_frame_errors(
-    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
-) -> tuple[int, list[float]]:
-    """``(subject-frames in the file, MPJPE in mm of each one matched)``: each inverted
-    subject-frame is matched to the ground-truth individual most of its rows match
-    (:func:`nsd.evaluation.identity.ground_truth_identities`); unmatched ones are left out."""
-
+def _matched(export: str | os.PathLike, scene: str | os.PathLike,
+             keypoints: str | os.PathLike) -> tuple[int, list[tuple[np.ndarray, np.ndarray]]]:
+    """``(subject-frames in the file, (inverted, true) keypoints (K, 3) of each one matched)``:
+    each inverted subject-frame is matched to the ground-truth individual most of its rows
+    match (:func:`nsd.evaluation.identity.ground_truth_identities`); unmatched ones are left
+    out."""
     truth = GroundTruth.load(scene).scene.keypoints3d
     matched = ground_truth_identities(export, scene)
     votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
@@ -37,7 +37,7 @@ def subject_frame_errors(
         votes[(t, sid)][ident] += 1
     with np.load(keypoints) as z:
         frames, sids, kps = z["subject_frame"], z["subject_id"], z["subject_keypoints"]
-    errors = []
+    pairs = []
     for t, sid, kp in zip(frames.tolist(), sids.tolist(), kps, strict=True):
         v = votes.get((t, sid))
         if not v:
@@ -45,8 +45,32 @@ def subject_frame_errors(
         gt = truth[v.most_common(1)[0][0]][t]
         if gt.shape != kp.shape:
             raise ConfigError(f"keypoints: {kp.shape[0]} keypoints, the scene has {gt.shape[0]}")
-        errors.append(1000 * float(np.linalg.norm(kp - gt, axis=-1).mean()))
-    return len(frames), errors
+        pairs.append((kp, gt))
+    return len(frames), pairs
+
+
+def _mm(kp: np.ndarray, gt: np.ndarray) -> float:
+    return 1000 * float(np.linalg.norm(kp - gt, axis=-1).mean())
+
+
+def subject_frame_errors(
+    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
+) -> tuple[int, list[float]]:
+    """``(subject-frames in the file, MPJPE in mm of each one matched)`` (matched as in
+    :func:`_matched`; unmatched ones are left out)."""
+    inverted, pairs = _matched(export, scene, keypoints)
+    return inverted, [_mm(kp, gt) for kp, gt in pairs]
+
+
+def mirror_errors(
+    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike,
+    mirror: Sequence[int],
+) -> list[tuple[float, float]]:
+    """Per matched subject-frame, MPJPE in mm as inverted and with its left and right
+    keypoints swapped (``mirror``: :meth:`nsd.synth.skeleton.Species.mirror_index`): a fit
+    far off as inverted and close once swapped is the body turned front to back."""
+    index = np.asarray(mirror)
+    return [(_mm(kp, gt), _mm(kp[index], gt)) for kp, gt in _matched(export, scene, keypoints)[1]]
 
 
 def keypoint_error(

@@ -229,6 +229,14 @@ class Species:
     def index(self, keypoint: str) -> int:
         return self.keypoint_names.index(keypoint)
 
+    def mirror_index(self) -> tuple[int, ...]:
+        """Each keypoint's counterpart on the other side (``left`` and ``right`` swapped in
+        its name; itself on the midline), (K,): ``keypoints[mirror_index()]`` labels the same
+        points as a body facing the other way."""
+        swap = {"left": "right", "right": "left"}
+        return tuple(self.index("_".join(swap.get(w, w) for w in name.split("_")))
+                     for name in self.keypoint_names)
+
     def primitive_index(self, name: str) -> int:
         return [p.name for p in self.primitives].index(name)
 

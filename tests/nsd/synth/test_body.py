@@ -56,6 +56,18 @@ class TestSpecies:
                 reach = (rel.squeeze(-2) / (body.radii[p] + KEYPOINT_HOLD_MARGIN)).norm(dim=-1)
                 assert reach.min() <= 1.0, (name, ind.species.keypoint_names[k], reach)
 
+    @pytest.mark.parametrize("name", SPECIES_NAMES)
+    def test_the_mirror_index_reflects_the_rest_pose(self, name):
+        """Relabelling left as right is the rest pose reflected through the body's midplane
+        (the species are symmetric), and doing it twice is nothing."""
+        sp = SPECIES[name]
+        m = list(sp.mirror_index())
+        np.testing.assert_allclose(sp.rest[m], sp.rest * [1.0, -1.0, 1.0], atol=1e-12)
+        assert [m[i] for i in m] == list(range(sp.num_keypoints))
+        assert m != list(range(sp.num_keypoints))
+        if name == "biped":
+            assert m[:7] == [0, 4, 5, 6, 1, 2, 3] and m[11] == 14 and m[9] == 9
+
     def test_unknown_species_names_the_key(self):
         with pytest.raises(ConfigError, match=r"species.*horse"):
             get_species("horse")
