@@ -15,7 +15,9 @@ one variant per fresh process with one torch thread, two at a time on two cores
   it);
 * the same subjects with the ground truth's visible masks and amodal masks instead of the
   exported ones (the floor that the masks, 4 cameras and the model leave);
-* temporal smoothing of the occlusion-aware fits (``smooth_frames``), applied afterwards.
+* temporal smoothing of the occlusion-aware fits (``smooth_frames``), applied afterwards;
+* every row whose fits the direction of travel relabelled front to back
+  (``travel_relabelled``, :mod:`netepu.pipeline.travel`) again as fitted (``[travel off]``).
 
 MPJPE (mm) against the scene's 3D keypoints (:func:`nsd.evaluation.pose.keypoint_error`),
 its percentiles over subject-frames, and seconds per subject-frame; ``mirrored_share``: the
@@ -139,6 +141,20 @@ def errors(export: Path, scene: str, keypoints: Path,
     return out
 
 
+def unrelabelled(keypoints: Path, mirror: tuple[int, ...], out: Path) -> Path:
+    """``keypoints3d.npz`` as fitted: the subject-frames the travel relabelled
+    (``subject_relabelled``, :mod:`netepu.pipeline.travel`) swapped back."""
+    with np.load(keypoints) as z:
+        d = dict(z)
+    flip = d["subject_relabelled"]
+    d["subject_keypoints"] = np.where(flip[:, None, None], d["subject_keypoints"][:, list(mirror)],
+                                      d["subject_keypoints"])
+    d["subject_relabelled"] = np.zeros_like(flip)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, **d)
+    return out
+
+
 def smoothed(keypoints: Path, out: Path, sigma: float) -> Path:
     """``keypoints3d.npz`` with its subject keypoints smoothed over time (sigma in frames)."""
     from netepu.pipeline.subject_keypoints import smooth_tracks
@@ -212,8 +228,16 @@ def main() -> None:
                          **errors(exports[run, masks], scenes[run],
                                   outs[name] / "keypoints3d.npz", mirrors[run]),
                          "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
-                         "warm_share": s.get("warm_share"), "mean_loss": s["mean_loss"]})
+                         "warm_share": s.get("warm_share"), "mean_loss": s["mean_loss"],
+                         "travel_relabelled": s.get("travel_relabelled")})
             print(rows[-1], flush=True)
+            if s.get("travel_relabelled") and not kw.get("smooth_frames"):
+                path = unrelabelled(outs[name] / "keypoints3d.npz", mirrors[run],
+                                    work / f"untravelled{len(outs)}" / "keypoints3d.npz")
+                rows.append({"variant": f"{name} [travel off]",
+                             **errors(exports[run, masks], scenes[run], path, mirrors[run]),
+                             "travel_relabelled": 0})
+                print(rows[-1], flush=True)
     occ = outs.get("occluders, screened template starts")  # one run only
     run = args.run[0]
     for sigma in SMOOTHING if occ is not None and args.variants is None else ():

@@ -254,7 +254,7 @@ KEYPOINT_SOURCES = ("inverse", "regressor")
 
 _INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "max_subject_frames",
                  "occlusion", "warm_steps", "smooth_frames", "point_budget", "init_steps",
-                 "init_templates")
+                 "init_templates", "travel_speed")
 
 
 def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
@@ -291,6 +291,7 @@ def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
     else:
         settings["geometry"] = models.key_geometry
         settings["initialiser"] = models.key_initialiser
+        settings["fps"] = cfg.formats.get("fps")  # the travel's time base
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         scene = up["scene"].summary["path"]
@@ -304,7 +305,8 @@ def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
                          "template poses", models.why_initialiser)
             summary = invert_export(
                 export, scene, models.geometry, out, workers=workers,
-                initialiser=models.initialiser, **{name: k[name] for name in _INVERSE_KEYS},
+                initialiser=models.initialiser, fps=settings["fps"],
+                **{name: k[name] for name in _INVERSE_KEYS},
             )
         if up["scene"].summary["ground_truth"]:
             summary["accuracy"] = keypoint_error(export, scene, out / "keypoints3d.npz")

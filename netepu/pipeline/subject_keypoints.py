@@ -52,12 +52,16 @@ from netepu.geometry.initialiser import PoseInitialiser, load_initialiser
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import load_geometry_model
+from netepu.pipeline.travel import TRAVEL_SECONDS, face_travel, travel_velocity
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
 from nsd.export.parallel import BatchPool
+from nsd.export.positions import triangulate_positions
+from nsd.io.footage import footage_frame_rate
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
 from nsd.synth import make_individual
 from nsd.synth.motion import sample_pose
+from nsd.synth.skeleton import get_species
 
 __all__ = ["invert_export", "load_initialiser_checked", "smooth_tracks", "template_poses"]
 
@@ -129,6 +133,8 @@ def invert_export(
     inverse: dict[str, Any] | None = None,
     workers: int = 1,
     initialiser: str | os.PathLike | None = None,
+    travel_speed: float = 0.6,
+    fps: float | None = None,
 ) -> dict[str, Any]:
     """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
 
@@ -167,7 +173,8 @@ def invert_export(
 
     Returns:
         counts, the mean final silhouette loss, seconds per subject-frame (wall time over
-        all workers) and the share of subject-frames fitted from a warm start.
+        all workers), the share of subject-frames fitted from a warm start and the number
+        relabelled front to back by their travel.
     """
 
     if frame_step < 1 or min_views < 1:
@@ -179,6 +186,9 @@ def invert_export(
                           f"{smooth_frames}")
     if point_budget < 0:
         raise ConfigError(f"keypoints: point_budget must be >= 0, got {point_budget}")
+    if travel_speed < 0 or (fps is not None and fps <= 0):
+        raise ConfigError(f"keypoints: travel_speed must be >= 0 and fps > 0, got "
+                          f"{travel_speed}, {fps}")
     if init_steps < 1 or init_templates < 0:
         raise ConfigError(f"keypoints: init_steps must be >= 1 and init_templates >= 0, got "
                           f"{init_steps}, {init_templates}")
@@ -239,17 +249,50 @@ def invert_export(
                          t, sid, len(anns), loss, "warm" if was_warm else "cold")
     fits = [(t, sid, anns, *results[i][:2]) for i, (t, sid, anns) in enumerate(tasks)]
     warm_fits = sum(r[2] for r in results.values())
+    fits, relabelled = _face_travel(fits, export, scene, rig, model.radius * travel_speed, fps,
+                                    net["data"], np.asarray(settings.up, np.float64))
     seconds = time.perf_counter() - start
     smoothed = smooth_tracks([(t, sid, kp, loss) for t, sid, _, kp, loss in fits],
                              smooth_frames)
     fitted = SubjectKeypoints()
-    for (t, sid, anns, _, loss), kp in zip(fits, smoothed, strict=True):
-        fitted.add(t, sid, anns, kp, loss)
+    for (t, sid, anns, _, loss), kp, flip in zip(fits, smoothed, relabelled, strict=True):
+        fitted.add(t, sid, anns, kp, loss, flip)
     fitted.save(Path(out) / "keypoints3d.npz", starts.shape[1])
     return fitted.summary(n_frames, "mean_loss") | {
         "seconds_per_subject_frame": seconds / len(fits) if fits else None,
         "warm_share": warm_fits / len(fits) if fits else None,
+        "travel_relabelled": int(sum(relabelled)),
     }
+
+
+def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: float | None,
+                 data_cfg: dict[str, Any], up: np.ndarray) -> tuple[list[tuple], list[bool]]:
+    """``fits`` ``(frame, subject, rows, keypoints, loss)`` with each pose that faces against
+    its subject's travel at ``min_speed`` (scene units per second) or more relabelled
+    (:mod:`netepu.pipeline.travel`), and which were."""
+    if min_speed <= 0 or not fits:
+        return fits, [False] * len(fits)
+    rate = fps or footage_frame_rate(scene, rig.names)
+    if rate is None:
+        log.warning("keypoints: %s has no frame rate (image folders): the travel that tells "
+                    "front from back assumes 30 frames/s; give formats.fps", scene)
+        rate = 30.0
+    d = max(1, round(TRAVEL_SECONDS * rate))
+    positions = triangulate_positions(
+        export, rig, frames={t + s for t, *_ in fits for s in (-d, d)})
+    species = get_species(DataConfig.from_mapping(data_cfg).species)
+    left, mirror = species.left_index(), species.mirror_index()
+    up = up / np.linalg.norm(up)
+    out, flips = [], []
+    for t, sid, anns, kp, loss in fits:
+        velocity = travel_velocity(positions, t, sid, d, rate, up)
+        kp, flip = face_travel(np.asarray(kp), velocity, left, mirror, up, min_speed)
+        if flip:
+            log.info("keypoints: frame %d subject %d faced against its travel: left and right "
+                     "swapped", t, sid)
+        out.append((t, sid, anns, kp, loss))
+        flips.append(flip)
+    return out, flips
 
 
 def smooth_tracks(fits: list[tuple[int, int, np.ndarray, float]], sigma: float) -> list[np.ndarray]:

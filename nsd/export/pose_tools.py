@@ -39,7 +39,7 @@ from sleap_io.io import nwb_predictions
 from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_write_text
 from nsd.export.positions import mask_centroid
-from nsd.io.footage import ImageFolderSource, find_source
+from nsd.io.footage import ImageFolderSource, find_source, footage_frame_rate
 
 __all__ = ["POSE_TOOL_FORMATS", "read_trc", "write_c3d", "write_pose_tool_files", "write_trc"]
 
@@ -217,23 +217,13 @@ def write_c3d(path: Path, names: list[str], frames: np.ndarray, points: np.ndarr
 
 
 def _frame_rate(scene: Path, cameras: list[str], fps: float | None) -> float:
-    """The footage's frame rate: ``fps`` when given, a video's own rate, the synthetic
-    scene's (``gt/scene.json``), else 30 (said)."""
+    """The footage's frame rate: ``fps`` when given, else the footage's own
+    (:func:`nsd.io.footage.footage_frame_rate`), else 30 (said)."""
     if fps:
         return float(fps)
-    for camera in cameras:
-        source = find_source(scene, camera)
-        if not isinstance(source, ImageFolderSource):
-            cap = cv2.VideoCapture(str(source.path))
-            rate = cap.get(cv2.CAP_PROP_FPS)
-            cap.release()
-            if rate and np.isfinite(rate) and rate > 0:
-                return float(rate)
-    meta = scene / "gt" / "scene.json"
-    if meta.is_file():
-        rate = json.loads(meta.read_text()).get("fps")
-        if rate:
-            return float(rate)
+    rate = footage_frame_rate(scene, cameras)
+    if rate:
+        return rate
     log.warning("pose tools: %s has no frame rate (image folders): TRC/C3D use 30 frames/s; "
                 "give formats.fps", scene)
     return 30.0

@@ -18,6 +18,7 @@ import io
 import json
 import os
 from collections import defaultdict
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +52,8 @@ def mask_centroids(coco: dict) -> dict[int, np.ndarray]:
 
 
 def triangulate_positions(
-    export: str | os.PathLike, rig: CameraRig, row_ids: dict[int, int] | None = None
+    export: str | os.PathLike, rig: CameraRig, row_ids: dict[int, int] | None = None,
+    frames: Collection[int] | None = None,
 ) -> dict[tuple[int, int], tuple[np.ndarray, int]]:
     """World position of every individual and frame with at least two views.
 
@@ -60,11 +62,16 @@ def triangulate_positions(
         rig: the scene's calibration at the footage's native size, in metres.
         row_ids: annotation id -> identity (>= 0; others are left out); default: each row's
             ``subject_id``.
+        frames: only these frames (default: all; only their masks are decoded).
 
     Returns:
         ``(frame, id)`` -> (position (3,) float64, number of views).
     """
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())
+    if frames is not None:
+        wanted = {int(f) for f in frames}
+        coco = {**coco, "annotations": [a for a in coco["annotations"]
+                                        if int(a["frame"]) in wanted]}
     centroids = mask_centroids(coco)
     groups: dict[tuple[int, int], list[tuple[str, np.ndarray]]] = defaultdict(list)
     for a in coco["annotations"]:

@@ -41,6 +41,7 @@ __all__ = [
     "MultiViewFootage",
     "VideoSource",
     "find_source",
+    "footage_frame_rate",
 ]
 
 log = logging.getLogger(__name__)
@@ -231,6 +232,29 @@ def find_source(scene: str | os.PathLike, camera: str) -> FrameSource:
         f"{', '.join(VIDEO_EXTENSIONS)}) and no image folder ({scene}/{camera}/); "
         "also looked in videos/ and images/"
     )
+
+
+def footage_frame_rate(scene: str | os.PathLike, cameras: Sequence[str]) -> float | None:
+    """Frames per second of a scene's footage: the first video's own rate, else a synthetic
+    scene's (``gt/scene.json``); None when nothing says (image folders, no footage)."""
+    scene = Path(scene)
+    for camera in cameras:
+        try:
+            source = find_source(scene, camera)
+        except FootageError:  # no footage to ask (its reader says so where it is read)
+            continue
+        if not isinstance(source, ImageFolderSource):
+            cap = cv2.VideoCapture(str(source.path))
+            rate = cap.get(cv2.CAP_PROP_FPS)
+            cap.release()
+            if rate and np.isfinite(rate) and rate > 0:
+                return float(rate)
+    meta = scene / "gt" / "scene.json"
+    if meta.is_file():
+        rate = json.loads(meta.read_text()).get("fps")
+        if rate:
+            return float(rate)
+    return None
 
 
 class MultiViewFootage:

@@ -10,6 +10,8 @@ same file, which the texture-code step reads::
       keypoints   (n, K, 3)  world keypoints of each row's subject, the calibration's units
       subject_frame (m,), subject_id (m,), subject_keypoints (m, K, 3),
       subject_loss (m,), subject_views (m,)   one entry per fitted subject-frame
+      subject_relabelled (m,)  bool: left and right swapped after the fit (the subject
+                               faced against its travel, netepu.pipeline.travel)
 """
 
 from __future__ import annotations
@@ -64,14 +66,17 @@ class SubjectKeypoints:
     def __len__(self) -> int:
         return len(self.subjects["frame"])
 
-    def add(self, frame: int, subject: int, rows: list[dict], keypoints, loss: float) -> None:
-        """One subject-frame's world keypoints (K, 3), given to each of its ``rows``."""
+    def add(self, frame: int, subject: int, rows: list[dict], keypoints, loss: float,
+            relabelled: bool = False) -> None:
+        """One subject-frame's world keypoints (K, 3), given to each of its ``rows``
+        (``relabelled``: its left and right were swapped after the fit)."""
         kp = np.asarray(keypoints, np.float32)
         for a in rows:
             self.row_ids.append(int(a["id"]))
             self.row_keypoints.append(kp)
         for key, value in (("frame", frame), ("id", subject), ("keypoints", kp),
-                           ("loss", loss), ("views", len(rows))):  # fmt: skip
+                           ("loss", loss), ("views", len(rows)),
+                           ("relabelled", bool(relabelled))):  # fmt: skip
             self.subjects[key].append(value)
 
     def summary(self, frames: int, loss_name: str) -> dict[str, Any]:
@@ -102,4 +107,5 @@ class SubjectKeypoints:
             subject_keypoints=np.asarray(s["keypoints"], np.float32).reshape(-1, k, 3),
             subject_loss=np.asarray(s["loss"], np.float32),
             subject_views=np.asarray(s["views"], np.int64),
+            subject_relabelled=np.asarray(s["relabelled"], bool),
         )

@@ -237,6 +237,11 @@ class Species:
         return tuple(self.index("_".join(swap.get(w, w) for w in name.split("_")))
                      for name in self.keypoint_names)
 
+    def left_index(self) -> tuple[int, ...]:
+        """The keypoints on the body's left (``left`` in their name), each paired with its
+        :meth:`mirror_index` counterpart on the right."""
+        return tuple(k for k, name in enumerate(self.keypoint_names) if "left" in name.split("_"))
+
     def primitive_index(self, name: str) -> int:
         return [p.name for p in self.primitives].index(name)
 

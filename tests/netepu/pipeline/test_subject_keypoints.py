@@ -75,6 +75,7 @@ def _hand_made_export(tmp_path, model, net):
                     continue
                 rle = mask_utils.encode(np.asfortranarray(m.astype(np.uint8)))
                 annotations.append({"id": len(annotations), "image_id": images[-1]["id"],
+                                    "camera": c.name, "frame": t,
                                     "subject_id": s, "area": float(m.sum()),
                                     "segmentation": {"size": rle["size"],
                                                      "counts": rle["counts"].decode()}})
