@@ -39,9 +39,10 @@ alike facing left or right, and a limb far from its place is not pulled back)
 
 A learned initialiser (:mod:`netepu.geometry.initialiser`)
     predicts the keypoints from the subject's visual hull; their code and centre are one
-    start. ``init_templates`` screened template starts run beside it for ``init_steps``
-    steps, the worse half dropped after half of them (``init_turns`` > 1 adds the learned
-    start turned about the up axis).
+    start. ``init_templates`` screened template starts (``init_headings`` headings each,
+    scored at ``init_screen_points``, loss points shared as ``init_point_budget``) run beside it
+    for ``init_steps`` steps, the worse half dropped after half of them (``init_turns`` > 1
+    adds the learned start turned about the up axis).
 
 Warm starts (a subject followed over frames)
     Given the result of an earlier frame (``warm``), one start from its code, its
@@ -112,6 +113,9 @@ class InverseSettings:
         init_turns: the learned start at this many headings about the up axis through its
             centre (1: as predicted; 2: also turned 180 degrees, the heading a silhouette tells
             worst), all optimised.
+        init_headings, init_screen_points, init_point_budget: ``headings``, ``screen_points``
+            and ``point_budget`` beside a learned start (its templates only stand in where it
+            is wrong, so they are screened more coarsely than the templates alone).
     """
 
     steps: int = 120
@@ -129,9 +133,12 @@ class InverseSettings:
     warm_steps: int = 40
     warm_tolerance: float = 1.25
     warm_lr: float = 0.05
-    init_steps: int = 60
+    init_steps: int = 40
     init_templates: int = 2
     init_turns: int = 1
+    init_headings: int = 4
+    init_screen_points: int = 64
+    init_point_budget: int = 576
 
 
 @dataclass
@@ -400,10 +407,12 @@ def invert_silhouettes(
             z0, c0 = _screen(model, masks, cams, regions, z0, c0, s, rng, ignored)
         elif start is None:
             steps = s.init_steps
-            run_s = replace(s, prune_every=max(1, steps // 2))
+            run_s = replace(s, prune_every=max(1, steps // 2), headings=s.init_headings,
+                            screen_points=s.init_screen_points,
+                            point_budget=s.init_point_budget)
             if s.init_templates:
-                zt, ct = _code_starts(model, masks, camera, templates, s, anchor, None)
-                zt, ct = _screen(model, masks, cams, regions, zt, ct, s, rng, ignored,
+                zt, ct = _code_starts(model, masks, camera, templates, run_s, anchor, None)
+                zt, ct = _screen(model, masks, cams, regions, zt, ct, run_s, rng, ignored,
                                  s.init_templates)
                 z0, c0 = torch.cat([z0, zt]), torch.cat([c0, ct])
         lr = s.warm_lr if start is not None else s.lr

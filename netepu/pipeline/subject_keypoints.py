@@ -84,6 +84,22 @@ def template_poses(data_cfg: dict[str, Any], n: int = 2, seed: int = 0) -> torch
     )
 
 
+# netepu.keypoints.<key>: auto, per species of the geometry model, as measured
+# (docs/netepu.md "Front and back", docs/benchmarks/keypoints_travel.md): bipeds keep two
+# coarsely screened templates beside the learned start and take front and back from their
+# travel; a quadruped's templates brought back its tail of wrong fits (mean 275 mm against 206
+# for the learned start alone) and the travel made it worse (214 against 206)
+AUTO: dict[str, dict[str, Any]] = {
+    "biped": {"init_templates": 2, "travel_speed": 0.6},
+    "quadruped": {"init_templates": 0, "travel_speed": 0.0},
+}
+
+
+def _auto(key: str, value: Any, species: str) -> Any:
+    """``value``, or for ``auto`` the species' :data:`AUTO` entry."""
+    return AUTO[species][key] if value == "auto" else value
+
+
 def load_initialiser_checked(path: str | os.PathLike) -> PoseInitialiser:
     """The learned initialiser at ``path``.
 
@@ -129,11 +145,11 @@ def invert_export(
     smooth_frames: float = 0.0,
     point_budget: int = InverseSettings.point_budget,
     init_steps: int = InverseSettings.init_steps,
-    init_templates: int = InverseSettings.init_templates,
+    init_templates: int | str = "auto",
     inverse: dict[str, Any] | None = None,
     workers: int = 1,
     initialiser: str | os.PathLike | None = None,
-    travel_speed: float = 0.6,
+    travel_speed: float | str = "auto",
     fps: float | None = None,
 ) -> dict[str, Any]:
     """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
@@ -160,7 +176,8 @@ def invert_export(
             at full points).
         init_steps: Adam steps refining the learned initialiser's start (with
             ``initialiser``).
-        init_templates: screened template starts refined beside the initialiser's.
+        init_templates: screened template starts refined beside the initialiser's (``auto``:
+            the species' :data:`AUTO`).
         inverse: more :class:`netepu.geometry.inverse.InverseSettings` fields (e.g.
             ``points_per_view``; benchmarks vary them).
         initialiser: a learned initialiser's checkpoint (:mod:`netepu.geometry.initialiser`):
@@ -186,15 +203,18 @@ def invert_export(
                           f"{smooth_frames}")
     if point_budget < 0:
         raise ConfigError(f"keypoints: point_budget must be >= 0, got {point_budget}")
-    if travel_speed < 0 or (fps is not None and fps <= 0):
-        raise ConfigError(f"keypoints: travel_speed must be >= 0 and fps > 0, got "
+    if (travel_speed != "auto" and float(travel_speed) < 0) or (fps is not None and fps <= 0):
+        raise ConfigError(f"keypoints: travel_speed must be auto or >= 0 and fps > 0, got "
                           f"{travel_speed}, {fps}")
-    if init_steps < 1 or init_templates < 0:
-        raise ConfigError(f"keypoints: init_steps must be >= 1 and init_templates >= 0, got "
-                          f"{init_steps}, {init_templates}")
+    if init_steps < 1 or (init_templates != "auto" and int(init_templates) < 0):
+        raise ConfigError(f"keypoints: init_steps must be >= 1 and init_templates auto or >= 0, "
+                          f"got {init_steps}, {init_templates}")
     model, config = load_geometry_model(checkpoint)
     learned = None if initialiser is None else _initialiser(initialiser, model, config)
     net = config["netepu"]
+    species = DataConfig.from_mapping(net["data"]).species
+    init_templates = _auto("init_templates", init_templates, species)
+    travel_speed = _auto("travel_speed", travel_speed, species)
     starts = template_poses(net["data"], templates)
     render = net.get("render") or MapSettings.default_mapping()  # checkpoints before it: defaults
     settings = InverseSettings(steps=steps, margin=float(render["margin"]), warm_steps=warm_steps,
@@ -250,7 +270,7 @@ def invert_export(
     fits = [(t, sid, anns, *results[i][:2]) for i, (t, sid, anns) in enumerate(tasks)]
     warm_fits = sum(r[2] for r in results.values())
     fits, relabelled = _face_travel(fits, export, scene, rig, model.radius * travel_speed, fps,
-                                    net["data"], np.asarray(settings.up, np.float64))
+                                    species, np.asarray(settings.up, np.float64))
     seconds = time.perf_counter() - start
     smoothed = smooth_tracks([(t, sid, kp, loss) for t, sid, _, kp, loss in fits],
                              smooth_frames)
@@ -266,7 +286,7 @@ def invert_export(
 
 
 def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: float | None,
-                 data_cfg: dict[str, Any], up: np.ndarray) -> tuple[list[tuple], list[bool]]:
+                 species: str, up: np.ndarray) -> tuple[list[tuple], list[bool]]:
     """``fits`` ``(frame, subject, rows, keypoints, loss)`` with each pose that faces against
     its subject's travel at ``min_speed`` (scene units per second) or more relabelled
     (:mod:`netepu.pipeline.travel`), and which were."""
@@ -280,8 +300,8 @@ def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: f
     d = max(1, round(TRAVEL_SECONDS * rate))
     positions = triangulate_positions(
         export, rig, frames={t + s for t, *_ in fits for s in (-d, d)})
-    species = get_species(DataConfig.from_mapping(data_cfg).species)
-    left, mirror = species.left_index(), species.mirror_index()
+    body = get_species(species)
+    left, mirror = body.left_index(), body.mirror_index()
     up = up / np.linalg.norm(up)
     out, flips = [], []
     for t, sid, anns, kp, loss in fits:

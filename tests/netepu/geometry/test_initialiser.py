@@ -187,9 +187,10 @@ def test_the_pipeline_defaults_are_the_inversions():
 
     conf = OmegaConf.load(Path(__file__).parents[3] / "conf" / "run.yaml").netepu.keypoints
     shared = [f for f in fields(InverseSettings)  # (warm_steps: 0 there turns warm starts off)
-              if f.name in ("steps", "point_budget", "init_steps", "init_templates")]
+              if f.name in ("steps", "point_budget", "init_steps")]
     for f in shared:
         assert conf[f.name] == f.default, f.name
+    assert conf.init_templates == conf.travel_speed == "auto"  # per species: AUTO
 
 
 def test_screened_templates_beside_a_wrong_learned_start_win():
@@ -202,7 +203,7 @@ def test_screened_templates_beside_a_wrong_learned_start_win():
     alone = invert_silhouettes(model, own, cam, code.keypoints[0][None], InverseSettings(
         points_per_view=256, init_steps=20, init_templates=0), initialiser=wrong)
     assert mpjpe(alone.keypoints, code.keypoints[0]) > 0.1
-    s = InverseSettings(points_per_view=256, init_steps=20, init_templates=1, headings=1)
+    s = InverseSettings(points_per_view=256, init_steps=20, init_templates=1, init_headings=1)
     res = invert_silhouettes(model, own, cam, code.keypoints[0][None], s, initialiser=wrong)
     assert res.start_steps == 30 and len(res.start_losses) == 1
     assert mpjpe(res.keypoints, code.keypoints[0]) < 0.05

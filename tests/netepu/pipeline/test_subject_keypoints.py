@@ -133,3 +133,18 @@ def test_an_initialiser_of_another_body_or_no_initialiser_is_refused(tmp_path):
                           steps=4, templates=2, initialiser=path)
         assert says in str(e.value)
         assert not (tmp_path / "out" / "keypoints3d.npz").exists()
+
+
+def test_every_built_in_species_has_its_automatic_settings():
+    """``auto`` keypoint settings exist for every species a built-in model is made for, and
+    are values the keys accept."""
+    from netepu.pipeline.species_models import builtin_models
+    from netepu.pipeline.subject_keypoints import AUTO, _auto
+
+    assert set(AUTO) == set(builtin_models())
+    for species, values in AUTO.items():
+        assert isinstance(values["init_templates"], int) and values["init_templates"] >= 0
+        assert values["travel_speed"] >= 0
+        assert _auto("travel_speed", "auto", species) == values["travel_speed"]
+        assert _auto("travel_speed", 1.5, species) == 1.5
+    assert AUTO["biped"]["travel_speed"] > 0  # front and back from the travel: bipeds

@@ -48,24 +48,21 @@ def test_fits_turned_front_to_back_are_put_right_on_the_synthetic_world(world):
     """The true poses of the shared world's walkers, every one turned front to back, go
     through the keypoints stage's relabelling: every fit it relabels becomes the true pose
     again, and a moving subject's are (its walkers face their travel)."""
-    from netepu.geometry.model import load_geometry_model
-    from netepu.pipeline.species_models import MODELS
     from netepu.pipeline.subject_keypoints import _face_travel
     from nsd.cameras.calibration_io import read_calibration
 
     with np.load(world["scene"] / "gt" / "keypoints3d.npz") as z:
         truth = {int(k.split("_")[1]): z[k] for k in z.files}
-    _, config = load_geometry_model(MODELS / "biped.pt")
     mirror = list(BIPED.mirror_index())
     fits = [(t, ident + 1, [], kp[t][mirror], 1.0)  # the world's export: subject = identity + 1
             for ident, kp in truth.items() for t in range(1, len(kp) - 1)]
     rig = read_calibration(world["scene"])
     out, flips = _face_travel(fits, world["export"], world["scene"], rig, 1e-3, 5.0,
-                              config["netepu"]["data"], UP)  # 5 frames/s: d = 1 frame
+                              "biped", UP)  # 5 frames/s: d = 1 frame
     assert sum(flips) >= len(fits) // 2
     for (t, sid, _, kp, _), flip in zip(out, flips, strict=True):
         if flip:
             np.testing.assert_allclose(kp, truth[sid - 1][t], atol=1e-6)
     unchanged, none = _face_travel(fits, world["export"], world["scene"], rig, 0.0, 5.0,
-                                   config["netepu"]["data"], UP)
+                                   "biped", UP)
     assert not any(none) and unchanged is fits
