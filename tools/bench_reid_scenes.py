@@ -374,8 +374,9 @@ def keypoints_report() -> None:
             })  # fmt: skip
     notes = (
         "Each scene is an existing `nsd-run` folder (the built-in NeTePu models for the "
-        "keypoints and the texture codes; label-free keypoints from the screened inversion "
-        "of the exported visible masks; the scene's species' model). `ground-truth keypoints` "
+        "keypoints and the texture codes; label-free keypoints from the run's inversion of "
+        "the exported visible masks with the keypoint settings of its day, in its "
+        "`pipeline.json`; the scene's species' model). `ground-truth keypoints` "
         "codes the same exported rows "
         "again (`netepu.pipeline.embed.embed_into_copy`) with the true 3D keypoints of the "
         "individual each row matches, so the two rows of a scene differ only in the keypoints "
