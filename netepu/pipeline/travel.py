@@ -26,6 +26,7 @@ and the fit is relabelled when :math:`|v| \ge` ``min_speed`` :math:`\cdot r` and
 :math:`f \cdot v < 0`. On the synthetic scenes' ground truth the bipeds face their travel
 in 93-100 % of the frames where they move at 0.6 radii per second or faster, in 70-100 %
 below (docs/netepu.md "Front and back").
+
 Where it pays is measured per species (``netepu.keypoints.travel_speed: auto``,
 :data:`netepu.pipeline.subject_keypoints.AUTO`): on bipeds, whose front and back cast nearly
 the same silhouettes. A quadruped's left-right axis faced its travel in only 75-91 % of its
