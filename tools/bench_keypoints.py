@@ -128,47 +128,59 @@ def errors(export: Path, scene: str, keypoints: Path,
            mirror: tuple[int, ...] | None = None) -> dict[str, float]:
     """MPJPE summary and its percentiles over subject-frames; with the species' ``mirror``
     index also the share of subject-frames closer to the truth with left and right swapped
-    (a body turned front to back) and the mean MPJPE had each taken the closer of the two."""
+    (a body turned front to back) and the mean MPJPE had each taken the closer of the two.
+    The subjects are matched to the ground truth once."""
     from nsd.evaluation.pose import mirror_errors, subject_frame_errors
 
-    _, e = subject_frame_errors(export, scene, keypoints)
+    if mirror:
+        pairs = mirror_errors(export, scene, keypoints, mirror)  # (as fitted, swapped)
+        e = [fitted for fitted, _ in pairs]
+    else:
+        pairs, e = [], subject_frame_errors(export, scene, keypoints)[1]
     mean, median, p25, p75, p90 = ((np.mean(e), *np.percentile(e, [50, 25, 75, 90])) if e
                                    else (np.nan,) * 5)
     out = {"mpjpe_mm": float(mean), "median_mm": float(median), "p25_mm": float(p25),
            "p75_mm": float(p75), "p90_mm": float(p90), "scored": float(len(e))}
-    if mirror is not None and e:
-        pairs = np.array(mirror_errors(export, scene, keypoints, mirror))
-        out["mirrored_share"] = float((pairs[:, 1] < pairs[:, 0]).mean())
-        out["best_of_mirror_mm"] = float(pairs.min(1).mean())
+    if pairs:
+        both = np.array(pairs)
+        out["mirrored_share"] = float((both[:, 1] < both[:, 0]).mean())
+        out["best_of_mirror_mm"] = float(both.min(1).mean())
+    return out
+
+
+def _rewritten(keypoints: Path, out: Path, change) -> Path:
+    """``keypoints3d.npz`` copied to ``out`` with ``change(arrays)`` applied to its arrays."""
+    with np.load(keypoints) as z:
+        d = dict(z)
+    change(d)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, **d)
     return out
 
 
 def unrelabelled(keypoints: Path, mirror: tuple[int, ...], out: Path) -> Path:
     """``keypoints3d.npz`` as fitted: the subject-frames the travel relabelled
     (``subject_relabelled``, :mod:`netepu.pipeline.travel`) swapped back."""
-    with np.load(keypoints) as z:
-        d = dict(z)
-    flip = d["subject_relabelled"]
-    d["subject_keypoints"] = np.where(flip[:, None, None], d["subject_keypoints"][:, list(mirror)],
-                                      d["subject_keypoints"])
-    d["subject_relabelled"] = np.zeros_like(flip)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(out, **d)
-    return out
+    def back(d: dict) -> None:
+        flip = d["subject_relabelled"]
+        d["subject_keypoints"] = np.where(flip[:, None, None],
+                                          d["subject_keypoints"][:, list(mirror)],
+                                          d["subject_keypoints"])
+        d["subject_relabelled"] = np.zeros_like(flip)
+
+    return _rewritten(keypoints, out, back)
 
 
 def smoothed(keypoints: Path, out: Path, sigma: float) -> Path:
     """``keypoints3d.npz`` with its subject keypoints smoothed over time (sigma in frames)."""
     from netepu.pipeline.subject_keypoints import smooth_tracks
 
-    with np.load(keypoints) as z:
-        d = dict(z)
-    fits = list(zip(d["subject_frame"].tolist(), d["subject_id"].tolist(),
-                    d["subject_keypoints"], d["subject_loss"].tolist(), strict=True))
-    d["subject_keypoints"] = np.stack(smooth_tracks(fits, sigma)).astype(np.float32)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(out, **d)
-    return out
+    def smooth(d: dict) -> None:
+        fits = list(zip(d["subject_frame"].tolist(), d["subject_id"].tolist(),
+                        d["subject_keypoints"], d["subject_loss"].tolist(), strict=True))
+        d["subject_keypoints"] = np.stack(smooth_tracks(fits, sigma)).astype(np.float32)
+
+    return _rewritten(keypoints, out, smooth)
 
 
 def main() -> None:

@@ -59,6 +59,7 @@ from nsd.export.parallel import BatchPool
 from nsd.export.positions import triangulate_positions
 from nsd.io.footage import footage_frame_rate
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
+from nsd.ops.vectors import unit_vectors
 from nsd.synth import make_individual
 from nsd.synth.motion import sample_pose
 from nsd.synth.skeleton import get_species
@@ -302,7 +303,7 @@ def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: f
         export, rig, frames={t + s for t, *_ in fits for s in (-d, d)})
     body = get_species(species)
     left, mirror = body.left_index(), body.mirror_index()
-    up = up / np.linalg.norm(up)
+    up = unit_vectors(up)
     out, flips = [], []
     for t, sid, anns, kp, loss in fits:
         velocity = travel_velocity(positions, t, sid, d, rate, up)
