@@ -12,6 +12,11 @@ scene:
   :mod:`nsd.ops.ssim`);
 * ``train_step_ms_unfused_adam``: the same step with Adam's per-parameter loop instead of
   its fused kernel (the baseline before ``fused=True``);
+* ``train_step_ms_autograd_ssim``: the same step with autograd through the SSIM's forward
+  operations instead of its written-out gradient (the baseline before it);
+* ``train_step_ms_heap_returned``: the same step in a process that leaves glibc's heap
+  thresholds as they are (freed heap returned to the OS and faulted in again every step:
+  the baseline before :func:`nsd.core.memory.keep_freed_heap`);
 * ``train_step_ms_ranks``: the same 8 view pairs per step trained by ``n`` torchrun ranks of
   one thread each (``8 // n`` pairs per rank, gradients averaged by gloo's ``all_reduce``);
 * ``export_frames_per_s``: a whole ``nsd-export`` of the 300 frames (decoding, model, files;
@@ -53,6 +58,10 @@ from nsd.io.scenes import resolve_scene
 from nsd.training.task import NSDTask
 from tools.benchlib import median_time
 
+import nsd.core.threads
+from nsd.ops import ssim as ssim_module
+if sys.argv[4:] == ["heap_returned"]:
+    nsd.core.threads.keep_freed_heap = lambda: False  # glibc's thresholds as they are
 n, checkpoint, out = set_threads(int(sys.argv[1])), sys.argv[2], Path(sys.argv[3])
 with initialize_config_module("nsd.conf", version_base="1.3"):
     cfg = compose("train", ["data.max_frames=40"])
@@ -74,6 +83,9 @@ def train_ms():
     return 1000 * median_time(step, repeats=60, warmup=5), task
 
 result["train_step_ms"], task = train_ms()
+if sys.argv[4:] == ["heap_returned"]:
+    print(json.dumps(result))
+    sys.exit(0)
 fused_adam = torch.optim.Adam.__init__
 def unfused(self, *args, **kwargs):
     fused_adam(self, *args, **{**kwargs, "fused": None})
@@ -83,7 +95,11 @@ torch.optim.Adam.__init__ = fused_adam
 own = nsd.training.losses.ssim_map
 nsd.training.losses.ssim_map = kornia.metrics.ssim
 result["train_step_ms_kornia_ssim"], _ = train_ms()
-nsd.training.losses.ssim_map = own
+class _Traced:  # the SSIM's forward operations run outside its Function: autograd traces them
+    save_for_backward = staticmethod(lambda *tensors: None)
+ssim_module._SSIM.apply = staticmethod(lambda *a: ssim_module._SSIM.forward(_Traced, *a))
+result["train_step_ms_autograd_ssim"], _ = train_ms()
+del ssim_module._SSIM.apply  # the Function's own apply again
 
 def export_rate(workers):
     times = []
@@ -157,7 +173,8 @@ def ranks_ms(n: int, cpus: str) -> float:
 
 SPEED = {  # column -> True when larger is faster
     "train_step_ms": False, "train_step_ms_unfused_adam": False, "train_step_ms_ranks": False,
-    "train_step_ms_kornia_ssim": False, "export_frames_per_s": True,
+    "train_step_ms_kornia_ssim": False, "train_step_ms_autograd_ssim": False,
+    "train_step_ms_heap_returned": False, "export_frames_per_s": True,
 "export_frames_per_s_one_process": True, "frame_ms": False, "gemm_gflops": True,
 }
 
@@ -175,6 +192,11 @@ def main() -> None:
                                   str(run / "checkpoint.pt"), tmp],
                                  capture_output=True, text=True, check=True, cwd=ROOT)
             rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            returned = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD, str(n),
+                                       str(run / "checkpoint.pt"), tmp, "heap_returned"],
+                                      capture_output=True, text=True, check=True, cwd=ROOT)
+            rows[-1]["train_step_ms_heap_returned"] = json.loads(
+                returned.stdout.strip().splitlines()[-1])["train_step_ms"]
             rows[-1]["train_step_ms_ranks"] = (rows[-1]["train_step_ms"] if n == 1
                                                else ranks_ms(n, cpus))
             print(rows[-1], flush=True)
@@ -189,6 +211,12 @@ def main() -> None:
             "train_ssim_gain_1_thread": first["train_step_ms_kornia_ssim"] / first["train_step_ms"],
             "train_fused_adam_gain_1_thread": (first["train_step_ms_unfused_adam"]
                                                / first["train_step_ms"]),
+            "train_written_ssim_gradient_gain_1_thread": (first["train_step_ms_autograd_ssim"]
+                                                          / first["train_step_ms"]),
+            "train_kept_heap_gain_1_thread": (first["train_step_ms_heap_returned"]
+                                              / first["train_step_ms"]),
+            "train_kept_heap_gain_2_threads": (last["train_step_ms_heap_returned"]
+                                               / last["train_step_ms"]),
             "train_speed_up_vs_before": first["train_step_ms_kornia_ssim"] / last["train_step_ms"],
         },
         notes=("Each row a fresh process with that many threads on that many cores (taskset), "
@@ -197,6 +225,10 @@ def main() -> None:
                "instead of its fused kernel (the baseline); `ranks`: the same 8 view pairs "
                "per step over n torchrun ranks of one thread each (8 // n pairs per rank, "
                "gradients averaged by all_reduce), rank 0's median of 60 steps; "
+               "`autograd_ssim`: autograd through the SSIM's forward operations instead of "
+               "its written-out gradient (the baseline); `heap_returned`: a process with "
+               "glibc's heap thresholds as they are, freed heap given back and faulted in "
+               "again every step (the baseline before keep_freed_heap); "
                "`kornia_ssim`: the structural loss by "
                "kornia's depthwise convolutions instead of nsd/ops/ssim.py's matrix products "
                "(the baseline). Export: a whole `nsd-export` of the 300 frames from a 20-step "

@@ -2,7 +2,9 @@
 
 ``threads: 0`` in a command's config means every core of the machine that the process may
 use (its CPU affinity, so ``taskset`` and container limits count), divided among the
-processes of a torchrun job on this node; a positive value is used as given.
+processes of a torchrun job on this node; a positive value is used as given. Setting them
+also keeps freed heap pages in the process (:func:`nsd.core.memory.keep_freed_heap`), since
+every command that sets threads runs torch steps that free and re-allocate the same tensors.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ import logging
 import os
 
 import torch
+
+from nsd.core.memory import keep_freed_heap
 
 __all__ = ["available_cores", "set_threads"]
 
@@ -27,7 +31,8 @@ def available_cores() -> int:
 
 def set_threads(threads: int) -> int:
     """Set torch's intra-op threads: ``threads`` > 0 as given, 0 for every available core
-    (shared among a torchrun job's local processes). Returns the number set.
+    (shared among a torchrun job's local processes), and keep freed heap pages. Returns the
+    number of threads set.
 
     Example:
         >>> before = torch.get_num_threads()
@@ -39,4 +44,5 @@ def set_threads(threads: int) -> int:
         raise ValueError(f"threads must be >= 0 (0: every core), got {threads}")
     n = threads or max(1, available_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     torch.set_num_threads(n)
+    keep_freed_heap()
     return n

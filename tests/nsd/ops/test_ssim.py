@@ -27,6 +27,20 @@ def test_gradient_equals_kornia():
     torch.testing.assert_close(gx, gk, atol=1e-12, rtol=0)
 
 
+@pytest.mark.parametrize("grad_x,grad_y", [(True, False), (False, True), (True, True)])
+def test_written_out_gradient_equals_autograd_through_kornia(grad_x, grad_y):
+    """Each branch of the written-out backward (either image, or both) against kornia."""
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 3, 11, 15, generator=g, dtype=torch.float64, requires_grad=grad_x)
+    y = torch.rand(2, 3, 11, 15, generator=g, dtype=torch.float64, requires_grad=grad_y)
+    w = torch.rand(2, 3, 11, 15, generator=g, dtype=torch.float64)
+    inputs = [t for t in (x, y) if t.requires_grad]
+    ours = torch.autograd.grad((ssim_map(x, y, 7) * w).sum(), inputs)
+    ref = torch.autograd.grad((kornia.metrics.ssim(x, y, 7) * w).sum(), inputs)
+    for a, b in zip(ours, ref, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+
+
 def test_gradcheck():
     g = torch.Generator().manual_seed(2)
     x = torch.rand(1, 2, 6, 7, generator=g, dtype=torch.float64, requires_grad=True)
