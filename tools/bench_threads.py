@@ -12,11 +12,15 @@ scene:
   :mod:`nsd.ops.ssim`);
 * ``train_step_ms_unfused_adam``: the same step with Adam's per-parameter loop instead of
   its fused kernel (the baseline before ``fused=True``);
+* ``train_step_ms_nchw``: the same step with the convolutions' weights in torch's default
+  NCHW layout instead of channels-last (the baseline before :func:`nsd.model.build.build_model`
+  chose it);
 * ``train_step_ms_autograd_ssim``: the same step with autograd through the SSIM's forward
   operations instead of its written-out gradient (the baseline before it);
 * ``train_step_ms_heap_returned``: the same step in a process that leaves glibc's heap
   thresholds as they are (freed heap returned to the OS and faulted in again every step:
-  the baseline before :func:`nsd.core.memory.keep_freed_heap`);
+  the baseline before :func:`nsd.core.memory.keep_freed_heap`); ``train_step_ms_previous``
+  the same process with all three baselines at once (the step as it was before them);
 * ``train_step_ms_ranks``: the same 8 view pairs per step trained by ``n`` torchrun ranks of
   one thread each (``8 // n`` pairs per rank, gradients averaged by gloo's ``all_reduce``);
 * ``export_frames_per_s``: a whole ``nsd-export`` of the 300 frames (decoding, model, files;
@@ -71,9 +75,11 @@ d = cfg.data
 data = SceneData(resolve_scene(d.scene), d.image_size, d.cameras, d.val_fraction, d.max_frames)
 result = {"threads": n}
 
-def train_ms():
+def train_ms(layout=None):
     torch.manual_seed(0)
     task = NSDTask(cfg, data)
+    if layout is not None:
+        task.model.to(memory_format=layout)
     rng = np.random.default_rng(0)
     step_no = iter(range(10**6))
     def step():
@@ -82,8 +88,15 @@ def train_ms():
         task.opt.step()
     return 1000 * median_time(step, repeats=60, warmup=5), task
 
+class _Traced:  # the SSIM's forward operations run outside its Function: autograd traces them
+    save_for_backward = staticmethod(lambda *tensors: None)
+def trace_ssim():
+    ssim_module._SSIM.apply = staticmethod(lambda *a: ssim_module._SSIM.forward(_Traced, *a))
+
 result["train_step_ms"], task = train_ms()
-if sys.argv[4:] == ["heap_returned"]:
+if sys.argv[4:] == ["heap_returned"]:  # and the step as it was before all three changes
+    trace_ssim()
+    result["train_step_ms_previous"], _ = train_ms(torch.contiguous_format)
     print(json.dumps(result))
     sys.exit(0)
 fused_adam = torch.optim.Adam.__init__
@@ -92,12 +105,11 @@ def unfused(self, *args, **kwargs):
 torch.optim.Adam.__init__ = unfused
 result["train_step_ms_unfused_adam"], _ = train_ms()
 torch.optim.Adam.__init__ = fused_adam
+result["train_step_ms_nchw"], _ = train_ms(torch.contiguous_format)
 own = nsd.training.losses.ssim_map
 nsd.training.losses.ssim_map = kornia.metrics.ssim
 result["train_step_ms_kornia_ssim"], _ = train_ms()
-class _Traced:  # the SSIM's forward operations run outside its Function: autograd traces them
-    save_for_backward = staticmethod(lambda *tensors: None)
-ssim_module._SSIM.apply = staticmethod(lambda *a: ssim_module._SSIM.forward(_Traced, *a))
+trace_ssim()
 result["train_step_ms_autograd_ssim"], _ = train_ms()
 del ssim_module._SSIM.apply  # the Function's own apply again
 
@@ -174,7 +186,9 @@ def ranks_ms(n: int, cpus: str) -> float:
 SPEED = {  # column -> True when larger is faster
     "train_step_ms": False, "train_step_ms_unfused_adam": False, "train_step_ms_ranks": False,
     "train_step_ms_kornia_ssim": False, "train_step_ms_autograd_ssim": False,
-    "train_step_ms_heap_returned": False, "export_frames_per_s": True,
+    "train_step_ms_heap_returned": False, "train_step_ms_nchw": False,
+    "train_step_ms_previous": False,
+    "export_frames_per_s": True,
 "export_frames_per_s_one_process": True, "frame_ms": False, "gemm_gflops": True,
 }
 
@@ -195,8 +209,9 @@ def main() -> None:
             returned = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD, str(n),
                                        str(run / "checkpoint.pt"), tmp, "heap_returned"],
                                       capture_output=True, text=True, check=True, cwd=ROOT)
-            rows[-1]["train_step_ms_heap_returned"] = json.loads(
-                returned.stdout.strip().splitlines()[-1])["train_step_ms"]
+            before = json.loads(returned.stdout.strip().splitlines()[-1])
+            rows[-1]["train_step_ms_heap_returned"] = before["train_step_ms"]
+            rows[-1]["train_step_ms_previous"] = before["train_step_ms_previous"]
             rows[-1]["train_step_ms_ranks"] = (rows[-1]["train_step_ms"] if n == 1
                                                else ranks_ms(n, cpus))
             print(rows[-1], flush=True)
@@ -213,10 +228,18 @@ def main() -> None:
                                                / first["train_step_ms"]),
             "train_written_ssim_gradient_gain_1_thread": (first["train_step_ms_autograd_ssim"]
                                                           / first["train_step_ms"]),
+            "train_channels_last_gain_1_thread": (first["train_step_ms_nchw"]
+                                                  / first["train_step_ms"]),
+            "train_channels_last_gain_2_threads": (last["train_step_ms_nchw"]
+                                                   / last["train_step_ms"]),
             "train_kept_heap_gain_1_thread": (first["train_step_ms_heap_returned"]
                                               / first["train_step_ms"]),
             "train_kept_heap_gain_2_threads": (last["train_step_ms_heap_returned"]
                                                / last["train_step_ms"]),
+            "train_gain_vs_previous_1_thread": (first["train_step_ms_previous"]
+                                                / first["train_step_ms"]),
+            "train_gain_vs_previous_2_threads": (last["train_step_ms_previous"]
+                                                 / last["train_step_ms"]),
             "train_speed_up_vs_before": first["train_step_ms_kornia_ssim"] / last["train_step_ms"],
         },
         notes=("Each row a fresh process with that many threads on that many cores (taskset), "
@@ -225,10 +248,14 @@ def main() -> None:
                "instead of its fused kernel (the baseline); `ranks`: the same 8 view pairs "
                "per step over n torchrun ranks of one thread each (8 // n pairs per rank, "
                "gradients averaged by all_reduce), rank 0's median of 60 steps; "
-               "`autograd_ssim`: autograd through the SSIM's forward operations instead of "
+               "`nchw`: the convolutions' weights in the NCHW layout instead of "
+               "channels-last (the baseline); `autograd_ssim`: autograd through the SSIM's "
+               "forward operations instead of "
                "its written-out gradient (the baseline); `heap_returned`: a process with "
                "glibc's heap thresholds as they are, freed heap given back and faulted in "
-               "again every step (the baseline before keep_freed_heap); "
+               "again every step (the baseline before keep_freed_heap); `previous`: the "
+               "same process with all three baselines at once (NCHW, autograd SSIM, heap "
+               "returned: the step as it was before they changed); "
                "`kornia_ssim`: the structural loss by "
                "kornia's depthwise convolutions instead of nsd/ops/ssim.py's matrix products "
                "(the baseline). Export: a whole `nsd-export` of the 300 frames from a 20-step "

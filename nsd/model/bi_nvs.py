@@ -23,7 +23,7 @@ classical spatial transformer.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import ClassVar
 
 import torch
@@ -125,6 +125,20 @@ class Windows:
     latent: Tensor
     on: Tensor | None = None
 
+    def _map(self, fn) -> Windows:
+        det = Detections(fn(self.det.boxes), fn(self.det.depths), fn(self.det.presence))
+        on = None if self.on is None else fn(self.on)
+        return Windows(det, fn(self.crops), fn(self.app), fn(self.latent), on)
+
+    def halves(self, B: int) -> tuple[Windows, Windows]:
+        """The first ``B`` frames' windows and the rest's."""
+        return self._map(lambda t: t[:B]), self._map(lambda t: t[B:])
+
+    def swapped(self, B: int) -> Windows:
+        """The frames from ``B`` on first, then the first ``B``: each view of a pair of
+        views stacked (v then w) faces the other's windows."""
+        return self._map(lambda t: torch.cat([t[B:], t[:B]]))
+
 
 @dataclass
 class Rendering:
@@ -151,6 +165,17 @@ class Rendering:
     window_mask: Tensor
     occlusion_reasoning: bool = True
     ungated_masks: Tensor | None = None
+
+    def halves(self, B: int) -> tuple[Rendering, Rendering]:
+        """The first ``B`` frames' rendering and the rest's (one render of both views of
+        pairs, split back into one per view)."""
+        def part(s: slice) -> Rendering:
+            def cut(value):
+                if isinstance(value, Composite):
+                    return Composite(*(t[s] for t in value))
+                return value[s] if isinstance(value, Tensor) else value
+            return Rendering(**{f.name: cut(getattr(self, f.name)) for f in fields(self)})
+        return part(slice(0, B)), part(slice(B, None))
 
 
 class BiNVS(nn.Module):
@@ -352,41 +377,24 @@ class BiNVS(nn.Module):
         """
         both = self.windows(torch.cat([image_v, image_w]), torch.cat([background_v, background_w]))
         B = image_v.shape[0]
-        win_v, win_w = (
-            Windows(
-                Detections(*(getattr(both.det, k)[s] for k in ("boxes", "depths", "presence"))),
-                both.crops[s],
-                both.app[s],
-                both.latent[s],
-            )
-            for s in (slice(0, B), slice(B, 2 * B))
-        )
+        win_v, win_w = both.halves(B)
+        backgrounds = torch.cat([background_v, background_w])
+        # both directions in one render: targets v then w, sources w then v
         if self.cfg.mode == "autoencoder":
-            eye = torch.eye(3, dtype=image_v.dtype, device=image_v.device).expand(B, 3, 3)
-            return (
-                self.render(win_v, win_v, eye, background_v, associate=False),
-                self.render(win_w, win_w, eye, background_w, associate=False),
-                win_v,
-                win_w,
-            )
-        rot_wv = rotation_vw.transpose(-1, -2)
-        cost = None
-        if self.cfg.association_geometry > 0 and cameras_v is not None:
-            cost = self.geometry_cost(
-                win_v.det.boxes, win_w.det.boxes, cameras_v, cameras_w, image_v.shape[-2:]
-            )
-        return (
-            self.render(win_v, win_w, rot_wv, background_v, geometry_cost=cost),
-            self.render(
-                win_w,
-                win_v,
-                rotation_vw,
-                background_w,
-                geometry_cost=None if cost is None else cost.transpose(-1, -2),
-            ),
-            win_v,
-            win_w,
-        )
+            eye = torch.eye(3, dtype=image_v.dtype, device=image_v.device).expand(2 * B, 3, 3)
+            rendered = self.render(both, both, eye, backgrounds, associate=False)
+        else:
+            cost = None
+            if self.cfg.association_geometry > 0 and cameras_v is not None:
+                cost = self.geometry_cost(
+                    win_v.det.boxes, win_w.det.boxes, cameras_v, cameras_w, image_v.shape[-2:]
+                )
+                cost = torch.cat([cost, cost.transpose(-1, -2)])
+            rotations = torch.cat([rotation_vw.transpose(-1, -2), rotation_vw])
+            rendered = self.render(both, both.swapped(B), rotations, backgrounds,
+                                   geometry_cost=cost)
+        render_v, render_w = rendered.halves(B)
+        return render_v, render_w, win_v, win_w
 
     @staticmethod
     def geometry_cost(

@@ -1,10 +1,17 @@
 """Building the Bi-NVS model (detector, encoder, decoder) from the ``model`` config group.
+
+The convolutions' weights are stored channels-last (NHWC), the layout oneDNN computes in on a
+CPU: without it every convolution reorders its input and weights, and a default training step
+is ~5 % slower on one thread and on two (``docs/benchmarks/threads.md``). The layout changes
+no value the model computes beyond rounding, and checkpoints load into either layout.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from typing import Any
+
+import torch
 
 from nsd.core.errors import ConfigError
 from nsd.model.bi_nvs import BiNVS, BiNVSConfig
@@ -30,7 +37,7 @@ def build_model(model_cfg: Mapping[str, Any]) -> BiNVS:
                 f"model.{name}: input size {size} must be divisible by 2^{len(widths)} "
                 f"(one halving per width in {list(widths)})"
             )
-    return BiNVS(
+    model = BiNVS(
         cfg,
         Detector(num_windows=cfg.num_windows, **det),
         Encoder(
@@ -46,6 +53,7 @@ def build_model(model_cfg: Mapping[str, Any]) -> BiNVS:
             **dec,
         ),
     )
+    return model.to(memory_format=torch.channels_last)
 
 
 def _section(model_cfg: dict[str, Any], name: str) -> dict[str, Any]:

@@ -68,10 +68,22 @@ def total_image_loss(
     ssim_weight: float,
     ssim_window: int = 7,
     renormalise: bool = False,
+    parts: int = 1,
 ) -> dict[str, Tensor]:
-    """Pixel + structural loss terms for one reconstruction."""
+    """Pixel + structural loss terms for one reconstruction, or the mean of ``parts``.
+
+    Args:
+        pred, target: (P * B, C, H, W): ``parts`` equal batches stacked (e.g. both views
+            of Bi-NVS' pairs).
+        weight: (P * B, H, W) pixel weights, or None.
+        parts: the weighted pixel loss is normalised within each part and the parts'
+            losses averaged; the structural loss, a plain mean, is the same either way.
+    """
     p = renormalise_to_target(pred, target) if renormalise else pred
-    out = {"pixel": pixel_loss(p, target, weight)}
+    weights = (None,) * parts if weight is None else weight.chunk(parts)
+    pixel = [pixel_loss(a, b, w)
+             for a, b, w in zip(p.chunk(parts), target.chunk(parts), weights, strict=True)]
+    out = {"pixel": sum(pixel) / parts}
     if ssim_weight > 0:
         out["ssim"] = structural_loss(pred, target, ssim_window)
     return out
