@@ -36,6 +36,7 @@ import json, sys
 import numpy as np, torch
 from hydra import compose, initialize_config_module
 import nsd.io.frame_store as fs
+from nsd.core.threads import set_threads
 from nsd.io.scene_data import SceneData
 from nsd.training.task import NSDTask
 
@@ -44,7 +45,7 @@ if not store:  # the baseline: the store cannot write its file, frames stay in m
     def refuse(*a, **k):
         raise OSError("baseline: in memory")
     fs.np.memmap = refuse
-torch.set_num_threads(2)
+set_threads(2)  # as every command sets them (and keeps freed heap pages, as training does)
 with initialize_config_module("nsd.conf", version_base="1.3"):
     cfg = compose("train", [f"data.scene={scene}", f"data.max_frames={frames}"])
 d = cfg.data
