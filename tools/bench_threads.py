@@ -1,6 +1,6 @@
 """Speed against torch's CPU threads: training steps, whole exports and one frame of inference.
 
-    .venv/bin/python tools/bench_threads.py        # ~6 minutes, nothing else running
+    .venv/bin/python tools/bench_threads.py        # ~9 minutes, nothing else running
 
 Each row runs in a fresh process (``threads`` as a command's ``threads=`` sets them) with
 its CPU affinity cut to that many cores (``taskset`` as a scheduler would), on the default

@@ -41,13 +41,13 @@ def keep_freed_heap() -> bool:
     A training step allocates and frees the same tensors of a few MB each step. glibc
     returns the freed top of the heap to the OS once it exceeds its trim threshold, and
     serves blocks above its mmap threshold from fresh mappings, so every step faulted its
-    pages in again (the kernel zeroing ~80 MB of 4 kB pages per default step: 1.0 M page
-    faults in 50 steps). With the trim threshold at its maximum and the mmap threshold at
-    glibc's largest (32 MiB) the heap holds one step's working set and a step runs 10-15 %
-    faster on one thread and on two (``docs/benchmarks/threads.md``). Peak memory does not
-    change (the freed pages were the step's own peak); :func:`trim_heap` still gives them
-    back when a long run asks. Returns False where the C library is not glibc (nothing
-    changed). Idempotent.
+    pages in again: 19,114 page faults per default step (75 MB the kernel zeroes), 77 with
+    the trim threshold at its maximum and the mmap threshold at glibc's largest (32 MiB).
+    A default step then runs 1.22x faster on one thread and 1.33x on two
+    (``docs/benchmarks/threads.md``). The cost is memory: what a step freed stays resident
+    (the default ``nsd-run`` peaked at 1.17 GB instead of 0.95); :func:`trim_heap` still
+    gives it back when a long streaming run asks. Returns False where the C library is not
+    glibc (nothing changed). Idempotent.
     """
     libc = _libc()
     if libc is None:

@@ -79,6 +79,8 @@ def total_image_loss(
         parts: the weighted pixel loss is normalised within each part and the parts'
             losses averaged; the structural loss, a plain mean, is the same either way.
     """
+    if pred.shape[0] % parts:
+        raise ValueError(f"{pred.shape[0]} images cannot be {parts} equal parts")
     p = renormalise_to_target(pred, target) if renormalise else pred
     weights = (None,) * parts if weight is None else weight.chunk(parts)
     pixel = [pixel_loss(a, b, w)
