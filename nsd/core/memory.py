@@ -29,11 +29,6 @@ def _libc():
         return None
 
 
-def _malloc_trim():
-    libc = _libc()
-    return None if libc is None else libc.malloc_trim
-
-
 @functools.cache
 def keep_freed_heap() -> bool:
     """Keep freed heap memory in the process instead of returning it to the OS at every free.
@@ -64,9 +59,9 @@ def trim_heap() -> None:
     resident size of a long export creep up for its first ~1,000 frames
     (``docs/benchmarks/export.md``).
     """
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
+    libc = _libc()
+    if libc is not None:
+        libc.malloc_trim(0)
 
 
 def reset_peak_rss() -> bool:

@@ -169,13 +169,17 @@ class Rendering:
     def halves(self, B: int) -> tuple[Rendering, Rendering]:
         """The first ``B`` frames' rendering and the rest's (one render of both views of
         pairs, split back into one per view)."""
-        def part(s: slice) -> Rendering:
-            def cut(value):
-                if isinstance(value, Composite):
-                    return Composite(*(t[s] for t in value))
-                return value[s] if isinstance(value, Tensor) else value
-            return Rendering(**{f.name: cut(getattr(self, f.name)) for f in fields(self)})
-        return part(slice(0, B)), part(slice(B, None))
+        first, rest = {}, {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, Composite):
+                first[f.name], rest[f.name] = (Composite(*(t[s] for t in value))
+                                               for s in (slice(0, B), slice(B, None)))
+            elif isinstance(value, Tensor):
+                first[f.name], rest[f.name] = value[:B], value[B:]
+            else:  # a flag both halves share
+                first[f.name] = rest[f.name] = value
+        return Rendering(**first), Rendering(**rest)
 
 
 class BiNVS(nn.Module):
