@@ -88,6 +88,7 @@ ABLATIONS = {
     "a quarter of the pairs from the view itself, hull mask prior": [
         "data.same_view=0.25",
         "prior_mask=hull",
+        "prior_mask.weight=1.0",
     ],
     "a quarter of the pairs from the view itself, hull mask prior x 4": [
         "data.same_view=0.25",
@@ -99,6 +100,36 @@ ABLATIONS = {
         "prior_mask=hull",
         "prior_mask.weight=4.0",
         "model.crop_size=64",
+    ],
+    "a quarter of the pairs from the view itself, mask refiner": [
+        "data.same_view=0.25",
+        "model.mask_refiner.widths=[16,32]",
+        "model.mask_refiner.grow=null",
+    ],
+    "a quarter of the pairs from the view itself, mask refiner, seed 1": [
+        "data.same_view=0.25",
+        "model.mask_refiner.widths=[16,32]",
+        "model.mask_refiner.grow=null",
+        "trainer.seed=1",
+    ],
+    "a quarter of the pairs from the view itself, mask refiner, growth bounded": [
+        "data.same_view=0.25",
+        "model.mask_refiner.widths=[16,32]",
+        "model.mask_refiner.grow=3.0",
+    ],
+    "a quarter of the pairs from the view itself, mask refiner, hull mask prior x 4": [
+        "data.same_view=0.25",
+        "model.mask_refiner.widths=[16,32]",
+        "model.mask_refiner.grow=null",
+        "prior_mask=hull",
+        "prior_mask.weight=4.0",
+    ],
+    "a quarter of the pairs from the view itself, mask refiner, growth bounded, hull mask prior x 4": [
+        "data.same_view=0.25",
+        "model.mask_refiner.widths=[16,32]",
+        "model.mask_refiner.grow=3.0",
+        "prior_mask=hull",
+        "prior_mask.weight=4.0",
     ],
 }
 
@@ -234,6 +265,10 @@ def bench_ablations(minutes: float, out_root: Path, only: list[str] | None,
         out = out_root / _slug(name)
         if not any(o.startswith("data.same_view=") for o in ov):
             ov = ["data.same_view=0", *ov]  # the rows were measured before the default changed
+        if not any(o.startswith("prior_mask") for o in ov):  # ... and before these two did
+            ov = ["prior_mask=off", *ov]
+        if not any(o.startswith("model.mask_refiner") for o in ov):
+            ov = ["model.mask_refiner.widths=[]", *ov]
         # ... and scored with single-image inference, no colour agreement (ablations_inference
         # re-scores the checkpoints with today's inference)
         ov = ["inference.views=single", "inference.colour_sigma=0", *ov]
@@ -325,10 +360,10 @@ def ablations_report(out_root: Path, report: str = "nsd_ablations") -> None:
     )
 
 
-def ablations_inference(out_root: Path) -> None:
+def ablations_inference(out_root: Path, report: str = "nsd_ablations") -> None:
     """Re-score every ablation run's final checkpoint under ``out_root`` with multi-view and
     single-image inference (``<run>/inference.json``; the same 30 held-out frames as
-    training's evaluations), then rewrite the report."""
+    training's evaluations), then rewrite the report ``report``."""
     from nsd.evaluation.checkpoint import evaluate_checkpoint
     from nsd.inference.multiview import InferenceSettings
 
@@ -350,7 +385,7 @@ def ablations_inference(out_root: Path) -> None:
         tmp.write_text(json.dumps(res))
         tmp.replace(folder / "inference.json")
         print(name, {k: round(res["multiview"][k], 3) for k in TARGETS}, flush=True)
-    ablations_report(out_root)
+    ablations_report(out_root, report)
 
 
 def inference_speed(checkpoint: Path, instants: int = 8, repeats: int = 5) -> None:
@@ -512,7 +547,7 @@ def main() -> None:
     elif a.what == "ablations_report":
         ablations_report(out, a.report)
     elif a.what == "ablations_inference":
-        ablations_inference(out)
+        ablations_inference(out, a.report)
     elif a.what == "inference_speed":
         inference_speed(a.out / "checkpoint.pt" if a.out.is_dir() else a.out)
     else:

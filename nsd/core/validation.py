@@ -173,7 +173,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "detector.head": _r("str", choices=("mlp", "attention")),
         "encoder.widths": WIDTHS, "encoder.app_dims": POS, "encoder.points": POS,
         "decoder.widths": WIDTHS, "decoder.dropout": _r("number", low=0, high=0.99),
-        "decoder.convs": POS,
+        "decoder.convs": POS, "mask_refiner.widths": WIDTHS,
+        "mask_refiner.grow": _r("number", above=0, null=True),
     },
     "loss": {"ssim_window": _r("int", low=3, odd=True), "evidence_softness": RATE},
     "prior_presence": {

@@ -10,7 +10,9 @@ For a pair of views :math:`(v, w)` of the same instant:
    appearance into a window image and mask;
 4. the decoded windows are re-ordered into :math:`v`'s slots by the appearance
    association (eq. 4-5);
-5. they are pasted back with :math:`v`'s own boxes (inverse focal ST) and
+5. with the mask refiner (ours, :mod:`nsd.model.mask_refiner`) each decoded mask is
+   sharpened by :math:`v`'s own window crops;
+6. they are pasted back with :math:`v`'s own boxes (inverse focal ST) and
    composited by depth over :math:`v`'s median background (eq. 7);
 
 and symmetrically for :math:`w` from :math:`v`: each reconstruction takes its
@@ -52,6 +54,7 @@ from nsd.model.decoder import Decoder
 from nsd.model.detector import Detections, Detector
 from nsd.model.encoder import Encoder, rotate_latent
 from nsd.model.focal_st import crop, paste
+from nsd.model.mask_refiner import MaskRefiner
 from nsd.model.window_masks import MASK_NORMALISATIONS, normalise_window_masks
 
 __all__ = ["BiNVS", "BiNVSConfig", "Rendering", "Windows"]
@@ -64,7 +67,7 @@ class BiNVSConfig(ConfigSection):
     APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `model`
     KEY: ClassVar[str] = "model"
     SIBLINGS: ClassVar[frozenset[str]] = frozenset(
-        {"detector", "encoder", "decoder", "depth_from_step", "reinit_at_depth"}
+        {"detector", "encoder", "decoder", "mask_refiner", "depth_from_step", "reinit_at_depth"}
     )  # keys of the section read by other objects
 
     num_windows: int  # N: subjects per frame (an upper bound when presence is on)
@@ -151,7 +154,8 @@ class Rendering:
         masks: pasted subject masks (B, N, H, W) (after association and presence).
         ungated_masks: the same before presence and switch-off (B, N, H, W).
         association: (B, N, N) soft (training) or one-hot (inference) association.
-        window_rgb, window_mask: the decoded windows in target slots, (B, N, 3|1, h, w).
+        window_rgb, window_mask: the decoded windows in target slots, (B, N, 3|1, h, w) (the
+            mask refined when the model has a refiner).
         occlusion_reasoning: False when the masks did not overlap and the erf compositor's
             pairwise terms were skipped (its exact non-overlapping form was used).
     """
@@ -183,10 +187,12 @@ class Rendering:
 
 
 class BiNVS(nn.Module):
-    """Detector B, encoder E and decoder D with the Bi-NVS forward pass."""
+    """Detector B, encoder E, decoder D and the optional mask refiner, with the Bi-NVS
+    forward pass."""
 
     def __init__(
-        self, cfg: BiNVSConfig, detector: Detector, encoder: Encoder, decoder: Decoder
+        self, cfg: BiNVSConfig, detector: Detector, encoder: Encoder, decoder: Decoder,
+        refiner: MaskRefiner | None = None,
     ) -> None:
         super().__init__()
         cfg.validate()
@@ -196,6 +202,7 @@ class BiNVS(nn.Module):
                 f"{cfg.num_windows}"
             )
         self.cfg, self.detector, self.encoder, self.decoder = cfg, detector, encoder, decoder
+        self.refiner = refiner
 
     def windows(
         self,
@@ -296,6 +303,8 @@ class BiNVS(nn.Module):
             rgb, mask = apply_association(A, rgb), apply_association(A, mask)
         else:
             A = torch.eye(N, dtype=rgb.dtype, device=rgb.device).expand(B, N, N)
+        if self.refiner is not None:
+            mask = self._refine(target, background, rgb, mask)
         H, W = background.shape[-2:]
         boxes = target.det.boxes
         layers = paste(rgb, boxes, (H, W), focal=self.cfg.focal, padding_mode="border")
@@ -337,6 +346,18 @@ class BiNVS(nn.Module):
             self.cfg.mask_pool,
         )
         return rgb, mask
+
+    def _refine(self, target: Windows, background: Tensor, rgb: Tensor, mask: Tensor) -> Tensor:
+        """The decoded masks in the target's slots (B, N, 1, c, c) sharpened by the target
+        windows' image and background crops (:mod:`nsd.model.mask_refiner`), normalised again."""
+        size = (self.cfg.crop_size, self.cfg.crop_size)
+        bg = crop(background, target.det.boxes, size, focal=self.cfg.focal,
+                  padding_mode=self.cfg.crop_padding)
+        logit = self.refiner(target.crops, bg, rgb, mask)
+        return normalise_window_masks(
+            torch.sigmoid(logit), self.cfg.mask_normalisation, self.cfg.focal,
+            self.cfg.mask_floor, self.cfg.mask_pool,
+        )
 
     def _gate(self, masks: Tensor, target: Windows) -> Tensor:
         """Pasted masks (B, N, H, W) gated by presence (``presence_gate``) and, at inference,

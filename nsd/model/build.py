@@ -18,12 +18,15 @@ from nsd.model.bi_nvs import BiNVS, BiNVSConfig
 from nsd.model.decoder import Decoder
 from nsd.model.detector import Detector
 from nsd.model.encoder import Encoder
+from nsd.model.mask_refiner import MaskRefiner
 
 __all__ = ["build_model"]
 
 
 def build_model(model_cfg: Mapping[str, Any]) -> BiNVS:
-    """BiNVS with its three networks from the ``model`` config group."""
+    """BiNVS with its three networks, and the mask refiner where ``mask_refiner.widths`` is not
+    empty, from the ``model`` config group (a config without ``mask_refiner``, as in
+    checkpoints written before it existed, has none)."""
     m = dict(model_cfg)
     cfg = BiNVSConfig.from_config(m)
     det, enc, dec = _section(m, "detector"), _section(m, "encoder"), _section(m, "decoder")
@@ -52,8 +55,23 @@ def build_model(model_cfg: Mapping[str, Any]) -> BiNVS:
             points=model_cfg["encoder"]["points"],
             **dec,
         ),
+        _refiner(m),
     )
     return model.to(memory_format=torch.channels_last)
+
+
+def _refiner(model_cfg: dict[str, Any]) -> MaskRefiner | None:
+    """The mask refiner of ``model.mask_refiner`` (None: no section, or no widths; a section
+    without ``grow`` has no bound, as the refiner's first runs)."""
+    sec = model_cfg.get("mask_refiner") or {}
+    widths = tuple(sec.get("widths") or ())
+    if any(int(w) < 1 for w in widths):
+        raise ConfigError(
+            f"model.mask_refiner.widths must be positive channel counts, got {list(widths)}")
+    grow = sec.get("grow")
+    if grow is not None and not (isinstance(grow, (int, float)) and grow > 0):
+        raise ConfigError(f"model.mask_refiner.grow must be a number > 0 or null, got {grow!r}")
+    return MaskRefiner(tuple(int(w) for w in widths), grow) if widths else None
 
 
 def _section(model_cfg: dict[str, Any], name: str) -> dict[str, Any]:

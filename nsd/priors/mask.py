@@ -32,10 +32,8 @@ def hull_mask_prior(weights: Tensor, owners: Tensor, matching: Tensor, valid: Te
         valid: (B, K) whether each individual is valid in that view.
     """
     owned = owners >= 0  # (B, H, W)
-    if not owned.any():
-        return weights.sum() * 0.0
     ok = valid.gather(1, matching)  # (B, N)
     target = (owners[:, None] == matching[..., None, None]) & ok[..., None, None]
     p = weights.clamp(1e-4, 1 - 1e-4)
     bce = -(target * p.log() + (~target) * (1 - p).log())  # (B, N, H, W)
-    return (bce.mean(1) * owned).sum() / owned.sum()
+    return (bce.mean(1) * owned).sum() / owned.sum().clamp_min(1)  # 0 where nothing is owned

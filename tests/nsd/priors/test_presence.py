@@ -303,7 +303,8 @@ def test_hull_target_trains_the_most_present_windows(tiny_scene):
     assert torch.isfinite(losses["presence_target"])
     assert 0 <= float(losses["presence_target_on"]) <= float(data.proposal_valid.sum(-1).max())
     single = tiny_cfg(
-        "model.detector.presence=true", "prior_presence=hull", "prior_proposal.source=single_view"
+        "model.detector.presence=true", "prior_presence=hull", "prior_proposal.source=single_view",
+        "prior_mask=off",
     )
     with pytest.raises(ConfigError, match="target=hull needs"):
         NSDTask(single, data)
