@@ -124,7 +124,8 @@ ABLATIONS = {
         "prior_mask=hull",
         "prior_mask.weight=4.0",
     ],
-    "a quarter of the pairs from the view itself, mask refiner, growth bounded, hull mask prior x 4": [
+    "a quarter of the pairs from the view itself, mask refiner, growth bounded, "
+    "hull mask prior x 4": [
         "data.same_view=0.25",
         "model.mask_refiner.widths=[16,32]",
         "model.mask_refiner.grow=3.0",
