@@ -2,7 +2,8 @@ r"""The mask refiner (ours): each decoded window mask sharpened by the target wi
 
 NSD decodes a window's mask from its 3D latent cloud and appearance vector alone. After a
 few thousand steps on this machine the decoded masks are the shape of an average pose, a
-blob without limbs (raw composited mIoU 0.3-0.4 on the default scene, docs/nsd.md), while
+blob without limbs (raw composited mIoU 0.36-0.38 on the default scene; 0.64 with the refiner
+and the hull mask prior, docs/nsd.md), while
 the target view's own pixels show every limb. The refiner is a small convolutional network
 that sees, per window of the *target* view, the image crop :math:`c`, the background crop
 :math:`b` (both through the same transformer as the encoder's input) and what was decoded
@@ -13,20 +14,20 @@ logit domain:
     m = \sigma\big(\operatorname{logit}(\hat m) + g(f([c, b, \hat I, \hat m]))\big),
     \qquad g(x) = x \ (x \le 0), \quad g(x) = G \tanh(x / G) \ (x > 0).
 
-:math:`g` lets the refiner carve a decoded mask freely but grow it by at most :math:`G`
-logits (``grow``): a pixel becomes the window's (:math:`m > 0.5`) only where the decoder put
-at least :math:`\sigma(-G)` (5 % for :math:`G = 3`). Without that bound a window that covers
-two individuals claims every foreground pixel in it, and the windows need not separate the
-individuals any more (measured, docs/nsd.md): the decoder, through its latent bottleneck, still
-decides which individual a window holds; the refiner draws its outline. :math:`g` is
-continuous with its first derivative at 0.
+:math:`g` (optional, ``grow`` :math:`= G`; off by default) lets the refiner carve a decoded
+mask freely but grow it by at most :math:`G` logits: a pixel becomes the window's
+(:math:`m > 0.5`) only where the decoder put at least :math:`\sigma(-G)` (5 % for
+:math:`G = 3`). It was meant to keep a window that the detector places over two individuals
+from claiming both, as an unbounded refiner does; measured, it did not (docs/nsd.md, "The mask
+refiner"). :math:`g` is continuous with its first derivative at 0.
 
 The last layer of :math:`f` starts at zero, so an untrained refiner returns the decoded mask
 (up to the clamp of :math:`\hat m` to :math:`[\epsilon, 1 - \epsilon]`). It learns from what
 trains the masks anyway, with no labels: the re-synthesis loss (a pixel is this window's if
 its colour is what the window decoded there, and this holds across views, where the colours
-come from the other camera) and the foreground coverage prior (the windows' union covers the
-background residual). It never changes the colours, so the re-synthesised colours still come
+come from the other camera), the foreground coverage prior (the windows' union covers the
+background residual) and, by default, the hull mask prior (:mod:`nsd.priors.mask`: who owns
+a pixel). It never changes the colours, so the re-synthesised colours still come
 from the source view's latent and appearance only. Windows keep the mask normalisation of
 :mod:`nsd.model.window_masks` after the refiner, so it cannot switch a window off.
 """
