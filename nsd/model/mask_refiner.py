@@ -1,5 +1,8 @@
 r"""The mask refiner (ours): each decoded window mask sharpened by the target window's own pixels.
 
+Off by default (``model.mask_refiner.widths=[]``): with it NSD's own masks are sharp, but the
+exported masks and the keypoints were a little worse (docs/nsd.md, "The mask refiner").
+
 NSD decodes a window's mask from its 3D latent cloud and appearance vector alone. After a
 few thousand steps on this machine the decoded masks are the shape of an average pose, a
 blob without limbs (raw composited mIoU 0.36-0.38 on the default scene; 0.64 with the refiner
@@ -26,10 +29,11 @@ The last layer of :math:`f` starts at zero, so an untrained refiner returns the 
 trains the masks anyway, with no labels: the re-synthesis loss (a pixel is this window's if
 its colour is what the window decoded there, and this holds across views, where the colours
 come from the other camera), the foreground coverage prior (the windows' union covers the
-background residual) and, by default, the hull mask prior (:mod:`nsd.priors.mask`: who owns
-a pixel). It never changes the colours, so the re-synthesised colours still come
-from the source view's latent and appearance only. Windows keep the mask normalisation of
-:mod:`nsd.model.window_masks` after the refiner, so it cannot switch a window off.
+background residual) and the hull mask prior (:mod:`nsd.priors.mask`: who owns a pixel;
+``prior_mask=hull``, which it needs). It never changes the colours, so the re-synthesised
+colours still come from the source view's latent and appearance only. Windows keep the mask
+normalisation of :mod:`nsd.model.window_masks` after the refiner, so it cannot switch a window
+off.
 """
 
 from __future__ import annotations

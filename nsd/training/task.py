@@ -138,8 +138,8 @@ class NSDTask:
             )
         if self.cfg.prior_mask.weight > 0 and self.cfg.prior_proposal.source != "multiview":
             raise ConfigError(
-                "prior_mask=hull (the default) needs prior_proposal.source=multiview (the "
-                "visual hull's pixel owners are its target); prior_mask=off turns it off"
+                "prior_mask=hull needs prior_proposal.source=multiview (the visual hull's "
+                "pixel owners are its target)"
             )
         if self.presence_target == "hull" and self.cfg.prior_proposal.source != "multiview":
             raise ConfigError(

@@ -137,8 +137,7 @@ def test_the_refiner_is_optimised_with_the_model(tiny_scene):
 
 
 def test_refiner_config():
-    assert build_model(tiny_cfg().model).refiner is not None  # the shipped default
-    assert build_model(tiny_cfg("experiment=paper").model).refiner is None  # NSD's own masks
+    assert build_model(tiny_cfg().model).refiner is None  # the shipped default: NSD's masks
     old = OmegaConf.to_container(tiny_cfg().model, resolve=True)
     del old["mask_refiner"]  # a checkpoint's config from before the refiner
     assert build_model(old).refiner is None

@@ -191,6 +191,5 @@ def test_hull_mask_prior_trains_the_compositor_masks_towards_the_hull_owners(tin
         expect = hull_mask_prior(torch.cat([rv.composite.weights, rw.composite.weights]),
                                  torch.cat([batch.owners_v, batch.owners_w]), matching, valid)
     assert out["prior_mask"].item() == pytest.approx(expect.item(), rel=1e-5)
-    with pytest.raises(ConfigError,
-                       match=r"prior_mask=hull \(the default\) needs prior_proposal\.source"):
+    with pytest.raises(ConfigError, match=r"prior_mask=hull needs prior_proposal\.source"):
         NSDTask(tiny_cfg("prior_mask=hull", "prior_proposal=residual"), tiny_data)
