@@ -1,8 +1,8 @@
 """Wall time of the whole default pipeline (``nsd-run``), stage by stage, on this machine.
 
     .venv/bin/python tools/bench_pipeline.py        # ~11 minutes on 2 cores, nothing else running
-    .venv/bin/python tools/bench_pipeline.py prior_mask@train.prior_mask=off \
-        --report pipeline_no_mask_prior            # with overrides, its own report
+    .venv/bin/python tools/bench_pipeline.py prior_mask@train.prior_mask=hull \
+        --report pipeline_mask_prior               # with overrides, its own report
 
 Runs ``nsd-run``'s default config (the built-in default scene, 10 minutes of
 training) into a fresh run folder, then runs it again to time a resume where

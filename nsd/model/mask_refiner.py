@@ -30,10 +30,10 @@ trains the masks anyway, with no labels: the re-synthesis loss (a pixel is this 
 its colour is what the window decoded there, and this holds across views, where the colours
 come from the other camera), the foreground coverage prior (the windows' union covers the
 background residual) and the hull mask prior (:mod:`nsd.priors.mask`: who owns a pixel;
-``prior_mask=hull``, which it needs). It never changes the colours, so the re-synthesised
-colours still come from the source view's latent and appearance only. Windows keep the mask
-normalisation of :mod:`nsd.model.window_masks` after the refiner, so it cannot switch a window
-off.
+``prior_mask=hull prior_mask.weight=4``, which it needs). It never changes the colours, so
+the re-synthesised colours still come from the source view's latent and appearance only.
+Windows keep the mask normalisation of :mod:`nsd.model.window_masks` after the refiner, so it
+cannot switch a window off.
 """
 
 from __future__ import annotations
