@@ -134,6 +134,14 @@ ABLATIONS = {
     ],
 }
 
+# What a row was measured with unless it sets the key itself: the defaults of the time, pinned
+# so that a later change of a default does not change the table (key prefix -> override).
+PINNED = {
+    "data.same_view=": "data.same_view=0",
+    "prior_mask": "prior_mask=off",
+    "model.mask_refiner": "model.mask_refiner.widths=[]",
+}
+
 CHILD = r"""
 import json, resource, sys, torch
 from hydra import compose, initialize_config_module
@@ -264,12 +272,7 @@ def bench_ablations(minutes: float, out_root: Path, only: list[str] | None,
         if only and name not in only:
             continue
         out = out_root / _slug(name)
-        if not any(o.startswith("data.same_view=") for o in ov):
-            ov = ["data.same_view=0", *ov]  # the rows were measured before the default changed
-        if not any(o.startswith("prior_mask") for o in ov):  # ... and before these two did
-            ov = ["prior_mask=off", *ov]
-        if not any(o.startswith("model.mask_refiner") for o in ov):
-            ov = ["model.mask_refiner.widths=[]", *ov]
+        ov = [pin for key, pin in PINNED.items() if not any(o.startswith(key) for o in ov)] + ov
         # ... and scored with single-image inference, no colour agreement (ablations_inference
         # re-scores the checkpoints with today's inference)
         ov = ["inference.views=single", "inference.colour_sigma=0", *ov]
