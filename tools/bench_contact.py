@@ -3,6 +3,8 @@
     .venv/bin/python tools/bench_contact.py          # ~40 minutes on 2 cores, nothing else running
     .venv/bin/python tools/bench_contact.py --seeds 0 1 --steps 3000  # two seeds, longer
     .venv/bin/python tools/bench_contact.py --minutes 15 --report contact_15min  # 15 minutes
+    .venv/bin/python tools/bench_contact.py --minutes 15 --variants default auto-encoder \
+        --report contact_ablations             # the paper's ablations, split apart / touching
 
 For each scene (``nsd-synth motion.interaction=huddle``: the group alternates huddles, in
 which every individual touches another, and dispersals), ``nsd-run`` trains with
@@ -14,7 +16,15 @@ Rows per scene and seed:
 
 * ``learned``: the trained decomposition (multi-view inference, the default);
 * ``hull-only``: the visual hull of the background residuals alone on the same frames
-  (:mod:`nsd.evaluation.hull_baseline`: no learning).
+  (:mod:`nsd.evaluation.hull_baseline`: no learning);
+* with ``--variants``, one ``learned`` row per variant (``VARIANTS``: the paper's ablations
+  as ``nsd-run`` overrides), beside one hull-only row per scene and seed (every variant is
+  scored on the same frames, and the hull does not depend on the training).
+
+Two halves of a long run can go side by side, one core each, into one folder
+(``--root``, ``--train-only``: ``taskset -c 0 ... --variants default auto-encoder``,
+``taskset -c 1 ... --variants "no depth reasoning" "no weak priors"``), then
+``--rescore <root> --variants ...`` scores them all into one report.
 
 Writes ``docs/benchmarks/<--report>.{md,json}`` (default ``contact``).
 """
@@ -43,6 +53,16 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
         4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
             "motion.area_radius=2.0"]),
     "6 bipeds, 8 cameras": (6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0"]),
+}
+VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
+    "default": [],
+    "auto-encoder": ["train.model.mode=autoencoder"],
+    "no depth reasoning": ["train.model.depth=false"],
+    "no weak priors": [f"{p}@train.{p}=off" for p in ("prior_position", "prior_scale",
+                                                      "prior_aspect")],
+    "mask refiner + hull mask prior": ["train.model.mask_refiner.widths=[16,32]",
+                                       "prior_mask@train.prior_mask=hull",
+                                       "train.prior_mask.weight=4"],
 }
 METRICS = ("detection_rate", "mask_miou", "depth_order_accuracy", "association_accuracy",
            "merge_rate")
@@ -94,32 +114,43 @@ def main() -> None:
     ap.add_argument("--carry", nargs="*", default=[],
                     help="scene names whose rows are kept from the report being replaced, "
                          "marked with when and at which commit they were measured")
+    ap.add_argument("--variants", nargs="+", default=["default"], choices=list(VARIANTS),
+                    help="training variants per scene and seed (VARIANTS)")
+    ap.add_argument("--root", type=Path, default=None,
+                    help="the folder of scenes and runs (default: a new temporary folder); "
+                         "scenes already in it are not generated again")
+    ap.add_argument("--train-only", action="store_true",
+                    help="train and export, score nothing, write no report (see --rescore)")
     args = ap.parse_args()
     carried = _carried(args.carry, args.report)
     budget = ([f"train.trainer.max_steps={args.steps}", "train.trainer.max_minutes=0"]
               if args.minutes <= 0 else
               ["train.trainer.max_steps=0", f"train.trainer.max_minutes={args.minutes}"])
-    root = args.rescore or Path(tempfile.mkdtemp(prefix="bench-contact-"))
+    root = args.rescore or args.root or Path(tempfile.mkdtemp(prefix="bench-contact-"))
     rows = []
     for i, name in enumerate(args.scenes):
         n, synth = SCENES[name]
         scene = root / f"scene{i}"
-        if not args.rescore:
+        if not args.rescore and not (scene / "calibration.toml").exists():
             subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", "motion.interaction=huddle",
                             "seed=1", *synth], check=True, capture_output=True)
-        for seed in args.seeds:
-            out = root / f"run{i}-{seed}"
+        for seed, variant in [(s, v) for s in args.seeds for v in args.variants]:
+            slug = "" if variant == "default" else "-" + variant.replace(" ", "_")
+            out = root / f"run{i}-{seed}{slug}"
             if not args.rescore:
                 subprocess.run(
                     [str(BIN / "nsd-run"), f"scene={scene}", f"out={out}",
                      f"train.model.num_windows={n}", f"train.trainer.seed={seed}",
-                     *budget,
+                     *budget, *VARIANTS[variant],
                      "evaluate.max_frames=30", "grids.frames=0", "overlays.enabled=false"],
                     check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            if args.train_only:
+                continue
             rec = json.loads((out / "pipeline.json").read_text())
             m = rec["evaluate"]["summary"]["metrics"]
             ident = rec["identities"]["summary"]
-            learned = _row(name, seed, "learned", m)
+            method = "learned" if variant == "default" else f"learned, {variant}"
+            learned = _row(name, seed, method, m)
             learned["mask_miou_raw_all"] = m.get("mask_miou_raw")
             split = _identity_split(out, scene)
             for part in PARTS:
@@ -129,8 +160,12 @@ def main() -> None:
             learned["identities"] = (f"{ident.get('method', 'rows')}, "
                                      f"fill {ident.get('fill', 'tracks')}")
             learned["train_steps"] = rec["train"]["summary"].get("steps")
-            rows += [learned, _row(name, seed, "hull-only", m, "hull_")]
-            print(rows[-2:], flush=True)
+            rows.append(learned)
+            if variant == args.variants[0]:  # the same frames in every variant: one hull row
+                rows.append(_row(name, seed, "hull-only", m, "hull_"))
+            print(rows[-1], flush=True)
+    if args.train_only:
+        return
     for r in rows:
         r["measured"] = "this run"
     rows += carried
