@@ -55,7 +55,8 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "6 bipeds, 8 cameras": (6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0"]),
 }
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
-    "default": [],
+    "default": [],  # a quarter of the pairs re-synthesise a view from itself (data.same_view)
+    "Bi-NVS only": ["train.data.same_view=0"],  # every pair across views, as the paper
     "auto-encoder": ["train.model.mode=autoencoder"],
     "no depth reasoning": ["train.model.depth=false"],
     "no weak priors": [f"{p}@train.{p}=off" for p in ("prior_position", "prior_scale",

@@ -21,6 +21,16 @@ scene:
   thresholds as they are (freed heap returned to the OS and faulted in again every step:
   the baseline before :func:`nsd.core.memory.keep_freed_heap`); ``train_step_ms_previous``
   the same process with all three baselines at once (the step as it was before them);
+* ``train_step_ms_split``: the same step with the batch cut in two halves, each half's
+  forward and backward pass in its own Python thread with one intra-op thread (on one core
+  the halves one after the other), gradients accumulated (data parallelism by threads, what
+  the ranks do without all_reduce);
+* ``train_step_ms_one_pair``: a step of one view pair (``batch_size=1``): what a step
+  costs whatever its batch (Python, dispatch, the optimiser), the part more threads cannot
+  share;
+* ``train_cpu_ms``: CPU time of all the process's threads per default step, and
+  ``train_busy_cores`` that over the wall time: with two threads, the second core's time
+  beyond the one-thread step's CPU time is spent waiting (spinning) for the first;
 * ``train_step_ms_ranks``: the same 8 view pairs per step trained by ``n`` torchrun ranks of
   one thread each (``8 // n`` pairs per rank, gradients averaged by gloo's ``all_reduce``);
 * ``export_frames_per_s``: a whole ``nsd-export`` of the 300 frames (decoding, model, files;
@@ -75,18 +85,44 @@ d = cfg.data
 data = SceneData(resolve_scene(d.scene), d.image_size, d.cameras, d.val_fraction, d.max_frames)
 result = {"threads": n}
 
-def train_ms(layout=None):
+def train_ms(layout=None, conf=None, split=False):
     torch.manual_seed(0)
-    task = NSDTask(cfg, data)
+    task = NSDTask(conf or cfg, data)
+    if split:  # each half of the batch forward and backward in its own thread, one op thread
+        pool = ThreadPoolExecutor(n, initializer=lambda: torch.set_num_threads(1))
+        whole = task.losses
+        def half(b):
+            loss = whole(b)["loss"] / 2
+            loss.backward()
+            return loss.detach()
+        def halves(b):
+            k = b.image_v.shape[0] // 2
+            cut = lambda sl: dataclasses.replace(b, **{
+                f.name: getattr(b, f.name)[sl] for f in dataclasses.fields(b)
+                if isinstance(getattr(b, f.name), torch.Tensor)})
+            return cut(slice(0, k)), cut(slice(k, None))
+        task.losses = lambda b: {"loss": sum(f.result() for f in
+                                             [pool.submit(half, h) for h in halves(b)])}
     if layout is not None:
         task.model.to(memory_format=layout)
     rng = np.random.default_rng(0)
     step_no = iter(range(10**6))
     def step():
         task.opt.zero_grad(set_to_none=True)
-        task.training_step(next(step_no), rng)["loss"].backward()
+        loss = task.training_step(next(step_no), rng)["loss"]
+        if loss.requires_grad:
+            loss.backward()
         task.opt.step()
-    return 1000 * median_time(step, repeats=60, warmup=5), task
+    ms = 1000 * median_time(step, repeats=60, warmup=5)
+    if conf is None and not split and layout is None:  # CPU time of every thread per step
+        t0, c0 = time.perf_counter(), os.times()
+        for _ in range(30):
+            step()
+        c1 = os.times()
+        result["train_cpu_ms"] = 1000 * (c1.user - c0.user + c1.system - c0.system) / 30
+        result["train_busy_cores"] = (c1.user - c0.user + c1.system - c0.system) / (
+            time.perf_counter() - t0)
+    return ms, task
 
 class _Traced:  # the SSIM's forward operations run outside its Function: autograd traces them
     save_for_backward = staticmethod(lambda *tensors: None)
@@ -99,6 +135,10 @@ if sys.argv[4:] == ["heap_returned"]:  # and the step as it was before all three
     result["train_step_ms_previous"], _ = train_ms(torch.contiguous_format)
     print(json.dumps(result))
     sys.exit(0)
+with initialize_config_module("nsd.conf", version_base="1.3"):
+    one_pair = compose("train", ["data.max_frames=40", "batch_size=1"])
+result["train_step_ms_one_pair"], _ = train_ms(conf=one_pair)
+result["train_step_ms_split"], _ = train_ms(split=True)
 fused_adam = torch.optim.Adam.__init__
 def unfused(self, *args, **kwargs):
     fused_adam(self, *args, **{**kwargs, "fused": None})
@@ -187,7 +227,8 @@ SPEED = {  # column -> True when larger is faster
     "train_step_ms": False, "train_step_ms_unfused_adam": False, "train_step_ms_ranks": False,
     "train_step_ms_kornia_ssim": False, "train_step_ms_autograd_ssim": False,
     "train_step_ms_heap_returned": False, "train_step_ms_nchw": False,
-    "train_step_ms_previous": False,
+    "train_step_ms_previous": False, "train_step_ms_split": False,
+    "train_step_ms_one_pair": False,
     "export_frames_per_s": True,
 "export_frames_per_s_one_process": True, "frame_ms": False, "gemm_gflops": True,
 }
@@ -247,7 +288,12 @@ def main() -> None:
                "fresh model (default batch, 128 x 128); `unfused_adam`: Adam's per-parameter loop "
                "instead of its fused kernel (the baseline); `ranks`: the same 8 view pairs "
                "per step over n torchrun ranks of one thread each (8 // n pairs per rank, "
-               "gradients averaged by all_reduce), rank 0's median of 60 steps; "
+               "gradients averaged by all_reduce), rank 0's median of 60 steps; `split`: the "
+               "batch's two halves forward and backward in two Python threads of one intra-op "
+               "thread each (one after the other on one core), gradients accumulated; "
+               "`one_pair`: a step of one view pair (`batch_size=1`), the part of a step "
+               "that does not grow with the batch; `train_cpu_ms`: CPU time of all threads "
+               "per default step (30 steps), `train_busy_cores` that over wall time; "
                "`nchw`: the convolutions' weights in the NCHW layout instead of "
                "channels-last (the baseline); `autograd_ssim`: autograd through the SSIM's "
                "forward operations instead of "
