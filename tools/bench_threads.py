@@ -59,7 +59,8 @@ sys.path.insert(0, str(ROOT))
 from tools.benchlib import write_report  # noqa: E402
 
 CHILD = r"""
-import json, sys, time
+import dataclasses, json, os, sys, time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 import kornia, numpy as np, torch
 from hydra import compose, initialize_config_module
