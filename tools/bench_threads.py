@@ -28,9 +28,10 @@ scene:
 * ``train_step_ms_one_pair``: a step of one view pair (``batch_size=1``): what a step
   costs whatever its batch (Python, dispatch, the optimiser), the part more threads cannot
   share;
-* ``train_cpu_ms``: CPU time of all the process's threads per default step, and
-  ``train_busy_cores`` that over the wall time: with two threads, the second core's time
-  beyond the one-thread step's CPU time is spent waiting (spinning) for the first;
+* ``train_cpu_ms``: CPU time of all the process's threads in a default step (median over
+  the same 60 steps), and ``train_busy_cores`` that over the step's median wall time: with
+  two threads, the CPU time beyond the one-thread step's is the second core waiting
+  (spinning) while the first runs what is serial, and the cost of sharing the work;
 * ``train_step_ms_ranks``: the same 8 view pairs per step trained by ``n`` torchrun ranks of
   one thread each (``8 // n`` pairs per rank, gradients averaged by gloo's ``all_reduce``);
 * ``export_frames_per_s``: a whole ``nsd-export`` of the 300 frames (decoding, model, files;
@@ -59,7 +60,7 @@ sys.path.insert(0, str(ROOT))
 from tools.benchlib import write_report  # noqa: E402
 
 CHILD = r"""
-import dataclasses, json, os, sys, time
+import dataclasses, json, sys, time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 import kornia, numpy as np, torch
@@ -114,15 +115,15 @@ def train_ms(layout=None, conf=None, split=False):
         if loss.requires_grad:
             loss.backward()
         task.opt.step()
-    ms = 1000 * median_time(step, repeats=60, warmup=5)
-    if conf is None and not split and layout is None:  # CPU time of every thread per step
-        t0, c0 = time.perf_counter(), os.times()
-        for _ in range(30):
-            step()
-        c1 = os.times()
-        result["train_cpu_ms"] = 1000 * (c1.user - c0.user + c1.system - c0.system) / 30
-        result["train_busy_cores"] = (c1.user - c0.user + c1.system - c0.system) / (
-            time.perf_counter() - t0)
+    cpu = []
+    def timed_step():  # and the CPU time of all the process's threads in it
+        c0 = time.process_time()
+        step()
+        cpu.append(time.process_time() - c0)
+    ms = 1000 * median_time(timed_step, repeats=60, warmup=5)
+    if conf is None and not split and layout is None:
+        result["train_cpu_ms"] = 1000 * float(np.median(cpu[5:]))
+        result["train_busy_cores"] = result["train_cpu_ms"] / ms
     return ms, task
 
 class _Traced:  # the SSIM's forward operations run outside its Function: autograd traces them
@@ -294,7 +295,8 @@ def main() -> None:
                "thread each (one after the other on one core), gradients accumulated; "
                "`one_pair`: a step of one view pair (`batch_size=1`), the part of a step "
                "that does not grow with the batch; `train_cpu_ms`: CPU time of all threads "
-               "per default step (30 steps), `train_busy_cores` that over wall time; "
+               "per default step (median of the same 60), `train_busy_cores` that over its "
+               "median wall time; "
                "`nchw`: the convolutions' weights in the NCHW layout instead of "
                "channels-last (the baseline); `autograd_ssim`: autograd through the SSIM's "
                "forward operations instead of "
