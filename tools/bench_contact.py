@@ -145,8 +145,8 @@ def main() -> None:
                      *budget, *VARIANTS[variant],
                      "evaluate.max_frames=30", "grids.frames=0", "overlays.enabled=false"],
                     check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            if args.train_only:
-                continue
+            if args.train_only or (args.rescore and not (out / "pipeline.json").exists()):
+                continue  # --rescore: the seeds and variants that were run
             rec = json.loads((out / "pipeline.json").read_text())
             m = rec["evaluate"]["summary"]["metrics"]
             ident = rec["identities"]["summary"]
@@ -162,7 +162,8 @@ def main() -> None:
                                      f"fill {ident.get('fill', 'tracks')}")
             learned["train_steps"] = rec["train"]["summary"].get("steps")
             rows.append(learned)
-            if variant == args.variants[0]:  # the same frames in every variant: one hull row
+            if not any(r["method"] == "hull-only" and r["scene"] == name and r["seed"] == seed
+                       for r in rows):  # the same frames in every variant: one hull row
                 rows.append(_row(name, seed, "hull-only", m, "hull_"))
             print(rows[-1], flush=True)
     if args.train_only:
