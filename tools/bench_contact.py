@@ -57,6 +57,7 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
     "default": [],  # a quarter of the pairs re-synthesise a view from itself (data.same_view)
     "Bi-NVS only": ["train.data.same_view=0"],  # every pair across views, as the paper
+    "half the pairs from the view itself": ["train.data.same_view=0.5"],
     "auto-encoder": ["train.model.mode=autoencoder"],
     "no depth reasoning": ["train.model.depth=false"],
     "no weak priors": [f"{p}@train.{p}=off" for p in ("prior_position", "prior_scale",
