@@ -55,7 +55,7 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "6 bipeds, 8 cameras": (6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0"]),
 }
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
-    "default": [],  # a quarter of the pairs re-synthesise a view from itself (data.same_view)
+    "default": [],  # nsd-run's defaults (conf/data/default.yaml sets data.same_view)
     "Bi-NVS only": ["train.data.same_view=0"],  # every pair across views, as the paper
     "half the pairs from the view itself": ["train.data.same_view=0.5"],
     "auto-encoder": ["train.model.mode=autoencoder"],
