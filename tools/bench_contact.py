@@ -55,14 +55,18 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "6 bipeds, 8 cameras": (6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0"]),
 }
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
-    "default": [],  # nsd-run's defaults (conf/data/default.yaml sets data.same_view)
-    "Bi-NVS only": ["train.data.same_view=0"],  # every pair across views, as the paper
-    "half the pairs from the view itself": ["train.data.same_view=0.5"],
+    "default": [],  # nsd-run's defaults: the auto-encoder since 2026-11-27
+    # Bi-NVS with a quarter of the pairs from the view itself: the default until 2026-11-27
+    "Bi-NVS": ["train.model.mode=bi_nvs"],
+    "Bi-NVS only": ["train.model.mode=bi_nvs", "train.data.same_view=0"],  # as the paper
+    "half the pairs from the view itself": ["train.model.mode=bi_nvs", "train.data.same_view=0.5"],
     "auto-encoder": ["train.model.mode=autoencoder"],
-    "no depth reasoning": ["train.model.depth=false"],
-    "no weak priors": [f"{p}@train.{p}=off" for p in ("prior_position", "prior_scale",
-                                                      "prior_aspect")],
-    "mask refiner + hull mask prior": ["train.model.mask_refiner.widths=[16,32]",
+    # the paper's other ablations, on Bi-NVS as they were measured
+    "no depth reasoning": ["train.model.mode=bi_nvs", "train.model.depth=false"],
+    "no weak priors": ["train.model.mode=bi_nvs"] + [
+        f"{p}@train.{p}=off" for p in ("prior_position", "prior_scale", "prior_aspect")],
+    "mask refiner + hull mask prior": ["train.model.mode=bi_nvs",
+                                       "train.model.mask_refiner.widths=[16,32]",
                                        "prior_mask@train.prior_mask=hull",
                                        "train.prior_mask.weight=4"],
 }

@@ -55,7 +55,7 @@ ABLATIONS = {
     "no weak priors": ["experiment=no_priors"],
     "classical ST": ["experiment=classical_st"],
     "no depth reasoning": ["experiment=no_depth"],
-    "auto-encoder": ["experiment=autoencoder"],
+    "auto-encoder": ["model.mode=autoencoder"],
     "pixel loss only": ["experiment=pixel_only"],
     "NSD as published (no residual cues)": ["experiment=paper"],
     "no weak priors, seed 1": ["experiment=no_priors", "trainer.seed=1"],
@@ -137,6 +137,7 @@ ABLATIONS = {
 # What a row was measured with unless it sets the key itself: the defaults of the time, pinned
 # so that a later change of a default does not change the table (key prefix -> override).
 PINNED = {
+    "model.mode=": "model.mode=bi_nvs",  # the default until 2026-11-27
     "data.same_view=": "data.same_view=0",
     "prior_mask": "prior_mask=off",
     "model.mask_refiner": "model.mask_refiner.widths=[]",

@@ -186,6 +186,7 @@ def one(
         "+export.progress=false",
         f"train.model.num_windows={n}",
         "~train.data.same_view",  # Bi-NVS pairs only, as when these rows were first measured
+        "train.model.mode=bi_nvs",
         f"train.trainer.max_minutes={minutes}",
         f"netepu.geometry={GEOMETRY}",
         f"netepu.texture={texture}",

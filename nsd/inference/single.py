@@ -50,7 +50,11 @@ from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
 from nsd.ops.boxes import mask_boxes_xywh
 
-__all__ = ["Decomposition", "associate_views", "decompose", "ownership"]
+__all__ = ["COLOUR_SIGMA", "Decomposition", "associate_views", "decompose", "ownership"]
+
+# The colour agreement of the ownership when no config gives one; conf/inference/default.yaml
+# (``inference.colour_sigma``) holds the same value, chosen in docs/benchmarks/ownership.md.
+COLOUR_SIGMA = 0.4
 
 
 @dataclass
@@ -123,7 +127,7 @@ def decompose(
     min_weight: float = 0.05,
     evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS,
-    colour_sigma: float = 0.2,
+    colour_sigma: float = COLOUR_SIGMA,
     detections: Detections | None = None,
     owner_prior: Tensor | None = None,
     owner_bonus: float = 0.0,

@@ -129,6 +129,15 @@ def test_python_and_cli_build_the_same_model(cli_configs):
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
+def test_training_modes_the_experiments_choose():
+    """The default trains the auto-encoder (docs/nsd.md "Which view to re-synthesise");
+    experiment=bi_nvs and the paper as written train Bi-NVS across views."""
+    assert compose_app("train").model.mode == "autoencoder"
+    assert compose_app("train", ["experiment=bi_nvs"]).model.mode == "bi_nvs"
+    assert compose_app("train", ["experiment=paper"]).model.mode == "bi_nvs"
+    assert compose_app("train", ["experiment=no_depth"]).model.mode == "autoencoder"
+
+
 def test_overrides_and_bad_keys_name_the_key():
     assert BiNVSConfig.defaults(crop_size=48).crop_size == 48
     assert TrainerConfig.defaults(max_steps=7).max_steps == 7

@@ -112,7 +112,7 @@ def tiny_data(tiny_scene):
 
 # SSIM is left out: kornia's SSIM opens an autocast region, which the meta device lacks
 @pytest.mark.parametrize("overrides", [
-    [], ["experiment=autoencoder"], ["prior_presence=hull"], ["prior_presence=marginal"],
+    [], ["model.mode=autoencoder"], ["prior_presence=hull"], ["prior_presence=marginal"],
     ["prior_depth=triangulation"], ["model.depth_from_step=0"],
 ])
 def test_nsd_training_step_stays_on_the_model_device(tiny_data, overrides):

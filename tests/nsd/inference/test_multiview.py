@@ -18,7 +18,7 @@ from nsd.inference.multiview import (
     fuse_detections,
     window_owners,
 )
-from nsd.inference.single import decompose, ownership
+from nsd.inference.single import COLOUR_SIGMA, decompose, ownership
 from nsd.io.scene_data import SceneData
 from nsd.model.build import build_model
 from nsd.model.detector import Detections
@@ -110,6 +110,12 @@ def test_wrong_settings_name_their_key(kv):
     (key,) = kv
     with pytest.raises(ConfigError, match=f"inference.{key}"):
         InferenceSettings.defaults(**kv)
+
+
+def test_decompose_defaults_to_the_configs_colour_agreement():
+    """decompose without settings (views=single callers, tools) and the inference config
+    agree on the ownership's colour agreement: one value, chosen in benchmarks/ownership.md."""
+    assert InferenceSettings.defaults().colour_sigma == COLOUR_SIGMA
 
 
 def test_unknown_setting_and_single_camera_are_clear_errors(tiny_scene):

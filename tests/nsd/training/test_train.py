@@ -30,8 +30,11 @@ TINY = [
 
 
 def tiny_cfg(*overrides: str):
+    """The tiny config, trained by Bi-NVS (the paper's cross-view path, which most model and
+    prior tests exercise) unless ``overrides`` say ``model.mode=autoencoder``, the default;
+    ``TINY`` alone (the pipeline's tests) keeps the default mode."""
     with initialize_config_module("nsd.conf", version_base="1.3"):
-        return compose("train", overrides=[*TINY, *overrides])
+        return compose("train", overrides=[*TINY, "model.mode=bi_nvs", *overrides])
 
 
 @pytest.fixture

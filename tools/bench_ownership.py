@@ -1,0 +1,152 @@
+"""The masks' pixel ownership at inference: ``hull_ownership`` x ``colour_sigma`` on trained runs.
+
+    .venv/bin/python tools/bench_ownership.py RUN [RUN ...]   # nsd-run output folders
+    .venv/bin/python tools/bench_ownership.py RUN ... --hull-ownership 0 0.5 1 2 \
+        --colour-sigma 0 0.2 0.4 --report ownership
+
+The exported masks give every foreground pixel to the window with the largest ownership
+score (:func:`nsd.inference.single.ownership`): the composited weight, the agreement of the
+window's decoded colour with the pixel (``inference.colour_sigma``; 0: off) and, with
+multi-view inference, a bonus for the window whose hull individual owns the pixel
+(``inference.hull_ownership``; 0: the learned ownership alone). Both were chosen one at a
+time; this script scores every pair on the same checkpoints, so the defaults can be chosen
+on several scenes and training modes together rather than on one.
+
+For each run (a folder of ``nsd-run``: ``train/checkpoint.pt``, and the scene it was
+trained on, from its ``scene/stage.json``) and each pair, ``nsd-eval`` scores the first
+``--frames`` held-out frames; the hull-only decomposition (no learning) is scored once per
+run on the same frames. Each ``nsd-eval`` runs on one thread, ``--jobs`` at a time; with
+``--work`` the scores of an earlier call are reused.
+
+Writes ``docs/benchmarks/<--report>.{md,json}``: one row per run and pair, then one row per
+training mode (``model.mode``) and pair with the mean gain over the hull-only row across
+that mode's runs (all frames and touching instants) and the worst run's gain.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tools.benchlib import write_report
+
+BIN = Path(sys.executable).parent
+NAN = float("nan")
+KEEP = ("detection_rate", "mask_miou", "mask_miou_touching", "mask_miou_raw",
+        "association_accuracy", "merge_rate", "touching_share")
+
+
+def _scene(run: Path) -> str:
+    stage = run / "scene" / "stage.json"
+    if not stage.exists():
+        raise SystemExit(f"{run}: not an nsd-run folder (no scene/stage.json)")
+    return json.loads(stage.read_text())["summary"]["path"]
+
+
+def _training(run: Path) -> str:
+    """How the run's model was trained: its mode, steps and minutes (train/stage.json)."""
+    stage = json.loads((run / "train" / "stage.json").read_text())
+    cfg, summary = stage["config"], stage["summary"]
+    return (f"{cfg['model']['mode']}, {summary.get('steps')} steps, "
+            f"{cfg['trainer'].get('max_minutes')} minutes, seed {cfg['trainer'].get('seed')}, "
+            f"{cfg['model']['num_windows']} windows")
+
+
+def _mode(run: Path) -> str:
+    return json.loads((run / "train" / "stage.json").read_text())["config"]["model"]["mode"]
+
+
+def _eval(run: Path, out: Path, frames: int, overrides: list[str]) -> dict:
+    if (out / "eval.json").exists():  # --work of an earlier call: scored already
+        return json.loads((out / "eval.json").read_text())
+    ckpt = run / "train" / "checkpoint.pt"
+    if not ckpt.exists():
+        raise SystemExit(f"{run}: no trained checkpoint ({ckpt})")
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    done = subprocess.run(
+        [str(BIN / "nsd-eval"), f"checkpoint={ckpt}", f"scene={_scene(run)}",
+         f"max_frames={frames}", f"out={out}", "threads=1", *overrides],
+        env=env, capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(f"nsd-eval failed on {run} {overrides}:\n{done.stderr[-2000:]}")
+    return json.loads((out / "eval.json").read_text())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", type=Path, nargs="+", help="nsd-run output folders")
+    ap.add_argument("--hull-ownership", type=float, nargs="+", default=[0.0, 0.5, 1.0, 2.0])
+    ap.add_argument("--colour-sigma", type=float, nargs="+", default=[0.0, 0.2, 0.4])
+    ap.add_argument("--frames", type=int, default=30, help="held-out frames per run")
+    ap.add_argument("--jobs", type=int, default=1, help="nsd-eval processes at a time")
+    ap.add_argument("--label", nargs="*", default=[],
+                    help="a name per run for the table (default: the folder's name)")
+    ap.add_argument("--report", default="ownership", help="docs/benchmarks/<report>.{md,json}")
+    ap.add_argument("--work", type=Path, default=None,
+                    help="the folder of nsd-eval's outputs (default: a new temporary folder); "
+                         "scores already in it are reused")
+    args = ap.parse_args()
+    if args.label and len(args.label) != len(args.runs):
+        raise SystemExit(f"--label: {len(args.label)} names for {len(args.runs)} runs")
+    labels = args.label or [r.name for r in args.runs]
+    pairs = [(h, c) for h in args.hull_ownership for c in args.colour_sigma]
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench-ownership-"))
+    jobs = [(i, run, None) for i, run in enumerate(args.runs)]  # the hull-only rows
+    jobs += [(i, run, p) for i, run in enumerate(args.runs) for p in pairs]
+
+    def one(job):
+        i, run, pair = job
+        if pair is None:
+            m = _eval(run, work / f"{i}-hull", args.frames, ["baseline=true"])
+            return job, {k: m.get(f"hull_{k}") for k in KEEP if f"hull_{k}" in m}
+        h, c = pair
+        return job, _eval(run, work / f"{i}-{h}-{c}", args.frames,
+                          ["baseline=false", f"inference.hull_ownership={h}",
+                           f"inference.colour_sigma={c}"])
+
+    with ThreadPoolExecutor(args.jobs) as pool:
+        results = dict(pool.map(one, jobs))
+    rows, gains = [], {}  # (training mode, pair) -> per run (mIoU, touching, detection) gains
+    for i, run in enumerate(args.runs):
+        hull, mode = results[(i, run, None)], _mode(run)
+        rows.append({"run": labels[i], "hull_ownership": "hull-only", "colour_sigma": "",
+                     **{k: hull.get(k) for k in KEEP}})
+        for p in pairs:
+            m = results[(i, run, p)]
+            rows.append({"run": labels[i], "hull_ownership": p[0], "colour_sigma": p[1],
+                         **{k: m.get(k) for k in KEEP}})
+            gains.setdefault((mode, p), []).append(
+                (m["mask_miou"] - hull["mask_miou"],
+                 m.get("mask_miou_touching", NAN) - hull.get("mask_miou_touching", NAN),
+                 m["detection_rate"] - hull["detection_rate"]))
+    for (mode, p), g in gains.items():
+        touching = [x[1] for x in g if not math.isnan(x[1])]
+        rows.append({"run": f"mean of {len(g)} {mode} runs", "hull_ownership": p[0],
+                     "colour_sigma": p[1],
+                     "mask_miou_gain": statistics.fmean(x[0] for x in g),
+                     "mask_miou_gain_worst": min(x[0] for x in g),
+                     "mask_miou_touching_gain": statistics.fmean(touching) if touching else None,
+                     "detection_gain": statistics.fmean(x[2] for x in g)})
+    notes = (f"`nsd-eval` on the first {args.frames} held-out frames of each run's scene, one "
+             "thread. `hull-only`: the visual hull of the residuals alone on the same frames "
+             "(nsd/evaluation/hull_baseline.py). Gains are the learned row minus the run's "
+             "hull-only row; `mask_miou_gain_worst`: the run that gains least. Runs "
+             "(`nsd-run` with `train.model.num_windows` = the scene's individuals): "
+             + "; ".join(f"`{lab}`: {_training(run)}"
+                         for lab, run in zip(labels, args.runs, strict=True)) + ".")
+    write_report(args.report, "The masks' pixel ownership: hull bonus x colour agreement",
+                 rows, notes)
+
+
+if __name__ == "__main__":
+    main()
