@@ -120,7 +120,7 @@ def main() -> None:
     for i, run in enumerate(args.runs):
         hull, mode = results[(i, run, None)], _mode(run)
         rows.append({"run": labels[i], "hull_ownership": "hull-only", "colour_sigma": "",
-                     **{k: hull.get(k) for k in KEEP}})
+                     **{k: "" if k == "mask_miou_raw" else hull.get(k) for k in KEEP}})
         for p in pairs:
             m = results[(i, run, p)]
             rows.append({"run": labels[i], "hull_ownership": p[0], "colour_sigma": p[1],

@@ -18,7 +18,7 @@ For a pair of views :math:`(v, w)` of the same instant:
 and symmetrically for :math:`w` from :math:`v`: each reconstruction takes its
 boxes, depths and background from the target view and its pose and
 appearance from the other view. ``mode="autoencoder"`` re-synthesises each view
-from itself (the paper's auto-encoder ablation); ``depth=False`` uses the
+from itself (the paper's auto-encoder ablation, our default: docs/nsd.md); ``depth=False`` uses the
 additive compositor of eq. 6 (the no-depth ablation); ``focal=False`` the
 classical spatial transformer.
 """
@@ -74,7 +74,7 @@ class BiNVSConfig(ConfigSection):
     crop_size: int  # h = w of the window crops
     focal: bool  # focal spatial transformer (False: classical, for the ablation)
     depth: bool  # erf-transmittance compositor (False: additive eq. 6, ablation)
-    mode: str  # "bi_nvs" or "autoencoder" (each view from itself, ablation)
+    mode: str  # "autoencoder" (each view from itself, the default) or "bi_nvs" (from the other)
     association: bool  # appearance association across views (eq. 4-5)
     association_dims: int  # leading appearance entries compared
     association_beta: float  # softmax sharpness
