@@ -54,19 +54,18 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
             "motion.area_radius=2.0"]),
     "6 bipeds, 8 cameras": (6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0"]),
 }
+BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
     "default": [],  # nsd-run's defaults: the auto-encoder since 2026-11-27
-    # Bi-NVS with a quarter of the pairs from the view itself: the default until 2026-11-27
-    "Bi-NVS": ["train.model.mode=bi_nvs"],
-    "Bi-NVS only": ["train.model.mode=bi_nvs", "train.data.same_view=0"],  # as the paper
-    "half the pairs from the view itself": ["train.model.mode=bi_nvs", "train.data.same_view=0.5"],
+    "Bi-NVS": BI_NVS,  # with a quarter of the pairs from the view itself (data.same_view)
+    "Bi-NVS only": [*BI_NVS, "train.data.same_view=0"],  # every pair across views, as the paper
+    "half the pairs from the view itself": [*BI_NVS, "train.data.same_view=0.5"],
     "auto-encoder": ["train.model.mode=autoencoder"],
     # the paper's other ablations, on Bi-NVS as they were measured
-    "no depth reasoning": ["train.model.mode=bi_nvs", "train.model.depth=false"],
-    "no weak priors": ["train.model.mode=bi_nvs"] + [
-        f"{p}@train.{p}=off" for p in ("prior_position", "prior_scale", "prior_aspect")],
-    "mask refiner + hull mask prior": ["train.model.mode=bi_nvs",
-                                       "train.model.mask_refiner.widths=[16,32]",
+    "no depth reasoning": [*BI_NVS, "train.model.depth=false"],
+    "no weak priors": [*BI_NVS, *(f"{p}@train.{p}=off"
+                                  for p in ("prior_position", "prior_scale", "prior_aspect"))],
+    "mask refiner + hull mask prior": [*BI_NVS, "train.model.mask_refiner.widths=[16,32]",
                                        "prior_mask@train.prior_mask=hull",
                                        "train.prior_mask.weight=4"],
 }

@@ -26,6 +26,7 @@ that mode's runs (all frames and touching instants) and the worst run's gain.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -53,17 +54,17 @@ def _scene(run: Path) -> str:
     return json.loads(stage.read_text())["summary"]["path"]
 
 
-def _training(run: Path) -> str:
-    """How the run's model was trained: its mode, steps and minutes (train/stage.json)."""
-    stage = json.loads((run / "train" / "stage.json").read_text())
+def _train_stage(run: Path) -> dict:
+    """The run's ``train/stage.json``: its config and summary."""
+    return json.loads((run / "train" / "stage.json").read_text())
+
+
+def _training(stage: dict) -> str:
+    """How a run's model was trained (its train stage): mode, steps, minutes, seed, windows."""
     cfg, summary = stage["config"], stage["summary"]
     return (f"{cfg['model']['mode']}, {summary.get('steps')} steps, "
             f"{cfg['trainer'].get('max_minutes')} minutes, seed {cfg['trainer'].get('seed')}, "
             f"{cfg['model']['num_windows']} windows")
-
-
-def _mode(run: Path) -> str:
-    return json.loads((run / "train" / "stage.json").read_text())["config"]["model"]["mode"]
 
 
 def _eval(run: Path, out: Path, frames: int, overrides: list[str]) -> dict:
@@ -99,7 +100,8 @@ def main() -> None:
     if args.label and len(args.label) != len(args.runs):
         raise SystemExit(f"--label: {len(args.label)} names for {len(args.runs)} runs")
     labels = args.label or [r.name for r in args.runs]
-    pairs = [(h, c) for h in args.hull_ownership for c in args.colour_sigma]
+    pairs = list(itertools.product(args.hull_ownership, args.colour_sigma))
+    stages = [_train_stage(run) for run in args.runs]
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-ownership-"))
     jobs = [(i, run, None) for i, run in enumerate(args.runs)]  # the hull-only rows
     jobs += [(i, run, p) for i, run in enumerate(args.runs) for p in pairs]
@@ -118,7 +120,7 @@ def main() -> None:
         results = dict(pool.map(one, jobs))
     rows, gains = [], {}  # (training mode, pair) -> per run (mIoU, touching, detection) gains
     for i, run in enumerate(args.runs):
-        hull, mode = results[(i, run, None)], _mode(run)
+        hull, mode = results[(i, run, None)], stages[i]["config"]["model"]["mode"]
         rows.append({"run": labels[i], "hull_ownership": "hull-only", "colour_sigma": "",
                      **{k: "" if k == "mask_miou_raw" else hull.get(k) for k in KEEP}})
         for p in pairs:
@@ -142,8 +144,8 @@ def main() -> None:
              "(nsd/evaluation/hull_baseline.py). Gains are the learned row minus the run's "
              "hull-only row; `mask_miou_gain_worst`: the run that gains least. Runs "
              "(`nsd-run` with `train.model.num_windows` = the scene's individuals): "
-             + "; ".join(f"`{lab}`: {_training(run)}"
-                         for lab, run in zip(labels, args.runs, strict=True)) + ".")
+             + "; ".join(f"`{lab}`: {_training(st)}"
+                         for lab, st in zip(labels, stages, strict=True)) + ".")
     write_report(args.report, "The masks' pixel ownership: hull bonus x colour agreement",
                  rows, notes)
 
