@@ -26,6 +26,10 @@ Two halves of a long run can go side by side, one core each, into one folder
 ``taskset -c 1 ... --variants "no depth reasoning" "no weak priors"``), then
 ``--rescore <root> --variants ...`` scores them all into one report.
 
+``--checkpoints <root>`` trains nothing either: each run loads the trained checkpoint of the
+same run in an earlier root (``nsd-run checkpoint=...``) and evaluates and exports it with
+today's inference, so that a change of inference defaults is scored on the same models.
+
 Writes ``docs/benchmarks/<--report>.{md,json}`` (default ``contact``).
 """
 
@@ -113,7 +117,8 @@ def main() -> None:
                     help="a time budget per scene instead of --steps (0: the step budget)")
     ap.add_argument("--report", default="contact", help="docs/benchmarks/<report>.{md,json}")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds")
-    ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="scene names to run")
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES),
+                    help="scene names to run")
     ap.add_argument("--rescore", type=Path, default=None,
                     help="a folder of an earlier run of this script: score it, train nothing")
     ap.add_argument("--carry", nargs="*", default=[],
@@ -124,6 +129,8 @@ def main() -> None:
     ap.add_argument("--root", type=Path, default=None,
                     help="the folder of scenes and runs (default: a new temporary folder); "
                          "scenes already in it are not generated again")
+    ap.add_argument("--checkpoints", type=Path, default=None,
+                    help="an earlier root whose runs' checkpoints are loaded instead of training")
     ap.add_argument("--train-only", action="store_true",
                     help="train and export, score nothing, write no report (see --rescore)")
     args = ap.parse_args()
@@ -133,7 +140,8 @@ def main() -> None:
               ["train.trainer.max_steps=0", f"train.trainer.max_minutes={args.minutes}"])
     root = args.rescore or args.root or Path(tempfile.mkdtemp(prefix="bench-contact-"))
     rows = []
-    for i, name in enumerate(args.scenes):
+    for name in args.scenes:
+        i = list(SCENES).index(name)  # scene<i> is the same scene whichever --scenes are run
         n, synth = SCENES[name]
         scene = root / f"scene{i}"
         if not args.rescore and not (scene / "calibration.toml").exists():
@@ -142,11 +150,17 @@ def main() -> None:
         for seed, variant in [(s, v) for s in args.seeds for v in args.variants]:
             slug = "" if variant == "default" else "-" + variant.replace(" ", "_")
             out = root / f"run{i}-{seed}{slug}"
+            if args.checkpoints:
+                ckpt = args.checkpoints / out.name / "train" / "checkpoint.pt"
+                if not ckpt.is_file():
+                    raise SystemExit(f"--checkpoints: no {ckpt}")
+                trained = [f"checkpoint={ckpt}"]
+            else:
+                trained = [f"train.trainer.seed={seed}", *budget]
             if not args.rescore:
                 subprocess.run(
                     [str(BIN / "nsd-run"), f"scene={scene}", f"out={out}",
-                     f"train.model.num_windows={n}", f"train.trainer.seed={seed}",
-                     *budget, *VARIANTS[variant],
+                     f"train.model.num_windows={n}", *trained, *VARIANTS[variant],
                      "evaluate.max_frames=30", "grids.frames=0", "overlays.enabled=false"],
                     check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             if args.train_only or (args.rescore and not (out / "pipeline.json").exists()):
@@ -177,6 +191,9 @@ def main() -> None:
     rows += carried
     budget_text = (f"`train.trainer.max_steps={args.steps}`" if args.minutes <= 0 else
                    f"`train.trainer.max_minutes={args.minutes:g}` (steps bought: `train_steps`)")
+    if args.checkpoints:
+        budget_text += (" (trained earlier, then loaded with `nsd-run checkpoint=...` and "
+                        "evaluated and exported with this commit's inference)")
     write_report(
         args.report, "Groups in contact: metrics apart / touching, learned and hull-only", rows,
         notes=(f"`nsd-run` per scene and seed with `train.model.num_windows` = the number of "

@@ -1,26 +1,31 @@
-"""The masks' pixel ownership at inference: ``hull_ownership`` x ``colour_sigma`` on trained runs.
+"""The masks' pixel ownership at inference: the hull's bonus x colour agreement on trained runs.
 
     .venv/bin/python tools/bench_ownership.py RUN [RUN ...]   # nsd-run output folders
     .venv/bin/python tools/bench_ownership.py RUN ... --hull-ownership 0 0.5 1 2 \
         --colour-sigma 0 0.2 0.4 --report ownership
+    .venv/bin/python tools/bench_ownership.py RUN ... --hull-ownership 2 --colour-sigma 0.4 \
+        --hull-contested 0 0.5 1 2 --report ownership_contested
 
 The exported masks give every foreground pixel to the window with the largest ownership
 score (:func:`nsd.inference.single.ownership`): the composited weight, the agreement of the
 window's decoded colour with the pixel (``inference.colour_sigma``; 0: off) and, with
 multi-view inference, a bonus for the window whose hull individual owns the pixel
-(``inference.hull_ownership``; 0: the learned ownership alone). Both were chosen one at a
-time; this script scores every pair on the same checkpoints, so the defaults can be chosen
-on several scenes and training modes together rather than on one.
+(``inference.hull_ownership``; 0: the learned ownership alone), which is
+``inference.hull_contested`` instead on the pixels near two or more hull individuals
+(:func:`nsd.cues.occupancy.contested_pixels`). This script scores every combination on the
+same checkpoints, so the defaults can be chosen on several scenes and training modes
+together rather than on one (without ``--hull-contested``: the bonus is the same on every
+pixel).
 
 For each run (a folder of ``nsd-run``: ``train/checkpoint.pt``, and the scene it was
-trained on, from its ``scene/stage.json``) and each pair, ``nsd-eval`` scores the first
+trained on, from its ``scene/stage.json``) and each combination, ``nsd-eval`` scores the first
 ``--frames`` held-out frames; the hull-only decomposition (no learning) is scored once per
 run on the same frames. Each ``nsd-eval`` runs on one thread, ``--jobs`` at a time; with
 ``--work`` the scores of an earlier call are reused.
 
-Writes ``docs/benchmarks/<--report>.{md,json}``: one row per run and pair, then one row per
-training mode (``model.mode``) and pair with the mean gain over the hull-only row across
-that mode's runs (all frames and touching instants) and the worst run's gain.
+Writes ``docs/benchmarks/<--report>.{md,json}``: one row per run and combination, then one
+row per training mode (``model.mode``) and combination with the mean gain over the hull-only
+row across that mode's runs (all frames and touching instants) and the worst run's gain.
 """
 
 from __future__ import annotations
@@ -88,6 +93,8 @@ def main() -> None:
     ap.add_argument("runs", type=Path, nargs="+", help="nsd-run output folders")
     ap.add_argument("--hull-ownership", type=float, nargs="+", default=[0.0, 0.5, 1.0, 2.0])
     ap.add_argument("--colour-sigma", type=float, nargs="+", default=[0.0, 0.2, 0.4])
+    ap.add_argument("--hull-contested", type=float, nargs="*", default=[],
+                    help="the bonus on contested pixels (default: --hull-ownership's)")
     ap.add_argument("--frames", type=int, default=30, help="held-out frames per run")
     ap.add_argument("--jobs", type=int, default=1, help="nsd-eval processes at a time")
     ap.add_argument("--label", nargs="*", default=[],
@@ -100,7 +107,8 @@ def main() -> None:
     if args.label and len(args.label) != len(args.runs):
         raise SystemExit(f"--label: {len(args.label)} names for {len(args.runs)} runs")
     labels = args.label or [r.name for r in args.runs]
-    pairs = list(itertools.product(args.hull_ownership, args.colour_sigma))
+    pairs = list(itertools.product(args.hull_ownership, args.colour_sigma,
+                                   args.hull_contested or [None]))
     stages = [_train_stage(run) for run in args.runs]
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-ownership-"))
     jobs = [(i, run, None) for i, run in enumerate(args.runs)]  # the hull-only rows
@@ -111,10 +119,17 @@ def main() -> None:
         if pair is None:
             m = _eval(run, work / f"{i}-hull", args.frames, ["baseline=true"])
             return job, {k: m.get(f"hull_{k}") for k in KEEP if f"hull_{k}" in m}
-        h, c = pair
-        return job, _eval(run, work / f"{i}-{h}-{c}", args.frames,
+        h, c, hc = pair
+        hc = h if hc is None else hc
+        name = f"{i}-{h}-{c}" if hc == h else f"{i}-{h}-{c}-{hc}"  # earlier --work folders
+        return job, _eval(run, work / name, args.frames,
                           ["baseline=false", f"inference.hull_ownership={h}",
-                           f"inference.colour_sigma={c}"])
+                           f"inference.colour_sigma={c}", f"inference.hull_contested={hc}"])
+
+    def contested(pair) -> dict:  # the column exists when the bonus differs on contested pixels
+        if not args.hull_contested:
+            return {}
+        return {"hull_contested": "" if pair is None else pair[2]}
 
     with ThreadPoolExecutor(args.jobs) as pool:
         results = dict(pool.map(one, jobs))
@@ -122,11 +137,12 @@ def main() -> None:
     for i, run in enumerate(args.runs):
         hull, mode = results[(i, run, None)], stages[i]["config"]["model"]["mode"]
         rows.append({"run": labels[i], "hull_ownership": "hull-only", "colour_sigma": "",
+                     **contested(None),
                      **{k: "" if k == "mask_miou_raw" else hull.get(k) for k in KEEP}})
         for p in pairs:
             m = results[(i, run, p)]
             rows.append({"run": labels[i], "hull_ownership": p[0], "colour_sigma": p[1],
-                         **{k: m.get(k) for k in KEEP}})
+                         **contested(p), **{k: m.get(k) for k in KEEP}})
             gains.setdefault((mode, p), []).append(
                 (m["mask_miou"] - hull["mask_miou"],
                  m.get("mask_miou_touching", NAN) - hull.get("mask_miou_touching", NAN),
@@ -134,7 +150,7 @@ def main() -> None:
     for (mode, p), g in gains.items():
         touching = [x[1] for x in g if not math.isnan(x[1])]
         rows.append({"run": f"mean of {len(g)} {mode} runs", "hull_ownership": p[0],
-                     "colour_sigma": p[1],
+                     "colour_sigma": p[1], **contested(p),
                      "mask_miou_gain": statistics.fmean(x[0] for x in g),
                      "mask_miou_gain_worst": min(x[0] for x in g),
                      "mask_miou_touching_gain": statistics.fmean(touching) if touching else None,
@@ -146,7 +162,7 @@ def main() -> None:
              "(`nsd-run` with `train.model.num_windows` = the scene's individuals): "
              + "; ".join(f"`{lab}`: {_training(st)}"
                          for lab, st in zip(labels, stages, strict=True)) + ".")
-    write_report(args.report, "The masks' pixel ownership: hull bonus x colour agreement",
+    write_report(args.report, "The masks' pixel ownership: the hull's bonus x colour agreement",
                  rows, notes)
 
 

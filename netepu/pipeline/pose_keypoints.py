@@ -141,12 +141,14 @@ def regress_export(
 def _as_exported(export, scene, d) -> tuple[SceneData, InferenceSettings, dict[str, Any]]:
     """The scene data, inference and decomposition settings the export was made with, so
     that an annotation's slot is the window whose latent is regressed. Exports written
-    before multi-view inference record no inference: single-image, weights alone."""
+    before multi-view inference record no inference: single-image, weights alone; those
+    written before ``hull_contested`` gave the hull the same bonus on every pixel."""
     manifest = Path(export) / "manifest.json"
     ecfg = json.loads(manifest.read_text()).get("config", {}) if manifest.is_file() else {}
-    settings = InferenceSettings.from_config(
-        ecfg.get("inference", {"views": "single", "colour_sigma": 0.0})
-    )
+    recorded = dict(ecfg.get("inference", {"views": "single", "colour_sigma": 0.0}))
+    if "hull_ownership" in recorded:
+        recorded.setdefault("hull_contested", recorded["hull_ownership"])
+    settings = InferenceSettings.from_config(recorded)
     cams = ecfg.get("cameras") or d.get("cameras")
     data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0),
                      d.get("units", "auto"), background=d.get("background", "median"))

@@ -159,8 +159,11 @@ def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
             "metrics": {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)},
         }
 
-    # where and on how many threads it runs is not a result
-    settings = {k: v for k, v in _container(tcfg).items() if k not in ("threads", "device")}
+    # where and on how many threads it runs is not a result; the inference settings change
+    # what evaluate and export make of the checkpoint, not the checkpoint (the training's own
+    # progress evaluations keep the settings it ran with)
+    settings = {k: v for k, v in _container(tcfg).items()
+                if k not in ("threads", "device", "inference")}
     return Stage("train", run, settings, needs=("scene",))
 
 

@@ -54,6 +54,9 @@ def _hydra_message(e: BaseException) -> str:
     text = "; ".join(parts)
     if "is not in struct" in text or "Could not override" in text:
         text += " (is the key spelled right? `--cfg job` prints every key)"
+    if "Ambiguous value" in text:  # a comma makes a sweep list of a path
+        text += (" (a value holding a comma, such as a path, must be quoted: "
+                 "key=\"'/my,folder/x'\")")
     return text
 
 

@@ -18,8 +18,10 @@ cluster, projected into each view, gives
   in that view (each foreground pixel goes to the nearest-in-depth individual
   whose voxels project close to it, see :func:`owned_pixels`), divided by
   ``fill`` as in :mod:`nsd.cues.proposals`,
-* its camera-space depth (mean over its voxels), and
-* an identity that is the same in every view of the frame (the cluster index).
+* its camera-space depth (mean over its voxels),
+* an identity that is the same in every view of the frame (the cluster index), and
+* the pixels the hull cannot settle: foreground pixels near the projections of two or
+  more individuals (:func:`contested_pixels`), where touching or overlapping bodies meet.
 
 These feed the proposal, depth and association priors of ``nsd-train``. The
 working volume is, by default, a cube around the point closest to all optical
@@ -48,9 +50,11 @@ from nsd.core.errors import ConfigError
 from nsd.ops.vectors import up_frame
 
 __all__ = [
+    "CONTEST_BAND",
     "MultiviewProposals",
     "VoxelGrid",
     "cluster_individuals",
+    "contested_pixels",
     "hull_min_views",
     "multiview_proposals",
     "occupied_voxels",
@@ -68,12 +72,15 @@ class MultiviewProposals(NamedTuple):
         depths: camera-space depth of each individual in each view (V, k).
         valid: (V, k) bool.
         owners: the individual owning each foreground pixel (V, H, W), -1 elsewhere.
+        contested: (V, H, W) bool, foreground pixels near two or more individuals
+            (:func:`contested_pixels`).
     """
 
     boxes: Tensor
     depths: Tensor
     valid: Tensor
     owners: Tensor
+    contested: Tensor
 
 
 @dataclass
@@ -207,6 +214,11 @@ def occupied_voxels(
 # and the merge rate rises 0.28 -> 0.84 (docs/benchmarks/hull.md).
 OWNER_RADIUS = 0.6
 OWNER_REACH = 4.5
+# contested_pixels' band in voxel sides: on the held-out frames of three huddling bipeds,
+# 54 % of the visible foreground lies within 1.5 voxel sides of two individuals; there the
+# hull's owner is right for 71 % of the pixels and the trained auto-encoder's ownership for
+# 81 %, elsewhere for 96 % and 93 % (docs/nsd.md, "Where the hull cannot settle").
+CONTEST_BAND = 1.5
 # cluster_individuals with the count known: seeds of the k-means at least SEED_SPREAD typical
 # radii apart; columns beyond GHOST_SPREAD radii of their cluster dropped. With 1.5 radii,
 # hull-only detection of six huddling bipeds 0.95 -> 0.93, of the mixed group 0.62 -> 0.59
@@ -376,6 +388,31 @@ def owned_pixels(
     return owner
 
 
+def contested_pixels(fg: Tensor, uv: Tensor, labels: Tensor, k: int, band: float) -> Tensor:
+    """The foreground pixels of one view near two or more individuals' voxels.
+
+    Args:
+        fg: foreground (H, W) bool.
+        uv: projections of the individuals' voxels (P, 2); labels (P,) in [0, k).
+        k: number of individuals.
+        band: pixels.
+
+    Returns:
+        (H, W) bool: foreground pixels with voxels of at least two individuals projecting
+        within ``band`` pixels.
+    """
+    out = torch.zeros_like(fg)
+    ys, xs = torch.nonzero(fg, as_tuple=True)
+    if len(ys) == 0 or len(uv) == 0:
+        return out
+    pix = torch.stack([xs, ys], -1).to(uv.dtype)
+    d = torch.cdist(pix, uv)  # (F, P)
+    nearest = d.new_full((len(ys), k), float("inf"))
+    nearest.scatter_reduce_(1, labels[None].expand_as(d), d, "amin")  # (F, k) per individual
+    out[ys, xs] = (nearest <= band).sum(1) >= 2
+    return out
+
+
 def multiview_proposals(
     evidence: Tensor,
     grid: VoxelGrid,
@@ -386,6 +423,7 @@ def multiview_proposals(
     max_scale: float = 1.0,
     min_views: int | None = None,
     split: bool = True,
+    contest: float = 0.0,
 ) -> MultiviewProposals:
     """Proposals for all views of one frame from its occupancy.
 
@@ -399,6 +437,8 @@ def multiview_proposals(
         min_views: as in :func:`occupied_voxels`.
         split: :func:`cluster_individuals`' ``split`` (False: ``k`` is an upper bound
             and slots without an individual are invalid).
+        contest: :func:`contested_pixels`' band in voxel sides (e.g. ``CONTEST_BAND``;
+            0: not computed, ``contested`` is all False).
 
     Returns:
         :class:`MultiviewProposals`. Slot ``j`` is the same cluster (individual) in
@@ -414,8 +454,9 @@ def multiview_proposals(
     occ = occupied_voxels(evidence, grid, min_views)
     idx = torch.nonzero(occ).flatten()
     owners = torch.full((V, H, W), -1, dtype=torch.long)
+    contested = torch.zeros(V, H, W, dtype=torch.bool)
     if len(idx) < min_voxels:
-        return MultiviewProposals(boxes, depths, valid, owners)
+        return MultiviewProposals(boxes, depths, valid, owners, contested)
     labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split)
     keep = labels >= 0
     idx, labels = idx[keep], labels[keep]
@@ -424,8 +465,11 @@ def multiview_proposals(
         vis = grid.inside[v, idx]
         z = grid.depth[v, idx[vis]]
         voxel_px = float(grid.size * grid.focal[v] / z.median()) if len(z) else 1.0
-        owners[v] = owned_pixels(evidence[v] > 0.5, grid.uv[v, idx[vis]], z, labels[vis], k,
+        fg, uv = evidence[v] > 0.5, grid.uv[v, idx[vis]]
+        owners[v] = owned_pixels(fg, uv, z, labels[vis], k,
                                  OWNER_RADIUS * voxel_px, OWNER_REACH * voxel_px)
+        if contest > 0:
+            contested[v] = contested_pixels(fg, uv, labels[vis], k, contest * voxel_px)
         for j in range(k):
             sel = labels[vis] == j
             ys, xs = torch.nonzero(owners[v] == j, as_tuple=True)
@@ -439,4 +483,4 @@ def multiview_proposals(
             boxes[v, j] = torch.cat([half.clamp(min_scale, max_scale), centre])
             depths[v, j] = z[sel].mean()
             valid[v, j] = True
-    return MultiviewProposals(boxes, depths, valid, owners)
+    return MultiviewProposals(boxes, depths, valid, owners, contested)

@@ -39,7 +39,7 @@ from nsd.core.config import ConfigSection
 from nsd.core.device import model_device, move
 from nsd.core.errors import ConfigError
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
-from nsd.cues.occupancy import VoxelGrid, multiview_proposals, voxel_grid
+from nsd.cues.occupancy import CONTEST_BAND, VoxelGrid, multiview_proposals, voxel_grid
 from nsd.cues.proposals import match_proposals
 from nsd.inference.single import Decomposition, decompose
 from nsd.model.bi_nvs import BiNVS
@@ -70,6 +70,8 @@ class InferenceSettings(ConfigSection):
         hull_ownership: log-score bonus of the window whose hull individual owns a pixel
             (:func:`nsd.cues.occupancy.owned_pixels`) in the mask ownership (0: the
             learned ownership alone).
+        hull_contested: that bonus where the hull cannot settle the owner, on pixels near
+            two or more individuals (:func:`nsd.cues.occupancy.contested_pixels`).
     """
 
     APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `inference`
@@ -83,6 +85,7 @@ class InferenceSettings(ConfigSection):
     min_views: int | str
     colour_sigma: float
     hull_ownership: float
+    hull_contested: float
 
     def validate(self) -> None:
         def need(ok: bool, key: str, what: str) -> None:
@@ -100,6 +103,7 @@ class InferenceSettings(ConfigSection):
              "min_views", "must be auto or a number of cameras >= 2")
         need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
         need(float(self.hull_ownership) >= 0.0, "hull_ownership", "must be >= 0 (0: off)")
+        need(float(self.hull_contested) >= 0.0, "hull_contested", "must be >= 0 (0: off)")
 
     @classmethod
     def from_config(cls, node: DictConfig | Mapping[str, Any] | None) -> InferenceSettings:
@@ -216,10 +220,12 @@ def decompose_views(
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
     k = model.cfg.num_windows
     split = not model.detector.use_presence  # as training's prior_proposal.split=auto
-    fused, slots, owners = [], [], []
+    # the contested pixels are found only where they change the bonus
+    contest = CONTEST_BAND if settings.hull_contested != settings.hull_ownership else 0.0
+    fused, slots, owners, bonus = [], [], [], []
     for s in range(0, images.shape[0], num_views):
         sl = slice(s, s + num_views)
-        hull = multiview_proposals(ev[sl], grid, k, split=split)
+        hull = multiview_proposals(ev[sl], grid, k, split=split, contest=contest)
         one = Detections(det.boxes[sl], det.depths[sl], det.presence[sl])
         f, slot = fuse_detections(
             one, hull.boxes, hull.depths, hull.valid, settings.window_blend, settings.depth
@@ -227,10 +233,11 @@ def decompose_views(
         fused.append(f)
         slots.append(slot)
         owners.append(window_owners(hull.owners, slot))
+        bonus.append(torch.where(hull.contested, settings.hull_contested, settings.hull_ownership))
     cat = Detections(
         *(torch.cat([getattr(f, a) for f in fused]) for a in ("boxes", "depths", "presence"))
     )
     dec = decompose(model, images, backgrounds, detections=cat, owner_prior=torch.cat(owners),
-                    owner_bonus=settings.hull_ownership, **common)
+                    owner_bonus=torch.cat(bonus), **common)
     dec.slots = torch.cat(slots)
     return dec

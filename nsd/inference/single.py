@@ -20,7 +20,8 @@ decoded colour :math:`L_i(p)` with the image :math:`I(p)`,
 so that where two blobby decoded masks overlap, the pixel goes to the subject
 whose rendering looks like it (``colour_sigma`` :math:`\sigma_c`; 0 uses the
 weights alone). Multi-view inference adds, in the log domain, ``owner_bonus`` for the
-subject whose visual-hull individual owns the pixel (:mod:`nsd.inference.multiview`).
+subject whose visual-hull individual owns the pixel (:mod:`nsd.inference.multiview`; a
+smaller bonus where the hull cannot settle the owner).
 NSD still decides which subject a pixel belongs to and who
 occludes whom; the median background, which NSD already needs, only sharpens
 the silhouettes. ``refine="none"`` returns the raw masks.
@@ -130,7 +131,7 @@ def decompose(
     colour_sigma: float = COLOUR_SIGMA,
     detections: Detections | None = None,
     owner_prior: Tensor | None = None,
-    owner_bonus: float = 0.0,
+    owner_bonus: float | Tensor = 0.0,
 ) -> Decomposition:
     """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
 
@@ -146,9 +147,9 @@ def decompose(
         colour_sigma: colour agreement of the refinement's ownership (:func:`ownership`).
         detections: windows to use instead of the detector's (:mod:`nsd.inference.multiview`).
         owner_prior: (B, H, W) the window another cue gives each pixel (-1: none), e.g. the
-            visual hull's (:mod:`nsd.inference.multiview`); with ``owner_bonus`` > 0 its
-            window's log ownership score gains ``owner_bonus`` there and it may claim the
-            pixel whatever its composited weight.
+            visual hull's (:mod:`nsd.inference.multiview`); where ``owner_bonus`` (a number,
+            or (B, H, W) per pixel) is > 0 its window's log ownership score gains
+            ``owner_bonus`` and it may claim the pixel whatever its composited weight.
     """
     was_training = model.training
     model.eval()
@@ -168,10 +169,11 @@ def decompose(
         weighted = raw * win.det.presence[..., None, None]
         score = ownership(weighted, r.layers, images, colour_sigma)
         claim = weighted.amax(1, keepdim=True) > min_weight
-        if owner_prior is not None and owner_bonus > 0:
+        if owner_prior is not None:
+            bonus = torch.as_tensor(owner_bonus, dtype=score.dtype).expand(owner_prior.shape)
             slots = torch.arange(raw.shape[1])[None, :, None, None]
-            prior = owner_prior[:, None] == slots  # (B, N, H, W)
-            score = score + owner_bonus * prior
+            prior = (owner_prior[:, None] == slots) & (bonus[:, None] > 0)  # (B, N, H, W)
+            score = score + bonus[:, None] * prior
             claim = claim | prior.any(1, keepdim=True)
         owner = score.max(1, keepdim=True).indices  # argmax (first on ties), 5x faster on CPU
         claim = fg[:, None] & claim

@@ -164,7 +164,7 @@ class SceneData:
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness
             )
-            b, d, ok, own = multiview_proposals(ev, grid, k, split=split)
+            b, d, ok, own, _ = multiview_proposals(ev, grid, k, split=split)
             boxes.append(b)
             depths.append(d)
             valid.append(ok)

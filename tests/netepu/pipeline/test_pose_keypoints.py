@@ -189,3 +189,21 @@ def test_pose_regressor_trains_from_a_users_2d_labels(regressor_run, tmp_path):
     c.pose.labels = str(_slp_labels(scene, tmp_path / "train.slp", lambda f: f < 3))
     with pytest.raises(ConfigError, match="no labelled held-out frames"):
         train(c, tmp_path / "pose2")
+
+
+def test_an_export_is_re_decomposed_with_the_inference_it_recorded(tiny_scene, tmp_path):
+    """The regressor reads the windows the export made: an export that records no inference
+    was single-image; one from before ``hull_contested`` had the hull's bonus everywhere."""
+    from netepu.pipeline.pose_keypoints import _as_exported
+
+    d = {"image_size": [32, 24]}
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text(json.dumps({"config": {}}))
+    _, settings, _ = _as_exported(tmp_path, tiny_scene, d)
+    assert settings.views == "single" and settings.colour_sigma == 0.0
+    manifest.write_text(json.dumps({"config": {"inference": {"hull_ownership": 3.0}}}))
+    _, settings, _ = _as_exported(tmp_path, tiny_scene, d)
+    assert settings.views == "multiview" and settings.hull_contested == 3.0
+    recorded = {"hull_ownership": 3.0, "hull_contested": 0.5}
+    manifest.write_text(json.dumps({"config": {"inference": recorded}}))
+    assert _as_exported(tmp_path, tiny_scene, d)[1].hull_contested == 0.5

@@ -116,6 +116,21 @@ def test_changed_grid_setting_reruns_only_grids(tiny_run, tmp_path, monkeypatch)
     assert [g.name for g in (out / "grids").glob("*.png")] == ["frame_000000.png"]
 
 
+def test_a_changed_inference_setting_reruns_evaluate_and_export_not_train(tiny_run, tmp_path,
+                                                                          monkeypatch):
+    """Inference settings (the masks' ownership, ...) change what is made of the checkpoint,
+    not the checkpoint: sweeping them never re-trains."""
+    tiny_scene, first, _ = tiny_run
+    out = shutil.copytree(first, tmp_path / "run")
+    monkeypatch.setattr(
+        netepu.pipeline.stages, "train", lambda *a, **k: pytest.fail("train re-ran")
+    )
+    res = run_pipeline(_cfg(tiny_scene, out, "train.inference.hull_contested=0.5"))
+    assert res["train"].skipped and not res["export"].skipped
+    manifest = json.loads((out / "export" / "manifest.json").read_text())
+    assert manifest["config"]["inference"]["hull_contested"] == 0.5
+
+
 def test_a_changed_shipped_export_default_reruns_the_export(tiny_run, tmp_path, monkeypatch):
     """The export stage is keyed by nsd-export's whole config, not only the run's overrides:
     a toolkit whose conf/export.yaml changed re-exports; where it runs (workers) does not."""

@@ -139,6 +139,12 @@ def test_a_broken_scene_stops_nsd_run_before_any_work(kind, cam, k, seed):
         assert left == [], left  # no stage folder, no partial folder
 
 
+def test_a_path_with_a_comma_says_how_to_quote_it():
+    code, err = _run(lambda: check_command_line("nsd-eval", APPS["nsd-eval"],
+                                                ["checkpoint=/runs/a,b/x.pt"]))
+    assert code == 2 and "Ambiguous value" in err and "must be quoted" in err
+
+
 @pytest.mark.parametrize("prog", sorted(APPS))
 def test_an_argument_that_is_not_key_value_is_named(prog):
     code, err = _run(lambda: check_command_line(prog, APPS[prog], ["scene=/my", "folder"]))

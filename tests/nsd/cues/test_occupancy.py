@@ -9,6 +9,7 @@ import torch
 from nsd.core.errors import ConfigError
 from nsd.cues.occupancy import (
     cluster_individuals,
+    contested_pixels,
     hull_min_views,
     multiview_proposals,
     occupied_voxels,
@@ -59,7 +60,7 @@ def test_proposals_match_visible_boxes_with_shared_slots_and_depth_order(two_peo
     rig, _, _, out = two_people
     ev = out["instance"].ge(0).float()
     grid = voxel_grid(rig, ev.shape[-2:], 40)
-    boxes, depths, valid, owners = multiview_proposals(ev, grid, 2)
+    boxes, depths, valid, owners, _ = multiview_proposals(ev, grid, 2)
     assert valid.all()
     H, W = ev.shape[-2:]
     slot_of = []
@@ -98,6 +99,32 @@ def test_owned_pixels_front_wins():
     assert owner[0].tolist() == [0, 0, 1, 1, 1]
 
 
+def test_contested_pixels_match_a_slow_reference():
+    """A pixel is contested when voxels of two or more individuals project within the band;
+    background pixels never are."""
+    gen = torch.Generator().manual_seed(0)
+    fg = torch.rand(9, 11, generator=gen) > 0.3
+    uv = torch.rand(40, 2, generator=gen) * torch.tensor([11.0, 9.0])
+    labels = torch.randint(0, 3, (40,), generator=gen)
+    got = contested_pixels(fg, uv, labels, 3, band=1.5)
+    want = torch.zeros_like(fg)
+    for y in range(9):
+        for x in range(11):
+            d = (uv - torch.tensor([x, y], dtype=uv.dtype)).norm(dim=1)
+            want[y, x] = bool(fg[y, x]) and len(set(labels[d <= 1.5].tolist())) >= 2
+    assert torch.equal(got, want) and 0 < int(want.sum()) < int(fg.sum())
+
+
+def test_contested_pixels_hand_built():
+    fg = torch.ones(1, 6, dtype=torch.bool)
+    uv = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [5.0, 0.0]])
+    labels = torch.tensor([0, 0, 1, 1])
+    # band 1: pixel 2 sees label 0 at x=1 and label 1 at x=3; pixel 4 sees only label 1
+    assert contested_pixels(fg, uv, labels, 2, 1.0)[0].tolist() == [
+        False, False, True, False, False, False]
+    assert not contested_pixels(fg, uv, torch.zeros(4, dtype=torch.long), 2, 10.0).any()
+
+
 def test_upper_bound_clusters_count_individuals_instead_of_cutting_them(two_people):
     """k = 4 windows for 2 individuals: with split (k individuals) the hull is cut into
     4 groups; as an upper bound (split=False) it keeps 2, and a low ghost is dropped."""
@@ -121,7 +148,7 @@ def test_upper_bound_clusters_count_individuals_instead_of_cutting_them(two_peop
     kept = cluster_individuals(both, grid.up, grid.size, 4, split=False, ghost_ratio=0.0)
     assert len(set(kept[len(pts) :].tolist())) == 1 and (kept[len(pts) :] >= 0).all()
     assert not set(kept[len(pts) :].tolist()) & set(kept[: len(pts)].tolist())
-    _, _, valid, _ = multiview_proposals(ev, grid, 4, split=False)
+    valid = multiview_proposals(ev, grid, 4, split=False).valid
     assert (valid.sum(1) == 2).all()
 
 

@@ -10,7 +10,7 @@ import torch
 
 from nsd.core.errors import ConfigError
 from nsd.cues.evidence import foreground_evidence
-from nsd.cues.occupancy import multiview_proposals
+from nsd.cues.occupancy import CONTEST_BAND, multiview_proposals
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import (
     InferenceSettings,
@@ -121,6 +121,9 @@ def test_decompose_defaults_to_the_configs_colour_agreement():
 def test_unknown_setting_and_single_camera_are_clear_errors(tiny_scene):
     with pytest.raises(ConfigError, match="no setting 'blend'"):
         InferenceSettings.from_config({"blend": 0.5})
+    for key in ("hull_ownership", "hull_contested", "colour_sigma"):
+        with pytest.raises(ConfigError, match=f"inference.{key} must be >= 0"):
+            InferenceSettings.from_config({key: -1.0})
     data = SceneData(tiny_scene, (32, 24))
     one = data.rig.select(data.rig.names[:1])
     with pytest.raises(ConfigError, match="at least 2 cameras"):
@@ -136,7 +139,7 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     bgs = torch.cat([data.views(t)[1] for t in (0, 1)])
     V = data.num_views
     same = InferenceSettings.defaults(window_blend=0.0, depth="detector", resolution=16,
-                                      hull_ownership=0.0)
+                                      hull_ownership=0.0, hull_contested=0.0)
     multi = decompose_views(model, views, bgs, V, same, same.grid(data.rig, data.frame_hw))
     single = decompose(model, views, bgs)
     for key in ("windows", "depths", "masks", "raw_masks", "app"):
@@ -163,7 +166,7 @@ def test_hull_ownership_gives_the_hulls_pixels_to_their_windows(tiny_scene):
     model = build_model(tiny_cfg().model)
     views, bgs = data.views(0)
     V, k = data.num_views, model.cfg.num_windows
-    settings = InferenceSettings.defaults(resolution=16, hull_ownership=1e6)
+    settings = InferenceSettings.defaults(resolution=16, hull_ownership=1e6, hull_contested=1e6)
     grid = settings.grid(data.rig, data.frame_hw)
     dec = decompose_views(model, views, bgs, V, settings, grid)
     ev = foreground_evidence(views, bgs)
@@ -174,3 +177,32 @@ def test_hull_ownership_gives_the_hulls_pixels_to_their_windows(tiny_scene):
     got = dec.masks.argmax(1)[held]
     assert torch.equal(got, win[held])
     assert (dec.masks.amax(1)[held] > 0.5).all()
+
+
+def test_contested_pixels_keep_the_learned_owner(tiny_scene):
+    """hull_contested=0 with a huge bonus elsewhere: uncontested pixels go to the hull's
+    window, contested ones to the window the learned ownership alone picks."""
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    model = build_model(tiny_cfg().model)
+    # instant 0: the two individuals apart (nothing contested); 2: together (all contested)
+    views = torch.cat([data.views(t)[0] for t in (0, 2)])
+    bgs = torch.cat([data.views(t)[1] for t in (0, 2)])
+    V, k = data.num_views, model.cfg.num_windows
+    split = not model.detector.use_presence
+    mixed = InferenceSettings.defaults(resolution=16, hull_ownership=1e6, hull_contested=0.0)
+    learned = InferenceSettings.defaults(resolution=16, hull_ownership=0.0, hull_contested=0.0)
+    grid = mixed.grid(data.rig, data.frame_hw)
+    dec = decompose_views(model, views, bgs, V, mixed, grid)
+    alone = decompose_views(model, views, bgs, V, learned, grid)
+    ev = foreground_evidence(views, bgs)
+    hulls = [multiview_proposals(ev[s : s + V], grid, k, split=split, contest=CONTEST_BAND)
+             for s in (0, V)]
+    win = window_owners(torch.cat([h.owners for h in hulls]), dec.slots)
+    contested = torch.cat([h.contested for h in hulls])
+    fg = ev > 0.5
+    sure = (win >= 0) & fg & ~contested
+    unsure = fg & contested
+    assert sure[:V].sum() > 0 and unsure[V:].sum() > 0
+    assert torch.equal(dec.masks.argmax(1)[sure], win[sure])
+    per_pixel = dec.masks.permute(0, 2, 3, 1)  # (V, H, W, N)
+    assert torch.equal(per_pixel[unsure], alone.masks.permute(0, 2, 3, 1)[unsure])
