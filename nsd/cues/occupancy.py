@@ -53,6 +53,7 @@ __all__ = [
     "CONTEST_BAND",
     "MultiviewProposals",
     "VoxelGrid",
+    "candidate_individuals",
     "cluster_individuals",
     "contested_pixels",
     "hull_min_views",
@@ -72,15 +73,20 @@ class MultiviewProposals(NamedTuple):
         depths: camera-space depth of each individual in each view (V, k).
         valid: (V, k) bool.
         owners: the individual owning each foreground pixel (V, H, W), -1 elsewhere.
-        contested: (V, H, W) bool, foreground pixels near two or more individuals
-            (:func:`contested_pixels`).
+        candidates: (V, k, H, W) bool, the individuals near each foreground pixel
+            (:func:`candidate_individuals`); a pixel with two or more is contested.
     """
 
     boxes: Tensor
     depths: Tensor
     valid: Tensor
     owners: Tensor
-    contested: Tensor
+    candidates: Tensor
+
+    @property
+    def contested(self) -> Tensor:
+        """(V, H, W) bool: foreground pixels near two or more individuals."""
+        return self.candidates.sum(1) >= 2
 
 
 @dataclass
@@ -388,8 +394,9 @@ def owned_pixels(
     return owner
 
 
-def contested_pixels(fg: Tensor, uv: Tensor, labels: Tensor, k: int, band: float) -> Tensor:
-    """The foreground pixels of one view near two or more individuals' voxels.
+def candidate_individuals(fg: Tensor, uv: Tensor, labels: Tensor, k: int,
+                          band: float) -> Tensor:
+    """The individuals whose voxels project near each foreground pixel of one view.
 
     Args:
         fg: foreground (H, W) bool.
@@ -398,10 +405,11 @@ def contested_pixels(fg: Tensor, uv: Tensor, labels: Tensor, k: int, band: float
         band: pixels.
 
     Returns:
-        (H, W) bool: foreground pixels with voxels of at least two individuals projecting
-        within ``band`` pixels.
+        (k, H, W) bool: individual ``j`` has a voxel projecting within ``band`` pixels of
+        the foreground pixel.
     """
-    out = torch.zeros_like(fg)
+    H, W = fg.shape
+    out = torch.zeros(k, H, W, dtype=torch.bool)
     ys, xs = torch.nonzero(fg, as_tuple=True)
     if len(ys) == 0 or len(uv) == 0:
         return out
@@ -409,8 +417,14 @@ def contested_pixels(fg: Tensor, uv: Tensor, labels: Tensor, k: int, band: float
     d = torch.cdist(pix, uv)  # (F, P)
     nearest = d.new_full((len(ys), k), float("inf"))
     nearest.scatter_reduce_(1, labels[None].expand_as(d), d, "amin")  # (F, k) per individual
-    out[ys, xs] = (nearest <= band).sum(1) >= 2
+    out[:, ys, xs] = (nearest <= band).T
     return out
+
+
+def contested_pixels(fg: Tensor, uv: Tensor, labels: Tensor, k: int, band: float) -> Tensor:
+    """The foreground pixels of one view near two or more individuals' voxels: (H, W) bool
+    (arguments as :func:`candidate_individuals`)."""
+    return candidate_individuals(fg, uv, labels, k, band).sum(0) >= 2
 
 
 def multiview_proposals(
@@ -454,9 +468,9 @@ def multiview_proposals(
     occ = occupied_voxels(evidence, grid, min_views)
     idx = torch.nonzero(occ).flatten()
     owners = torch.full((V, H, W), -1, dtype=torch.long)
-    contested = torch.zeros(V, H, W, dtype=torch.bool)
+    candidates = torch.zeros(V, k, H, W, dtype=torch.bool)
     if len(idx) < min_voxels:
-        return MultiviewProposals(boxes, depths, valid, owners, contested)
+        return MultiviewProposals(boxes, depths, valid, owners, candidates)
     labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split)
     keep = labels >= 0
     idx, labels = idx[keep], labels[keep]
@@ -469,7 +483,7 @@ def multiview_proposals(
         owners[v] = owned_pixels(fg, uv, z, labels[vis], k,
                                  OWNER_RADIUS * voxel_px, OWNER_REACH * voxel_px)
         if contest > 0:
-            contested[v] = contested_pixels(fg, uv, labels[vis], k, contest * voxel_px)
+            candidates[v] = candidate_individuals(fg, uv, labels[vis], k, contest * voxel_px)
         for j in range(k):
             sel = labels[vis] == j
             ys, xs = torch.nonzero(owners[v] == j, as_tuple=True)
@@ -483,4 +497,4 @@ def multiview_proposals(
             boxes[v, j] = torch.cat([half.clamp(min_scale, max_scale), centre])
             depths[v, j] = z[sel].mean()
             valid[v, j] = True
-    return MultiviewProposals(boxes, depths, valid, owners, contested)
+    return MultiviewProposals(boxes, depths, valid, owners, candidates)

@@ -45,7 +45,8 @@ from nsd.inference.single import Decomposition, decompose
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
 
-__all__ = ["InferenceSettings", "decompose_views", "fuse_detections", "window_owners"]
+__all__ = ["InferenceSettings", "decompose_views", "fuse_detections", "window_candidates",
+           "window_owners"]
 
 VIEWS = ("multiview", "single")
 DEPTHS = ("hull", "detector")
@@ -180,6 +181,19 @@ def window_owners(owners: Tensor, slots: Tensor) -> Tensor:
     return out
 
 
+def window_candidates(candidates: Tensor, slots: Tensor, contested: Tensor) -> Tensor:
+    """(V, k, H, W) hull individuals near each pixel and each window's slot (V, N) ->
+    (V, N, H, W): the windows that may own each pixel (all of them where it is not
+    contested)."""
+    V, N = slots.shape
+    out = torch.ones(V, N, *candidates.shape[-2:], dtype=torch.bool)
+    for v in range(V):
+        for n, s in enumerate(slots[v].tolist()):
+            near = candidates[v, s] if s >= 0 else torch.zeros_like(contested[v])
+            out[v, n] = near | ~contested[v]
+    return out
+
+
 @torch.inference_mode()
 def decompose_views(
     model: BiNVS,
@@ -220,9 +234,10 @@ def decompose_views(
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
     k = model.cfg.num_windows
     split = not model.detector.use_presence  # as training's prior_proposal.split=auto
-    # the contested pixels are found only where they change the bonus
+    # the contested pixels are found only where they change the bonus; there only the
+    # windows of the individuals near the pixel may own it
     contest = CONTEST_BAND if settings.hull_contested != settings.hull_ownership else 0.0
-    fused, slots, owners, bonus = [], [], [], []
+    fused, slots, owners, bonus, allowed = [], [], [], [], []
     for s in range(0, images.shape[0], num_views):
         sl = slice(s, s + num_views)
         hull = multiview_proposals(ev[sl], grid, k, split=split, contest=contest)
@@ -234,10 +249,13 @@ def decompose_views(
         slots.append(slot)
         owners.append(window_owners(hull.owners, slot))
         bonus.append(torch.where(hull.contested, settings.hull_contested, settings.hull_ownership))
+        if contest > 0:
+            allowed.append(window_candidates(hull.candidates, slot, hull.contested))
     cat = Detections(
         *(torch.cat([getattr(f, a) for f in fused]) for a in ("boxes", "depths", "presence"))
     )
     dec = decompose(model, images, backgrounds, detections=cat, owner_prior=torch.cat(owners),
-                    owner_bonus=torch.cat(bonus), **common)
+                    owner_bonus=torch.cat(bonus),
+                    owner_allowed=torch.cat(allowed) if allowed else None, **common)
     dec.slots = torch.cat(slots)
     return dec

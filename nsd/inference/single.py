@@ -132,6 +132,7 @@ def decompose(
     detections: Detections | None = None,
     owner_prior: Tensor | None = None,
     owner_bonus: float | Tensor = 0.0,
+    owner_allowed: Tensor | None = None,
 ) -> Decomposition:
     """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
 
@@ -150,6 +151,8 @@ def decompose(
             visual hull's (:mod:`nsd.inference.multiview`); where ``owner_bonus`` (a number,
             or (B, H, W) per pixel) is > 0 its window's log ownership score gains
             ``owner_bonus`` and it may claim the pixel whatever its composited weight.
+        owner_allowed: (B, N, H, W) bool, the windows that may own each pixel (e.g. on a
+            pixel the hull cannot settle, those of the individuals near it); None: all.
     """
     was_training = model.training
     model.eval()
@@ -175,6 +178,8 @@ def decompose(
             prior = (owner_prior[:, None] == slots) & (bonus[:, None] > 0)  # (B, N, H, W)
             score = score + bonus[:, None] * prior
             claim = claim | prior.any(1, keepdim=True)
+        if owner_allowed is not None:
+            score = score - 1e4 * ~owner_allowed  # the learned order where none is allowed
         owner = score.max(1, keepdim=True).indices  # argmax (first on ties), 5x faster on CPU
         claim = fg[:, None] & claim
         masks = (torch.arange(raw.shape[1])[None, :, None, None] == owner) & claim

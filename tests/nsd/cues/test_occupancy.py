@@ -8,6 +8,7 @@ import torch
 
 from nsd.core.errors import ConfigError
 from nsd.cues.occupancy import (
+    candidate_individuals,
     cluster_individuals,
     contested_pixels,
     hull_min_views,
@@ -107,11 +108,14 @@ def test_contested_pixels_match_a_slow_reference():
     uv = torch.rand(40, 2, generator=gen) * torch.tensor([11.0, 9.0])
     labels = torch.randint(0, 3, (40,), generator=gen)
     got = contested_pixels(fg, uv, labels, 3, band=1.5)
+    near = candidate_individuals(fg, uv, labels, 3, band=1.5)
     want = torch.zeros_like(fg)
     for y in range(9):
         for x in range(11):
             d = (uv - torch.tensor([x, y], dtype=uv.dtype)).norm(dim=1)
-            want[y, x] = bool(fg[y, x]) and len(set(labels[d <= 1.5].tolist())) >= 2
+            close = set(labels[d <= 1.5].tolist()) if fg[y, x] else set()
+            want[y, x] = len(close) >= 2
+            assert set(torch.nonzero(near[:, y, x]).flatten().tolist()) == close, (y, x)
     assert torch.equal(got, want) and 0 < int(want.sum()) < int(fg.sum())
 
 

@@ -16,6 +16,7 @@ from nsd.inference.multiview import (
     InferenceSettings,
     decompose_views,
     fuse_detections,
+    window_candidates,
     window_owners,
 )
 from nsd.inference.single import COLOUR_SIGMA, decompose, ownership
@@ -151,6 +152,16 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     assert torch.equal(one.masks, single.masks) and one.slots is None
     with pytest.raises(ValueError, match="whole instants"):
         decompose_views(model, views[:3], bgs[:3], V, same, same.grid(data.rig, data.frame_hw))
+
+
+def test_window_candidates_leave_contested_pixels_to_the_windows_of_nearby_individuals():
+    candidates = torch.tensor([[[[1, 1, 0]], [[0, 1, 1]], [[0, 0, 0]]]], dtype=torch.bool)
+    contested = candidates.sum(1) >= 2  # (V=1, H=1, W=3): only the middle pixel
+    slots = torch.tensor([[2, 0, -1]])  # window 0 holds slot 2, window 1 slot 0, 2 none
+    got = window_candidates(candidates, slots, contested)
+    # the middle pixel is near slots 0 and 1: of the windows only window 1 (slot 0) may own it
+    assert got[0, :, 0, 1].tolist() == [False, True, False]
+    assert got[0, :, 0, [0, 2]].all()  # elsewhere every window may
 
 
 def test_window_owners_map_hull_slots_to_windows():
