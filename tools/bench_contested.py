@@ -19,7 +19,8 @@ pixel's individual:
 * ``hull``: the hull's owners alone (:mod:`nsd.evaluation.hull_baseline`);
 * ``learned``: the learned ownership alone (both bonuses 0);
 * ``hull bonus``: the bonus of ``hull_ownership`` on every pixel (``hull_contested`` equal);
-* ``shipped``: this commit's inference defaults.
+* ``shipped``: this commit's inference defaults (on contested pixels, only the windows of
+  the individuals near them may own them).
 
 ``ideal_mask_miou``: the mask mIoU (``nsd-eval``'s) if every foreground pixel went to its
 true individual, the most any ownership can score with this foreground cut.
