@@ -42,15 +42,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from nsd.cues.evidence import foreground_evidence
-from nsd.cues.occupancy import (
-    CONTEST_BAND,
-    OWNER_RADIUS,
-    OWNER_REACH,
-    cluster_individuals,
-    contested_pixels,
-    occupied_voxels,
-    owned_pixels,
-)
+from nsd.cues.occupancy import CONTEST_BAND, multiview_proposals
 from nsd.evaluation.contact import touches
 from nsd.evaluation.decomposition import Tally, instant_truth, score_views
 from nsd.evaluation.hull_baseline import HullDecomposition
@@ -115,31 +107,21 @@ def score_run(run: Path, frames: int, bands: list[float]) -> tuple[dict, float]:
         views, bgs = data.views(int(t))
         V = views.shape[0]
         ev = foreground_evidence(views, bgs)
-        occ = occupied_voxels(ev, grid, None)
-        vox = torch.nonzero(occ).flatten()
-        labels = cluster_individuals(grid.centres[vox], grid.up, grid.size, k, split=split)
-        vox, labels = vox[labels >= 0], labels[labels >= 0]
+        hulls = {b: multiview_proposals(ev, grid, k, split=split, contest=b) for b in bands}
         decs = {m: decompose_views(trained.model, views, bgs, V, s, grid)
                 for m, s in settings.items()}
         truths = instant_truth(gt, data, int(t))
         score_views(_ideal(truths, ev > 0.5, k), truths, 0.5, ideal.counts(touches(truths)))
         for v, truth in enumerate(truths):
-            fg = ev[v] > 0.5
-            seen = grid.inside[v, vox]
-            z = grid.depth[v, vox[seen]]
-            if len(z) == 0:
-                continue
-            px = float(grid.size * grid.focal[v] / z.median())  # a voxel's side in pixels
-            uv, lab = grid.uv[v, vox[seen]], labels[seen]
-            hull = owned_pixels(fg, uv, z, lab, k, OWNER_RADIUS * px, OWNER_REACH * px).numpy()
+            hull = hulls[bands[0]].owners[v].numpy()  # the same owners whatever the band
             owners = {"hull": np.stack([hull == j for j in range(k)])}
             for m, dec in decs.items():
                 owners[m] = (dec.masks[v] > 0.5).numpy() & dec.active[v].numpy()[:, None, None]
-            pixels = truth.visible.any(0) & fg.numpy()
+            pixels = truth.visible.any(0) & (ev[v] > 0.5).numpy()
             for m, masks in owners.items():
                 right = _owners(masks) == _owner_of_truth(masks, truth.visible)
                 for b in bands:
-                    hard = contested_pixels(fg, uv, lab, k, b * px).numpy()
+                    hard = hulls[b].contested[v].numpy()
                     for c, where in enumerate((pixels & hard, pixels & ~hard)):
                         tally[b][m][c] += (right[where].sum(), where.sum())
     return tally, float(ideal.metrics()["mask_miou"])

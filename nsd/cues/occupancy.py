@@ -352,6 +352,43 @@ def cluster_individuals(
     return labels
 
 
+def _pixel_distances(fg: Tensor, uv: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The foreground pixels' rows and columns (F,) and their distances to the voxels'
+    projections uv (P, 2): (F, P)."""
+    ys, xs = torch.nonzero(fg, as_tuple=True)
+    pix = torch.stack([xs, ys], -1).to(uv.dtype)
+    return ys, xs, torch.cdist(pix, uv)
+
+
+def _owners(shape: tuple[int, int], ys: Tensor, xs: Tensor, d: Tensor, depth: Tensor,
+            labels: Tensor, radius: float, reach: float) -> Tensor:
+    """:func:`owned_pixels` from :func:`_pixel_distances`."""
+    owner = torch.full(shape, -1, dtype=torch.long)
+    if d.numel() == 0:
+        return owner
+    near = d <= radius
+    zbuf = torch.where(near, depth[None].expand_as(d), torch.full_like(d, float("inf")))
+    front = zbuf.argmin(1)
+    nearest = d.argmin(1)
+    has_near = near.any(1)
+    pick = torch.where(has_near, front, nearest)
+    ok = has_near | (d.gather(1, nearest[:, None])[:, 0] <= reach)
+    owner[ys[ok], xs[ok]] = labels[pick[ok]]
+    return owner
+
+
+def _candidates(shape: tuple[int, int], ys: Tensor, xs: Tensor, d: Tensor, labels: Tensor,
+                k: int, band: float) -> Tensor:
+    """:func:`candidate_individuals` from :func:`_pixel_distances`."""
+    out = torch.zeros(k, *shape, dtype=torch.bool)
+    if d.numel() == 0:
+        return out
+    nearest = d.new_full((len(ys), k), float("inf"))
+    nearest.scatter_reduce_(1, labels[None].expand_as(d), d, "amin")  # (F, k) per individual
+    out[:, ys, xs] = (nearest <= band).T
+    return out
+
+
 def owned_pixels(
     fg: Tensor,
     uv: Tensor,
@@ -376,22 +413,7 @@ def owned_pixels(
     Returns:
         owner map (H, W) int64 in [-1, k).
     """
-    H, W = fg.shape
-    owner = torch.full((H, W), -1, dtype=torch.long)
-    ys, xs = torch.nonzero(fg, as_tuple=True)
-    if len(ys) == 0 or len(uv) == 0:
-        return owner
-    pix = torch.stack([xs, ys], -1).to(uv.dtype)
-    d = torch.cdist(pix, uv)  # (F, P)
-    near = d <= radius
-    zbuf = torch.where(near, depth[None].expand_as(d), torch.full_like(d, float("inf")))
-    front = zbuf.argmin(1)
-    nearest = d.argmin(1)
-    has_near = near.any(1)
-    pick = torch.where(has_near, front, nearest)
-    ok = has_near | (d.gather(1, nearest[:, None])[:, 0] <= reach)
-    owner[ys[ok], xs[ok]] = labels[pick[ok]]
-    return owner
+    return _owners(fg.shape, *_pixel_distances(fg, uv), depth, labels, radius, reach)
 
 
 def candidate_individuals(fg: Tensor, uv: Tensor, labels: Tensor, k: int,
@@ -408,17 +430,7 @@ def candidate_individuals(fg: Tensor, uv: Tensor, labels: Tensor, k: int,
         (k, H, W) bool: individual ``j`` has a voxel projecting within ``band`` pixels of
         the foreground pixel.
     """
-    H, W = fg.shape
-    out = torch.zeros(k, H, W, dtype=torch.bool)
-    ys, xs = torch.nonzero(fg, as_tuple=True)
-    if len(ys) == 0 or len(uv) == 0:
-        return out
-    pix = torch.stack([xs, ys], -1).to(uv.dtype)
-    d = torch.cdist(pix, uv)  # (F, P)
-    nearest = d.new_full((len(ys), k), float("inf"))
-    nearest.scatter_reduce_(1, labels[None].expand_as(d), d, "amin")  # (F, k) per individual
-    out[:, ys, xs] = (nearest <= band).T
-    return out
+    return _candidates(fg.shape, *_pixel_distances(fg, uv), labels, k, band)
 
 
 def contested_pixels(fg: Tensor, uv: Tensor, labels: Tensor, k: int, band: float) -> Tensor:
@@ -479,11 +491,11 @@ def multiview_proposals(
         vis = grid.inside[v, idx]
         z = grid.depth[v, idx[vis]]
         voxel_px = float(grid.size * grid.focal[v] / z.median()) if len(z) else 1.0
-        fg, uv = evidence[v] > 0.5, grid.uv[v, idx[vis]]
-        owners[v] = owned_pixels(fg, uv, z, labels[vis], k,
-                                 OWNER_RADIUS * voxel_px, OWNER_REACH * voxel_px)
+        ys, xs, d = _pixel_distances(evidence[v] > 0.5, grid.uv[v, idx[vis]])  # once for both
+        owners[v] = _owners((H, W), ys, xs, d, z, labels[vis],
+                            OWNER_RADIUS * voxel_px, OWNER_REACH * voxel_px)
         if contest > 0:
-            candidates[v] = candidate_individuals(fg, uv, labels[vis], k, contest * voxel_px)
+            candidates[v] = _candidates((H, W), ys, xs, d, labels[vis], k, contest * voxel_px)
         for j in range(k):
             sel = labels[vis] == j
             ys, xs = torch.nonzero(owners[v] == j, as_tuple=True)

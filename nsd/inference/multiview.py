@@ -185,13 +185,10 @@ def window_candidates(candidates: Tensor, slots: Tensor, contested: Tensor) -> T
     """(V, k, H, W) hull individuals near each pixel and each window's slot (V, N) ->
     (V, N, H, W): the windows that may own each pixel (all of them where it is not
     contested)."""
-    V, N = slots.shape
-    out = torch.ones(V, N, *candidates.shape[-2:], dtype=torch.bool)
-    for v in range(V):
-        for n, s in enumerate(slots[v].tolist()):
-            near = candidates[v, s] if s >= 0 else torch.zeros_like(contested[v])
-            out[v, n] = near | ~contested[v]
-    return out
+    H, W = candidates.shape[-2:]
+    index = slots.clamp_min(0)[..., None, None].expand(-1, -1, H, W)
+    near = candidates.gather(1, index) & (slots >= 0)[..., None, None]
+    return near | ~contested[:, None]
 
 
 @torch.inference_mode()
@@ -248,9 +245,10 @@ def decompose_views(
         fused.append(f)
         slots.append(slot)
         owners.append(window_owners(hull.owners, slot))
-        bonus.append(torch.where(hull.contested, settings.hull_contested, settings.hull_ownership))
+        contested = hull.contested
+        bonus.append(torch.where(contested, settings.hull_contested, settings.hull_ownership))
         if contest > 0:
-            allowed.append(window_candidates(hull.candidates, slot, hull.contested))
+            allowed.append(window_candidates(hull.candidates, slot, contested))
     cat = Detections(
         *(torch.cat([getattr(f, a) for f in fused]) for a in ("boxes", "depths", "presence"))
     )
