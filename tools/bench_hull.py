@@ -14,10 +14,14 @@ changed together:
 * ``clustering``: with the count known, a seeded k-means of the plane's columns (before:
   the ``k`` heaviest components, the largest bisected while fewer).
 
+Later, the k-means gained a 3D Gaussian mixture that replaces it where it explains the
+voxels better by ``MIXTURE_GAIN`` nats per voxel (bodies of unequal size).
+
 Rows per scene: ``before`` (the given checkout of the commit before, scored in a
 subprocess with its own code; left out without ``--before``), ``now`` (the defaults), and
 ``now`` with one rule put back (``min_views=2``, ``owner_radius=1.5``) or the seeds' spread
-at 1.5 instead of 4. Synthetic scenes of 2-6 individuals, 4-8 cameras, apart and in contact
+at 1.5 instead of 4, and the mixture never (``MIXTURE_GAIN=inf``: the k-means alone) or
+always (``-inf``). Synthetic scenes of 2-6 individuals, 4-8 cameras, apart and in contact
 (``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128, 48^3 voxels, the shipped
 background estimate (``data.background``, as training and ``nsd-eval``); metrics as
 ``nsd-eval`` (nsd/evaluation/decomposition.py).
@@ -65,6 +69,15 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "4 (bipeds, quadrupeds) huddling, 8 cameras": (
         4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
             "motion.area_radius=2.0", "motion.interaction=huddle", "seed=1"]),
+    "4 (bipeds, quadrupeds) huddling, 8 cameras, seed 3": (
+        4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
+            "motion.area_radius=2.0", "motion.interaction=huddle", "seed=3"]),
+    "4 quadrupeds huddling, 8 cameras": (
+        4, ["num_individuals=4", "species=[quadruped]", "rig.count=8",
+            "motion.area_radius=2.5", "motion.interaction=huddle", "seed=2"]),
+    "3 (bipeds, quadrupeds) huddling, 6-camera ring": (
+        3, ["num_individuals=3", "species=[quadruped,biped]", "rig.kind=ring", "rig.count=6",
+            "motion.area_radius=2.0", "motion.interaction=huddle", "seed=5"]),
     "6 bipeds huddling, 8 cameras": (
         6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0",
             "motion.interaction=huddle", "seed=1"]),
@@ -111,7 +124,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(2)
     root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
-    defaults = {"OWNER_RADIUS": occupancy.OWNER_RADIUS, "SEED_SPREAD": occupancy.SEED_SPREAD}
+    defaults = {"OWNER_RADIUS": occupancy.OWNER_RADIUS, "SEED_SPREAD": occupancy.SEED_SPREAD,
+                "MIXTURE_GAIN": occupancy.MIXTURE_GAIN}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
     rows = []
     for i, name in enumerate(args.scenes):
@@ -134,7 +148,9 @@ def main() -> None:
             print(rows[-1], flush=True)
         variants = [("now", "auto", {}), ("now, min_views=2", 2, {}),
                     ("now, owner_radius=1.5", "auto", {"OWNER_RADIUS": 1.5}),
-                    ("now, seeds 1.5 radii apart", "auto", {"SEED_SPREAD": 1.5})]
+                    ("now, seeds 1.5 radii apart", "auto", {"SEED_SPREAD": 1.5}),
+                    ("now, k-means only (no mixture)", "auto", {"MIXTURE_GAIN": np.inf}),
+                    ("now, the mixture always", "auto", {"MIXTURE_GAIN": -np.inf})]
         for rule, views, consts in variants:
             for key, value in {**defaults, **consts}.items():
                 setattr(occupancy, key, value)  # read by the hull at each call
@@ -155,7 +171,10 @@ def main() -> None:
                "when a majority of the cameras see it (`min_views`), a pixel owned by the "
                "front-most individual with a voxel within 0.6 voxel sides, the individuals "
                "by a k-means of the plane's columns seeded by components 4 typical radii "
-               "apart (nsd/cues/occupancy.py); the other rows put one rule back. Touching "
+               "apart, replaced by a 3D Gaussian mixture of the voxels where it explains "
+               f"them better by {occupancy.MIXTURE_GAIN} nats per voxel "
+               "(nsd/cues/occupancy.py); the other rows put one rule back or take the "
+               "mixture never or always. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "
