@@ -38,7 +38,8 @@ LAYERS = [
 ]
 # imports that may stay inside a function, with the reason given at the import
 # trackeval.metrics: optional (tools/setup.sh installs it without its dependencies)
-LAZY = {"matplotlib", "matplotlib.pyplot", "sklearn.manifold", "trackeval.metrics"}
+LAZY = {"matplotlib", "matplotlib.pyplot", "sklearn.manifold", "sklearn.mixture",
+        "trackeval.metrics"}
 
 
 def _modules() -> dict[str, Path]:

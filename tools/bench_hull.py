@@ -2,6 +2,7 @@
 
     git worktree add /tmp/hull-before 7d6630d    # the commit before (optional)
     .venv/bin/python tools/bench_hull.py --before /tmp/hull-before    # ~25 min on 2 cores
+    .venv/bin/python tools/bench_hull.py --report hull_mixture    # ~30 min, alone
 
 The visual hull of the background residuals (:mod:`nsd.cues.occupancy`) places NSD's
 windows, gives their depths and links the views at inference, and makes the training
@@ -26,7 +27,8 @@ always (``-inf``). Synthetic scenes of 2-6 individuals, 4-8 cameras, apart and i
 background estimate (``data.background``, as training and ``nsd-eval``); metrics as
 ``nsd-eval`` (nsd/evaluation/decomposition.py).
 
-Writes ``docs/benchmarks/hull.{md,json}``.
+Writes ``docs/benchmarks/<--report>.{md,json}`` (default ``hull``; the mixture's rows:
+``--report hull_mixture``).
 """
 
 from __future__ import annotations
@@ -78,6 +80,12 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "3 (bipeds, quadrupeds) huddling, 6-camera ring": (
         3, ["num_individuals=3", "species=[quadruped,biped]", "rig.kind=ring", "rig.count=6",
             "motion.area_radius=2.0", "motion.interaction=huddle", "seed=5"]),
+    "3 (2 quadrupeds, 1 biped) huddling, 8 cameras": (
+        3, ["num_individuals=3", "species=[quadruped,biped]", "rig.count=8",
+            "motion.area_radius=2.5", "motion.interaction=huddle", "seed=11"]),
+    "5 (bipeds, quadrupeds) huddling, 8 cameras": (
+        5, ["num_individuals=5", "species=[biped,quadruped]", "rig.count=8",
+            "motion.area_radius=3.0", "motion.interaction=huddle", "seed=12"]),
     "6 bipeds huddling, 8 cameras": (
         6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0",
             "motion.interaction=huddle", "seed=1"]),
@@ -119,6 +127,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=30, help="held-out frames scored per scene")
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="scene names to run")
+    ap.add_argument("--report", default="hull", help="docs/benchmarks/<report>.{md,json}")
     ap.add_argument("--before", type=Path, default=None,
                     help="a checkout of an older commit: its hull-only row per scene")
     args = ap.parse_args()
@@ -163,7 +172,7 @@ def main() -> None:
         for key, value in defaults.items():
             setattr(occupancy, key, value)
     write_report(
-        "hull", "The hull-only decomposition: before, now, and each rule put back", rows,
+        args.report, "The hull-only decomposition: before, now, and each rule put back", rows,
         notes=("Hull-only decomposition (nsd/evaluation/hull_baseline.py, no learning) of "
                f"{args.frames} held-out frames per scene at 128 x 128, 48^3 voxels, "
                f"background `{background}` (the shipped `data.background`). "

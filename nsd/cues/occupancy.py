@@ -10,7 +10,8 @@ column on the horizontal plane; the ``k`` heaviest connected components of that
 map seed a k-means of the columns into ``k`` individuals (visual-hull *ghosts*,
 the regions every camera sees as foreground without anything being there, are
 lighter and dropped; pieces of one individual join it; a component holding
-several touching individuals is cut, :func:`cluster_individuals`). This
+several touching individuals is cut; where bodies of unequal size touch, a Gaussian
+mixture of the voxels in 3D replaces the k-means, :func:`cluster_individuals`). This
 separates individuals that overlap in one view but not in another. Each
 cluster, projected into each view, gives
 
@@ -42,6 +43,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 from scipy import ndimage
+from scipy.stats import multivariate_normal
+from threadpoolctl import threadpool_limits
 from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
@@ -233,20 +236,17 @@ SEED_SPREAD = 4.0
 GHOST_SPREAD = 3.0
 KMEANS_ITERATIONS = 10
 # then a Gaussian mixture of the voxels in 3D (full covariances: a long, low quadruped beside
-# upright bipeds), fitted from the k-means partition and MIXTURE_RESTARTS k-means++ starts,
-# replaces the k-means where its best fit explains the voxels better than Gaussians fitted
-# to the k-means partition by at least MIXTURE_GAIN nats per voxel. The k-means cuts bodies
-# of unequal size at the midpoint between centres: on the mixed group (2 bipeds, 2
-# quadrupeds) hull-only detection 0.58 -> 0.80 and mask mIoU 0.47 -> 0.67; always taking the
-# mixture costs equal bipeds that touch (3 bipeds: detection 0.98 -> 0.94), where the gain
-# is below 0.05 on 95 % of the instants and the mixed group's median gain is 0.10
-# (docs/benchmarks/hull.md, "Bodies of unequal size").
+# upright bipeds), the best of fits from the k-means partition and from MIXTURE_RESTARTS
+# k-means++ starts, replaces the k-means where it explains the voxels better than Gaussians
+# fitted to the k-means partition by at least MIXTURE_GAIN nats per voxel. The k-means cuts
+# bodies of unequal size at the midpoint between centres: on the mixed group (2 bipeds, 2
+# quadrupeds) hull-only detection 0.58 -> 0.80 and mask mIoU 0.47 -> 0.67. Always taking the
+# mixture costs equal bipeds that touch (3 bipeds: detection 0.98 -> 0.94); at 0.02, over ten
+# scenes, voxel labels are never more than 0.005 below the k-means' and 0.13-0.27 above them
+# with quadrupeds; 0.05 lost half the gain on scenes the rule was not chosen on (docs/nsd.md,
+# "Bodies of unequal size"; docs/benchmarks/hull_mixture.md).
 MIXTURE_RESTARTS = 10
-MIXTURE_GAIN = 0.05
-# the restarts only where the mixture started from the k-means already gains this much: on
-# the mixed group every instant whose best fit gains 0.05 gains >= 0.016 here; with equal
-# bipeds 85-93 % of the instants stop after that one fit (70 -> 10 ms per instant)
-MIXTURE_PREGAIN = 0.01
+MIXTURE_GAIN = 0.02
 MIXTURE_ITERATIONS = 100
 
 
@@ -310,8 +310,6 @@ def _partition_loglik(x: np.ndarray, labels: np.ndarray, k: int, reg: float) -> 
     """Mean log-likelihood (nats per point) of ``x`` (P, D) under the Gaussian mixture
     fitted to the hard partition ``labels`` (P,) in [0, k): each part's mean and covariance
     (plus ``reg`` on the diagonal), weights by size."""
-    from scipy.stats import multivariate_normal
-
     logp = [np.log((labels == j).mean())
             + multivariate_normal(x[labels == j].mean(0),
                                   np.cov(x[labels == j].T) + reg * np.eye(x.shape[1])).logpdf(x)
@@ -325,26 +323,49 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float,
     ``reg`` added to them), or None where it does not explain ``x`` better than the
     partition ``labels`` (P,) in [0, k) does (:func:`_partition_loglik`).
 
-    The mixture started from the partition must gain ``MIXTURE_PREGAIN`` nats per point;
-    then the best of it and of ``MIXTURE_RESTARTS`` k-means++ starts must gain ``gain``.
+    The best of the mixtures started from the partition and from ``MIXTURE_RESTARTS``
+    k-means++ seeds must gain ``gain`` nats per point.
     """
+    # lazy: scikit-learn (1.9 s to import) only where the hull's k-means may have cut a body
     from sklearn.mixture import GaussianMixture
 
     def fit(**start) -> GaussianMixture:
         return GaussianMixture(k, covariance_type="full", reg_covar=reg,
                                max_iter=MIXTURE_ITERATIONS, **start).fit(x)
 
-    base = _partition_loglik(x, labels, k, reg)
-    means = np.stack([x[labels == j].mean(0) if (labels == j).any() else x.mean(0)
-                      for j in range(k)])
-    fits = [fit(means_init=means, random_state=0)]
-    if fits[0].score(x) - base < min(gain, MIXTURE_PREGAIN):
-        return None
-    fits += [fit(init_params="k-means++", random_state=s) for s in range(MIXTURE_RESTARTS)]
-    scores = [g.score(x) for g in fits]
-    if max(scores) - base < gain:
-        return None
-    return fits[int(np.argmax(scores))].predict(x)
+    # one BLAS thread: on these small matrices, threads contending with torch's idle ones
+    # made a held-out frame of the default scene's hull 0.10 s instead of 0.04
+    with threadpool_limits(1):
+        base = _partition_loglik(x, labels, k, reg)
+        means = np.stack([x[labels == j].mean(0) if (labels == j).any() else x.mean(0)
+                          for j in range(k)])
+        fits = [fit(means_init=means, random_state=0)]
+        fits += [fit(init_params="k-means++", random_state=s) for s in range(MIXTURE_RESTARTS)]
+        scores = [g.score(x) for g in fits]
+        if max(scores) - base < gain:
+            return None
+        return fits[int(np.argmax(scores))].predict(x)
+
+
+def _mixture_relabelled(x: np.ndarray, plane: np.ndarray, labels: np.ndarray, k: int,
+                        reg: float, gain: float) -> np.ndarray:
+    """``labels`` (P,) in [0, k) or -1 of the points ``x`` (P, 3) (``plane`` (P, 2): their
+    ground-plane coordinates) with the kept ones (>= 0) replaced by the mixture's
+    (:func:`_mixture_labels`), ranked along the first plane axis; unchanged where the
+    mixture does not gain ``gain`` or the partition has fewer than ``k`` parts."""
+    keep = labels >= 0
+    if len(np.unique(labels[keep])) < k or keep.sum() <= 4 * k:
+        return labels
+    mixed = _mixture_labels(x[keep], labels[keep], k, reg, gain)
+    if mixed is None:
+        return labels
+    centres = np.stack([plane[keep][mixed == j].mean(0) if (mixed == j).any()
+                        else np.full(2, np.inf) for j in range(k)])
+    rank = np.empty(k, np.int64)
+    rank[np.argsort(centres[:, 0], kind="stable")] = np.arange(k)  # a stable order
+    out = labels.copy()
+    out[keep] = rank[mixed]
+    return out
 
 
 def cluster_individuals(
@@ -401,22 +422,13 @@ def cluster_individuals(
         column[kept] = _seeded_columns((np.argwhere(kept) + 0.5) * cell, counts[kept] ** 2,
                                        comp[kept] - 1, n, k, cell)
         labels = column[ij[:, 0].numpy(), ij[:, 1].numpy()]
-        keep = labels >= 0
-        x = points.double().numpy()[keep]
         gain = MIXTURE_GAIN if mixture_gain is None else mixture_gain
         pairs = np.unique(np.stack([comp[kept], column[kept]], 1)[column[kept] >= 0], axis=0)
         # each individual one whole component (apart): nothing for the mixture to mend
         whole = len(pairs) == k and len(np.unique(pairs[:, 0])) == k
-        if (gain < np.inf and (not whole or gain == -np.inf)
-                and len(np.unique(labels[keep])) == k and len(x) > 4 * k):
-            mixed = _mixture_labels(x, labels[keep], k, cell**2, gain)
-            if mixed is not None:
-                plane = xy.double().numpy()[keep]
-                centres = np.stack([plane[mixed == j].mean(0) if (mixed == j).any()
-                                    else np.full(2, np.inf) for j in range(k)])
-                rank = np.empty(k, np.int64)
-                rank[np.argsort(centres[:, 0], kind="stable")] = np.arange(k)  # a stable order
-                labels[keep] = rank[mixed]
+        if gain < np.inf and (not whole or gain == -np.inf):
+            labels = _mixture_relabelled(points.double().numpy(), xy.double().numpy(), labels,
+                                         k, cell**2, gain)
         return torch.as_tensor(labels)
     point_comp = torch.as_tensor(comp[ij[:, 0].numpy(), ij[:, 1].numpy()]) - 1  # (P,)
     groups = [torch.nonzero(point_comp == c).flatten() for c in range(n)]
