@@ -2,7 +2,7 @@
 
     git worktree add /tmp/hull-before 7d6630d    # the commit before (optional)
     .venv/bin/python tools/bench_hull.py --before /tmp/hull-before    # ~25 min on 2 cores
-    .venv/bin/python tools/bench_hull.py --report hull_mixture    # ~30 min, alone
+    .venv/bin/python tools/bench_hull.py --report hull_mixture    # ~25 min, alone
 
 The visual hull of the background residuals (:mod:`nsd.cues.occupancy`) places NSD's
 windows, gives their depths and links the views at inference, and makes the training
@@ -48,7 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from nsd.core.config import compose_app  # noqa: E402
-from nsd.cues import occupancy  # noqa: E402
+from nsd.cues import clustering, occupancy  # noqa: E402
 from nsd.cues.occupancy import hull_min_views, voxel_grid  # noqa: E402
 from nsd.evaluation.hull_baseline import evaluate_hull  # noqa: E402
 from nsd.io.ground_truth import GroundTruth  # noqa: E402
@@ -133,8 +133,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(2)
     root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
-    defaults = {"OWNER_RADIUS": occupancy.OWNER_RADIUS, "SEED_SPREAD": occupancy.SEED_SPREAD,
-                "MIXTURE_GAIN": occupancy.MIXTURE_GAIN}
+    home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering, "MIXTURE_GAIN": clustering}
+    defaults = {key: getattr(module, key) for key, module in home.items()}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
     rows = []
     for i, name in enumerate(args.scenes):
@@ -162,7 +162,7 @@ def main() -> None:
                     ("now, the mixture always", "auto", {"MIXTURE_GAIN": -np.inf})]
         for rule, views, consts in variants:
             for key, value in {**defaults, **consts}.items():
-                setattr(occupancy, key, value)  # read by the hull at each call
+                setattr(home[key], key, value)  # read by the hull at each call
             grid = voxel_grid(data.rig, data.frame_hw, 48, min_views=views)
             t0 = time.perf_counter()
             m = evaluate_hull(data, idx, gt, grid, k)
@@ -170,7 +170,7 @@ def main() -> None:
             rows.append(_row(name, V, label, m, time.perf_counter() - t0, len(idx)))
             print(rows[-1], flush=True)
         for key, value in defaults.items():
-            setattr(occupancy, key, value)
+            setattr(home[key], key, value)
     write_report(
         args.report, "The hull-only decomposition: before, now, and each rule put back", rows,
         notes=("Hull-only decomposition (nsd/evaluation/hull_baseline.py, no learning) of "
@@ -181,9 +181,9 @@ def main() -> None:
                "front-most individual with a voxel within 0.6 voxel sides, the individuals "
                "by a k-means of the plane's columns seeded by components 4 typical radii "
                "apart, replaced by a 3D Gaussian mixture of the voxels where it explains "
-               f"them better by {occupancy.MIXTURE_GAIN} nats per voxel "
-               "(nsd/cues/occupancy.py); the other rows put one rule back or take the "
-               "mixture never or always. Touching "
+               f"them better by {clustering.MIXTURE_GAIN} nats per voxel "
+               "(nsd/cues/occupancy.py, nsd/cues/clustering.py); the other rows put one "
+               "rule back or take the mixture never or always. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "

@@ -11,7 +11,7 @@ map seed a k-means of the columns into ``k`` individuals (visual-hull *ghosts*,
 the regions every camera sees as foreground without anything being there, are
 lighter and dropped; pieces of one individual join it; a component holding
 several touching individuals is cut; where bodies of unequal size touch, a Gaussian
-mixture of the voxels in 3D replaces the k-means, :func:`cluster_individuals`). This
+mixture of the voxels in 3D replaces the k-means: :mod:`nsd.cues.clustering`). This
 separates individuals that overlap in one view but not in another. Each
 cluster, projected into each view, gives
 
@@ -42,22 +42,18 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-from scipy import ndimage
-from scipy.stats import multivariate_normal
-from threadpoolctl import threadpool_limits
 from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.projection import project_points
 from nsd.core.errors import ConfigError
-from nsd.ops.vectors import up_frame
+from nsd.cues.clustering import cluster_individuals
 
 __all__ = [
     "CONTEST_BAND",
     "MultiviewProposals",
     "VoxelGrid",
     "candidate_individuals",
-    "cluster_individuals",
     "contested_pixels",
     "hull_min_views",
     "multiview_proposals",
@@ -228,222 +224,6 @@ OWNER_REACH = 4.5
 # hull's owner is right for 71 % of the pixels and the trained auto-encoder's ownership for
 # 81 %, elsewhere for 96 % and 93 % (docs/nsd.md, "Where the hull cannot settle").
 CONTEST_BAND = 1.5
-# cluster_individuals with the count known: seeds of the k-means at least SEED_SPREAD typical
-# radii apart; columns beyond GHOST_SPREAD radii of their cluster dropped. With 1.5 radii,
-# hull-only detection of six huddling bipeds 0.95 -> 0.93, of the mixed group 0.62 -> 0.59
-# (docs/benchmarks/hull.md); 4 was chosen on the scenes of that table.
-SEED_SPREAD = 4.0
-GHOST_SPREAD = 3.0
-KMEANS_ITERATIONS = 10
-# then a Gaussian mixture of the voxels in 3D (full covariances: a long, low quadruped beside
-# upright bipeds), the best of fits from the k-means partition and from MIXTURE_RESTARTS
-# k-means++ starts, replaces the k-means where it explains the voxels better than Gaussians
-# fitted to the k-means partition by at least MIXTURE_GAIN nats per voxel. The k-means cuts
-# bodies of unequal size at the midpoint between centres: on the mixed group (2 bipeds, 2
-# quadrupeds) hull-only detection 0.58 -> 0.80 and mask mIoU 0.47 -> 0.67. Always taking the
-# mixture costs equal bipeds that touch (3 bipeds: detection 0.98 -> 0.94); at 0.02, over ten
-# scenes, voxel labels are never more than 0.005 below the k-means' and 0.13-0.27 above them
-# with quadrupeds; 0.05 lost half the gain on scenes the rule was not chosen on (docs/nsd.md,
-# "Bodies of unequal size"; docs/benchmarks/hull_mixture.md).
-MIXTURE_RESTARTS = 10
-MIXTURE_GAIN = 0.02
-MIXTURE_ITERATIONS = 100
-
-
-def _weighted_rms(x: np.ndarray, centre: np.ndarray, w: np.ndarray, floor: float) -> float:
-    """Weighted RMS distance of points ``x`` (C, 2) to ``centre``, at least ``floor``."""
-    return max(floor, float(np.sqrt(np.average(((x - centre) ** 2).sum(1), weights=w))))
-
-
-def _split_heaviest(xy: np.ndarray, w: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """One more centre (C + 1, 2): the heaviest cluster's centre moved half a standard
-    deviation each way along its principal axis."""
-    lab = np.linalg.norm(xy[:, None] - centres[None], axis=2).argmin(1)
-    j = int(np.bincount(lab, weights=w, minlength=len(centres)).argmax())
-    x, wj = xy[lab == j], w[lab == j]
-    mu = np.average(x, axis=0, weights=wj)
-    cov = np.cov((x - mu).T, aweights=wj) if len(x) > 1 else np.zeros((2, 2))
-    values, vectors = np.linalg.eigh(np.atleast_2d(cov))
-    step = 0.5 * np.sqrt(max(float(values[-1]), 1e-12)) * vectors[:, -1]
-    centres = centres.copy()
-    centres[j] = mu - step
-    return np.vstack([centres, mu + step])
-
-
-def _seeded_columns(cxy: np.ndarray, w: np.ndarray, comp: np.ndarray, n: int, k: int,
-                    cell: float) -> np.ndarray:
-    """Labels (C,) in [0, k) or -1 of the plane's columns (centres ``cxy`` (C, 2), weights
-    ``w`` (C,), components ``comp`` (C,) in [0, n)) for ``k`` individuals (see
-    :func:`cluster_individuals`)."""
-    score = np.bincount(comp, weights=w, minlength=n)
-    centre = np.stack([np.average(cxy[comp == c], axis=0, weights=w[comp == c])
-                       for c in range(n)])
-    rms = np.array([_weighted_rms(cxy[comp == c], centre[c], w[comp == c], cell)
-                    for c in range(n)])
-    order = np.argsort(-score)
-    apart = SEED_SPREAD * float(np.median(rms[order[:k]]))
-    seeds: list[int] = []
-    for c in order:
-        if len(seeds) == k:
-            break
-        if all(np.linalg.norm(centre[c] - centre[s]) >= apart for s in seeds):
-            seeds.append(int(c))
-    centres = centre[seeds]
-    while len(centres) < k:
-        centres = _split_heaviest(cxy, w, centres)
-    for _ in range(KMEANS_ITERATIONS):
-        lab = np.linalg.norm(cxy[:, None] - centres[None], axis=2).argmin(1)
-        for j in range(k):
-            if (lab == j).any():
-                centres[j] = np.average(cxy[lab == j], axis=0, weights=w[lab == j])
-    d = np.linalg.norm(cxy[:, None] - centres[None], axis=2)
-    lab = d.argmin(1)
-    spread = np.array([_weighted_rms(cxy[lab == j], centres[j], w[lab == j], cell)
-                       if (lab == j).any() else cell for j in range(k)])
-    lab[d[np.arange(len(lab)), lab] > GHOST_SPREAD * spread[lab]] = -1
-    rank = np.empty(k, np.int64)
-    rank[np.argsort(centres[:, 0], kind="stable")] = np.arange(k)  # a stable order
-    return np.where(lab >= 0, rank[lab], -1)
-
-
-def _partition_loglik(x: np.ndarray, labels: np.ndarray, k: int, reg: float) -> float:
-    """Mean log-likelihood (nats per point) of ``x`` (P, D) under the Gaussian mixture
-    fitted to the hard partition ``labels`` (P,) in [0, k): each part's mean and covariance
-    (plus ``reg`` on the diagonal), weights by size."""
-    logp = [np.log((labels == j).mean())
-            + multivariate_normal(x[labels == j].mean(0),
-                                  np.cov(x[labels == j].T) + reg * np.eye(x.shape[1])).logpdf(x)
-            for j in range(k) if (labels == j).sum() > x.shape[1]]
-    return float(np.logaddexp.reduce(np.stack(logp), axis=0).mean()) if logp else -np.inf
-
-
-def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float,
-                    gain: float) -> np.ndarray | None:
-    """Labels (P,) in [0, k) of ``x`` (P, D) by a Gaussian mixture (full covariances,
-    ``reg`` added to them), or None where it does not explain ``x`` better than the
-    partition ``labels`` (P,) in [0, k) does (:func:`_partition_loglik`).
-
-    The best of the mixtures started from the partition and from ``MIXTURE_RESTARTS``
-    k-means++ seeds must gain ``gain`` nats per point.
-    """
-    # lazy: scikit-learn (1.9 s to import) only where the hull's k-means may have cut a body
-    from sklearn.mixture import GaussianMixture
-
-    def fit(**start) -> GaussianMixture:
-        return GaussianMixture(k, covariance_type="full", reg_covar=reg,
-                               max_iter=MIXTURE_ITERATIONS, **start).fit(x)
-
-    # one BLAS thread: on these small matrices, threads contending with torch's idle ones
-    # made a held-out frame of the default scene's hull 0.10 s instead of 0.04
-    with threadpool_limits(1):
-        base = _partition_loglik(x, labels, k, reg)
-        means = np.stack([x[labels == j].mean(0) if (labels == j).any() else x.mean(0)
-                          for j in range(k)])
-        fits = [fit(means_init=means, random_state=0)]
-        fits += [fit(init_params="k-means++", random_state=s) for s in range(MIXTURE_RESTARTS)]
-        scores = [g.score(x) for g in fits]
-        if max(scores) - base < gain:
-            return None
-        return fits[int(np.argmax(scores))].predict(x)
-
-
-def _mixture_relabelled(x: np.ndarray, plane: np.ndarray, labels: np.ndarray, k: int,
-                        reg: float, gain: float) -> np.ndarray:
-    """``labels`` (P,) in [0, k) or -1 of the points ``x`` (P, 3) (``plane`` (P, 2): their
-    ground-plane coordinates) with the kept ones (>= 0) replaced by the mixture's
-    (:func:`_mixture_labels`), ranked along the first plane axis; unchanged where the
-    mixture does not gain ``gain`` or the partition has fewer than ``k`` parts."""
-    keep = labels >= 0
-    if len(np.unique(labels[keep])) < k or keep.sum() <= 4 * k:
-        return labels
-    mixed = _mixture_labels(x[keep], labels[keep], k, reg, gain)
-    if mixed is None:
-        return labels
-    centres = np.stack([plane[keep][mixed == j].mean(0) if (mixed == j).any()
-                        else np.full(2, np.inf) for j in range(k)])
-    rank = np.empty(k, np.int64)
-    rank[np.argsort(centres[:, 0], kind="stable")] = np.arange(k)  # a stable order
-    out = labels.copy()
-    out[keep] = rank[mixed]
-    return out
-
-
-def cluster_individuals(
-    points: Tensor,
-    up: Tensor,
-    cell: float,
-    k: int,
-    min_column: int = 2,
-    split: bool = True,
-    ghost_ratio: float = 0.2,
-    mixture_gain: float | None = None,
-) -> Tensor:
-    """Individual labels (P,) in [0, k) or -1 (dropped) for occupied voxel centres (P, 3).
-
-    Columns of the horizontal plane (side ``cell``) holding at least ``min_column``
-    voxels are grouped into 4-connected components, weighted by their squared column
-    heights (tall bodies over low ghosts).
-
-    With ``split`` (``k`` is the number of individuals), the components seed a weighted
-    k-means of the columns: the heaviest components whose centres lie at least
-    ``SEED_SPREAD`` typical radii apart (the median weighted RMS radius of the ``k``
-    heaviest components: the scale of an individual in this scene, whatever its units or
-    species) are seeds; while there are fewer than ``k``, the heaviest cluster is cut in
-    two along its principal axis; k-means then moves the ``k`` centres and every column
-    goes to the nearest. The pieces an individual's hull falls into (legs apart, a thin
-    waist) join their body instead of taking the slot of an individual merged with
-    another, and a huddle is cut where the columns' mass says. Columns farther than
-    ``GHOST_SPREAD`` times their cluster's RMS radius from its centre are dropped (ghosts).
-    The k-means assumes bodies of one size. Unless each cluster is one whole component
-    (individuals apart), where a Gaussian mixture of the kept voxels in 3D explains them
-    better by ``mixture_gain`` nats per voxel (None: ``MIXTURE_GAIN``; ``inf``: never;
-    ``-inf``: always), its labels replace the k-means': a long quadruped is not cut at
-    the midpoint to an upright neighbour.
-
-    Without (``k`` is only an upper bound), the ``k`` heaviest components are the
-    individuals, nothing is split and components scoring below ``ghost_ratio`` times the
-    heaviest are dropped as ghosts: the labels then say how many individuals the hull
-    holds, instead of cutting one individual into ``k`` parts.
-    """
-
-    xy = points @ up_frame(up)[:, :2]  # (P, 2): coordinates in the plane orthogonal to up
-    ij = torch.floor((xy - xy.min(0).values) / cell).long()
-    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
-    counts = np.zeros(shape)
-    np.add.at(counts, (ij[:, 0].numpy(), ij[:, 1].numpy()), 1)
-    # thin columns (one voxel) are hull noise and bridge neighbours: drop them
-    kept = counts >= min_column
-    comp, n = ndimage.label(kept)
-    labels = torch.full((len(points),), -1, dtype=torch.long)
-    if n == 0:
-        return labels
-    if split:
-        column = np.full(shape, -1, np.int64)
-        column[kept] = _seeded_columns((np.argwhere(kept) + 0.5) * cell, counts[kept] ** 2,
-                                       comp[kept] - 1, n, k, cell)
-        labels = column[ij[:, 0].numpy(), ij[:, 1].numpy()]
-        gain = MIXTURE_GAIN if mixture_gain is None else mixture_gain
-        pairs = np.unique(np.stack([comp[kept], column[kept]], 1)[column[kept] >= 0], axis=0)
-        # each individual one whole component (apart): nothing for the mixture to mend
-        whole = len(pairs) == k and len(np.unique(pairs[:, 0])) == k
-        if gain < np.inf and (not whole or gain == -np.inf):
-            labels = _mixture_relabelled(points.double().numpy(), xy.double().numpy(), labels,
-                                         k, cell**2, gain)
-        return torch.as_tensor(labels)
-    point_comp = torch.as_tensor(comp[ij[:, 0].numpy(), ij[:, 1].numpy()]) - 1  # (P,)
-    groups = [torch.nonzero(point_comp == c).flatten() for c in range(n)]
-    # rank by sum of squared column heights: people are tall, ghosts are low and flat
-    score = [float((counts[comp == c + 1] ** 2).sum()) for c in range(n)]
-    ranked = sorted(zip(score, groups, strict=True), key=lambda p: -p[0])[:k]
-    ranked = [(sc, g) for sc, g in ranked if sc >= ghost_ratio * ranked[0][0]]
-    groups = [g for _, g in ranked]
-    # a stable order: by position along the first plane axis
-    groups.sort(key=lambda g: float(xy[g, 0].mean()) if len(g) else 0.0)
-    for j, g in enumerate(groups):
-        labels[g] = j
-    return labels
-
-
 def _pixel_distances(fg: Tensor, uv: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The foreground pixels' rows and columns (F,) and their distances to the voxels'
     projections uv (P, 2): (F, P)."""

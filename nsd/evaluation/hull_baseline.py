@@ -62,7 +62,7 @@ def hull_decomposition(
     Args:
         images, backgrounds: (V, 3, H, W) in [0, 1].
         grid: the hull's voxel grid of these cameras at this size.
-        k: individuals (windows); ``split`` as :func:`nsd.cues.occupancy.cluster_individuals`.
+        k: individuals (windows); ``split`` as :func:`nsd.cues.clustering.cluster_individuals`.
     """
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
     hull = multiview_proposals(ev, grid, k, split=split)

@@ -147,7 +147,7 @@ class SceneData:
         owners: bool = True, min_views: int | str = "auto",
     ) -> None:
         """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
-        ``split``: see :func:`nsd.cues.occupancy.cluster_individuals`; ``owners``: also keep
+        ``split``: see :func:`nsd.cues.clustering.cluster_individuals`; ``owners``: also keep
         every pixel's hull individual (``self.owners``, (T, V, H, W) int8, a third of the
         frames' size, on disk next to the frames: only the mask prior reads it); ``min_views``:
         :func:`nsd.cues.occupancy.hull_min_views`' setting."""

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from nsd.core.errors import ConfigError
+from nsd.cues.clustering import cluster_individuals
 from nsd.cues.occupancy import (
     candidate_individuals,
-    cluster_individuals,
     contested_pixels,
     hull_min_views,
     multiview_proposals,
@@ -252,110 +252,3 @@ def test_pixels_go_to_the_individual_whose_voxels_cover_them_not_to_a_fat_hull_i
     before = accuracy()
     assert now.mean() > before.mean() + 0.03, (now, before)
     assert (now > before - 0.02).all(), (now, before)
-
-
-def _columns(centres_xy, radius: float, height: int, cell: float) -> torch.Tensor:
-    """Voxel centres (P, 3) of round bodies: columns of ``height`` voxels within ``radius``
-    of each (x, y) centre, z up."""
-    pts = []
-    for cx, cy in centres_xy:
-        for i in np.arange(-radius, radius + cell / 2, cell):
-            for j in np.arange(-radius, radius + cell / 2, cell):
-                if i * i + j * j <= radius * radius:
-                    pts += [(cx + i, cy + j, (h + 0.5) * cell) for h in range(height)]
-    return torch.tensor(pts, dtype=torch.float32)
-
-
-def test_pieces_of_one_individual_join_it_instead_of_taking_a_slot():
-    """Three bodies, one of them broken in two pieces by a gap in the hull (legs apart):
-    with k = 3 the pieces are one individual and the other two keep their own labels;
-    the old rule (the k heaviest components) gave the two pieces two slots and merged
-    nobody else, so one body lost its label."""
-    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
-    whole = _columns([(0.0, 0.0), (1.5, 0.0)], 0.25, 16, cell)
-    pieces = _columns([(-1.5, 0.2), (-1.5, -0.2)], 0.12, 14, cell)  # 0.16 m gap between
-    labels = cluster_individuals(torch.cat([whole, pieces]), up, cell, 3)
-    n = len(whole) // 2
-    a, b, broken = labels[:n], labels[n : 2 * n], labels[2 * n :]
-    assert len(set(broken.tolist())) == 1 and broken[0] >= 0
-    assert len(set(a.tolist())) == 1 and len(set(b.tolist())) == 1
-    assert len({int(a[0]), int(b[0]), int(broken[0])}) == 3
-
-
-def test_a_huddle_of_three_in_one_component_is_cut_into_three():
-    """Three bodies in a row whose hulls touch (one plane component): k = 3 gives each its
-    own label; ``split=False`` (k an upper bound) keeps them as one."""
-    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
-    bodies = [(-0.4, 0.0), (0.0, 0.0), (0.4, 0.0)]
-    pts = _columns(bodies, 0.25, 16, cell)
-    labels = cluster_individuals(pts, up, cell, 3)
-    xy = pts[:, :2]
-    nearest = torch.cdist(xy, torch.tensor(bodies)).argmin(1)
-    for j in range(3):  # each body's columns (away from the seams) carry one label
-        core = (nearest == j) & (torch.cdist(xy, torch.tensor(bodies))[:, j] < 0.15)
-        assert len(set(labels[core].tolist())) == 1
-    assert len(set(labels.tolist()) - {-1}) == 3
-    assert set(cluster_individuals(pts, up, cell, 3, split=False).tolist()) == {0}
-
-
-def _ellipse_columns(centre, semi: tuple[float, float], height: int, cell: float) -> torch.Tensor:
-    """Voxel centres (P, 3) of a long, low body: columns of ``height`` voxels inside the
-    ellipse of semi-axes ``semi`` (along x, y) around ``centre``, z up."""
-    a, b = semi
-    pts = [(centre[0] + i, centre[1] + j, (h + 0.5) * cell)
-           for i in np.arange(-a, a + cell / 2, cell) for j in np.arange(-b, b + cell / 2, cell)
-           if (i / a) ** 2 + (j / b) ** 2 <= 1 for h in range(height)]
-    return torch.tensor(pts, dtype=torch.float32)
-
-
-def test_a_long_low_body_beside_an_upright_one_is_not_cut_at_the_midpoint():
-    """A quadruped-like body (1.6 m long, 0.6 m high) with an upright one 0.25 m beyond its
-    nose: the k-means of the columns gives the nose to the upright body (it lies nearer
-    that centre); the 3D mixture keeps each body whole."""
-    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
-    long_body = _ellipse_columns((0.0, 0.0), (0.8, 0.25), 6, cell)
-    upright = _columns([(1.3, 0.0)], 0.25, 16, cell)
-    pts = torch.cat([long_body, upright])
-    n = len(long_body)
-    kmeans = cluster_individuals(pts, up, cell, 2, mixture_gain=np.inf)
-    assert len(set(kmeans[:n].tolist())) == 2  # the k-means cuts the long body
-    labels = cluster_individuals(pts, up, cell, 2)
-    assert set(labels[:n].tolist()) == {0} and set(labels[n:].tolist()) == {1}
-
-
-def test_equal_bodies_keep_the_k_means_labels():
-    """Three equal bodies in a row (one component): the mixture gains nothing over the
-    k-means partition, so the labels are the k-means'; forced (``-inf``), it labels the
-    same voxels (no voxel dropped or added) with three labels in a stable order."""
-    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
-    pts = _columns([(-0.4, 0.0), (0.0, 0.0), (0.4, 0.0)], 0.25, 16, cell)
-    kmeans = cluster_individuals(pts, up, cell, 3, mixture_gain=np.inf)
-    assert torch.equal(cluster_individuals(pts, up, cell, 3), kmeans)
-    forced = cluster_individuals(pts, up, cell, 3, mixture_gain=-np.inf)
-    assert torch.equal(forced >= 0, kmeans >= 0)
-    x = pts[:, 0]
-    assert [float(x[forced == j].mean()) for j in range(3)] == sorted(
-        float(x[forced == j].mean()) for j in range(3))
-
-
-def test_partition_loglik_matches_a_slow_reference():
-    """The partition's mixture log-likelihood against the Gaussian density written out
-    point by point."""
-    from nsd.cues.occupancy import _partition_loglik
-
-    rng = np.random.default_rng(0)
-    x = np.concatenate([rng.normal(0, 1, (40, 3)), rng.normal(3, 0.5, (25, 3))])
-    labels = np.repeat([0, 1], [40, 25])
-    reg = 0.01
-    parts = []
-    for j in (0, 1):
-        xj = x[labels == j]
-        mu = xj.mean(0)
-        cov = (xj - mu).T @ (xj - mu) / (len(xj) - 1) + reg * np.eye(3)
-        parts.append((len(xj) / len(x), mu, cov))
-    ref = 0.0
-    for p in x:
-        dens = sum(w * np.exp(-0.5 * (p - mu) @ np.linalg.solve(cov, p - mu))
-                   / np.sqrt((2 * np.pi) ** 3 * np.linalg.det(cov)) for w, mu, cov in parts)
-        ref += np.log(dens) / len(x)
-    assert _partition_loglik(x, labels, 2, reg) == pytest.approx(ref, rel=1e-10)
