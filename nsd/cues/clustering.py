@@ -42,6 +42,14 @@ MIXTURE_GAIN = 0.02
 MIXTURE_ITERATIONS = 100
 
 
+def _stable_rank(centres: np.ndarray) -> np.ndarray:
+    """(k,) the rank of each of the ``k`` cluster centres (k, 2) along the first plane
+    axis: labels in a stable order from frame to frame."""
+    rank = np.empty(len(centres), np.int64)
+    rank[np.argsort(centres[:, 0], kind="stable")] = np.arange(len(centres))
+    return rank
+
+
 def _weighted_rms(x: np.ndarray, centre: np.ndarray, w: np.ndarray, floor: float) -> float:
     """Weighted RMS distance of points ``x`` (C, 2) to ``centre``, at least ``floor``."""
     return max(floor, float(np.sqrt(np.average(((x - centre) ** 2).sum(1), weights=w))))
@@ -93,9 +101,7 @@ def _seeded_columns(cxy: np.ndarray, w: np.ndarray, comp: np.ndarray, n: int, k:
     spread = np.array([_weighted_rms(cxy[lab == j], centres[j], w[lab == j], cell)
                        if (lab == j).any() else cell for j in range(k)])
     lab[d[np.arange(len(lab)), lab] > GHOST_SPREAD * spread[lab]] = -1
-    rank = np.empty(k, np.int64)
-    rank[np.argsort(centres[:, 0], kind="stable")] = np.arange(k)  # a stable order
-    return np.where(lab >= 0, rank[lab], -1)
+    return np.where(lab >= 0, _stable_rank(centres)[lab], -1)
 
 
 def _partition_loglik(x: np.ndarray, labels: np.ndarray, k: int, reg: float) -> float:
@@ -152,12 +158,11 @@ def _mixture_relabelled(x: np.ndarray, plane: np.ndarray, labels: np.ndarray, k:
     mixed = _mixture_labels(x[keep], labels[keep], k, reg, gain)
     if mixed is None:
         return labels
-    centres = np.stack([plane[keep][mixed == j].mean(0) if (mixed == j).any()
+    kept = plane[keep]
+    centres = np.stack([kept[mixed == j].mean(0) if (mixed == j).any()
                         else np.full(2, np.inf) for j in range(k)])
-    rank = np.empty(k, np.int64)
-    rank[np.argsort(centres[:, 0], kind="stable")] = np.arange(k)  # a stable order
     out = labels.copy()
-    out[keep] = rank[mixed]
+    out[keep] = _stable_rank(centres)[mixed]
     return out
 
 
