@@ -86,6 +86,12 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "5 (bipeds, quadrupeds) huddling, 8 cameras": (
         5, ["num_individuals=5", "species=[biped,quadruped]", "rig.count=8",
             "motion.area_radius=3.0", "motion.interaction=huddle", "seed=12"]),
+    "4 (bipeds, quadrupeds) huddling, 8 cameras, seed 21": (
+        4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
+            "motion.area_radius=2.0", "motion.interaction=huddle", "seed=21"]),
+    "6 (bipeds, quadrupeds) huddling, 8 cameras": (
+        6, ["num_individuals=6", "species=[biped,quadruped]", "rig.count=8",
+            "motion.area_radius=3.0", "motion.interaction=huddle", "seed=22"]),
     "6 bipeds huddling, 8 cameras": (
         6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0",
             "motion.interaction=huddle", "seed=1"]),
@@ -128,12 +134,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30, help="held-out frames scored per scene")
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="scene names to run")
     ap.add_argument("--report", default="hull", help="docs/benchmarks/<report>.{md,json}")
+    ap.add_argument("--rules", nargs="+", default=None,
+                    help="only these rows (the rule names below; default: all)")
     ap.add_argument("--before", type=Path, default=None,
                     help="a checkout of an older commit: its hull-only row per scene")
     args = ap.parse_args()
     torch.set_num_threads(2)
     root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
-    home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering, "MIXTURE_GAIN": clustering}
+    home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering, "MIXTURE_GAIN": clustering,
+            "TRACK_SLACK": clustering}
     defaults = {key: getattr(module, key) for key, module in home.items()}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
     rows = []
@@ -159,8 +168,11 @@ def main() -> None:
                     ("now, owner_radius=1.5", "auto", {"OWNER_RADIUS": 1.5}),
                     ("now, seeds 1.5 radii apart", "auto", {"SEED_SPREAD": 1.5}),
                     ("now, k-means only (no mixture)", "auto", {"MIXTURE_GAIN": np.inf}),
-                    ("now, the mixture always", "auto", {"MIXTURE_GAIN": -np.inf})]
+                    ("now, the mixture always", "auto", {"MIXTURE_GAIN": -np.inf}),
+                    ("now, each frame alone (no track)", "auto", {"TRACK_SLACK": -np.inf})]
         for rule, views, consts in variants:
+            if args.rules is not None and rule not in args.rules:
+                continue
             for key, value in {**defaults, **consts}.items():
                 setattr(home[key], key, value)  # read by the hull at each call
             grid = voxel_grid(data.rig, data.frame_hw, 48, min_views=views)
@@ -181,9 +193,11 @@ def main() -> None:
                "front-most individual with a voxel within 0.6 voxel sides, the individuals "
                "by a k-means of the plane's columns seeded by components 4 typical radii "
                "apart, replaced by a 3D Gaussian mixture of the voxels where it explains "
-               f"them better by {clustering.MIXTURE_GAIN} nats per voxel "
+               f"them better by {clustering.MIXTURE_GAIN} nats per voxel, the previous "
+               "scored frame's Gaussians one more start of it, kept unless another is "
+               f"better by {clustering.TRACK_SLACK} "
                "(nsd/cues/occupancy.py, nsd/cues/clustering.py); the other rows put one "
-               "rule back or take the mixture never or always. Touching "
+               "rule back, take the mixture never or always, or each frame alone. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "

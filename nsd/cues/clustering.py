@@ -4,10 +4,14 @@ The voxels that :mod:`nsd.cues.occupancy` carves are counted per column on the h
 plane. With the count known, a seeded k-means of the columns cuts them into individuals;
 where bodies of unequal size touch (a long, low quadruped beside an upright biped), a
 Gaussian mixture of the voxels in 3D replaces it. As an upper bound, the heaviest connected
-components are the individuals (:func:`cluster_individuals`).
+components are the individuals (:func:`cluster_individuals`). Through a sequence, a
+:class:`ClusterTrack` hands each frame's Gaussians to the next as one more start of its
+mixture (bodies move little between frames).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -18,7 +22,7 @@ from torch import Tensor
 
 from nsd.ops.vectors import up_frame
 
-__all__ = ["cluster_individuals"]
+__all__ = ["ClusterTrack", "cluster_individuals"]
 
 # cluster_individuals with the count known: seeds of the k-means at least SEED_SPREAD typical
 # radii apart; columns beyond GHOST_SPREAD radii of their cluster dropped. With 1.5 radii,
@@ -40,6 +44,32 @@ KMEANS_ITERATIONS = 10
 MIXTURE_RESTARTS = 10
 MIXTURE_GAIN = 0.02
 MIXTURE_ITERATIONS = 100
+# with a ClusterTrack, the mixture started from the previous frame's Gaussians is kept unless
+# another start explains the voxels better by more than TRACK_SLACK nats per voxel: the
+# restarts find a body's shape afresh each frame, and where two partitions are nearly as
+# likely they jump between them (docs/nsd.md, "Through time").
+TRACK_SLACK = 0.05
+
+
+@dataclass
+class ClusterTrack:
+    """What one frame's clustering hands to the next (:func:`cluster_individuals`).
+
+    Attributes:
+        weights: (k,) the Gaussians' shares of the voxels, None before the first frame
+            (or after one that could not fit k Gaussians).
+        means: (k, 3).
+        precisions: (k, 3, 3) inverse covariances.
+    """
+
+    weights: np.ndarray | None = None
+    means: np.ndarray | None = None
+    precisions: np.ndarray | None = None
+
+    def keep(self, weights: np.ndarray | None, means: np.ndarray | None = None,
+             precisions: np.ndarray | None = None) -> None:
+        """Hand these Gaussians (None: none) to the next frame."""
+        self.weights, self.means, self.precisions = weights, means, precisions
 
 
 def _stable_rank(centres: np.ndarray) -> np.ndarray:
@@ -104,26 +134,50 @@ def _seeded_columns(cxy: np.ndarray, w: np.ndarray, comp: np.ndarray, n: int, k:
     return np.where(lab >= 0, _stable_rank(centres)[lab], -1)
 
 
+def _partition_gaussians(x: np.ndarray, labels: np.ndarray, k: int,
+                         reg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Gaussians fitted to the hard partition ``labels`` (P,) in [0, k) of ``x`` (P, D):
+    weights by size (k,), means (k, D) and covariances plus ``reg`` on the diagonal
+    (k, D, D); parts of at most D points are left out (fewer than ``k`` rows)."""
+    parts = [j for j in range(k) if (labels == j).sum() > x.shape[1]]
+    weights = np.array([(labels == j).mean() for j in parts])
+    means = np.array([x[labels == j].mean(0) for j in parts]).reshape(len(parts), x.shape[1])
+    covs = np.array([np.cov(x[labels == j].T) + reg * np.eye(x.shape[1]) for j in parts])
+    return weights, means, covs.reshape(len(parts), x.shape[1], x.shape[1])
+
+
 def _partition_loglik(x: np.ndarray, labels: np.ndarray, k: int, reg: float) -> float:
     """Mean log-likelihood (nats per point) of ``x`` (P, D) under the Gaussian mixture
-    fitted to the hard partition ``labels`` (P,) in [0, k): each part's mean and covariance
-    (plus ``reg`` on the diagonal), weights by size; parts of at most D points are left
-    out."""
-    logp = [np.log((labels == j).mean())
-            + multivariate_normal(x[labels == j].mean(0),
-                                  np.cov(x[labels == j].T) + reg * np.eye(x.shape[1])).logpdf(x)
-            for j in range(k) if (labels == j).sum() > x.shape[1]]
+    fitted to the hard partition ``labels`` (P,) in [0, k) (:func:`_partition_gaussians`)."""
+    weights, means, covs = _partition_gaussians(x, labels, k, reg)
+    logp = [np.log(w) + multivariate_normal(m, c).logpdf(x)
+            for w, m, c in zip(weights, means, covs, strict=True)]
     return float(np.logaddexp.reduce(np.stack(logp), axis=0).mean()) if logp else -np.inf
 
 
-def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float,
-                    gain: float) -> np.ndarray | None:
+def _hand_partition(track: ClusterTrack, x: np.ndarray, labels: np.ndarray, k: int,
+                    reg: float) -> None:
+    """Hand the ``track`` the Gaussians of the partition ``labels`` (P,) in [0, k) or -1 of
+    ``x`` (P, D) (:func:`_partition_gaussians` of the kept points), none if a part is too
+    small for one."""
+    keep = labels >= 0
+    weights, means, covs = _partition_gaussians(x[keep], labels[keep], k, reg)
+    if len(weights) < k:
+        track.keep(None)
+    else:
+        track.keep(weights, means, np.linalg.inv(covs))
+
+
+def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain: float,
+                    track: ClusterTrack) -> np.ndarray | None:
     """Labels (P,) in [0, k) of ``x`` (P, D) by a Gaussian mixture (full covariances,
     ``reg`` added to them), or None where it does not explain ``x`` better than the
     partition ``labels`` (P,) in [0, k) does (:func:`_partition_loglik`).
 
-    The best of the mixtures started from the partition and from ``MIXTURE_RESTARTS``
-    k-means++ seeds must gain ``gain`` nats per point.
+    The best of the mixtures started from the partition, from ``MIXTURE_RESTARTS``
+    k-means++ seeds and from the ``track``'s Gaussians (kept unless another is better by
+    more than ``TRACK_SLACK``) must gain ``gain`` nats per point. The ``track`` is handed
+    the kept mixture, or the partition's Gaussians where the mixture is not kept.
     """
     # lazy: scikit-learn (1.9 s to import) only where the hull's k-means may have cut a body
     from sklearn.mixture import GaussianMixture
@@ -141,21 +195,32 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float,
         fits = [fit(means_init=means, random_state=0)]
         fits += [fit(init_params="k-means++", random_state=s) for s in range(MIXTURE_RESTARTS)]
         scores = [g.score(x) for g in fits]
-        if max(scores) - base < gain:
+        best = int(np.argmax(scores))
+        if track.weights is not None:
+            fits.append(fit(weights_init=track.weights, means_init=track.means,
+                            precisions_init=track.precisions, random_state=0))
+            scores.append(fits[-1].score(x))
+            if scores[-1] >= scores[best] - TRACK_SLACK:
+                best = len(fits) - 1
+        if scores[best] - base < gain:
+            _hand_partition(track, x, labels, k, reg)
             return None
-        return fits[int(np.argmax(scores))].predict(x)
+        kept = fits[best]
+        track.keep(kept.weights_, kept.means_, kept.precisions_)
+        return kept.predict(x)
 
 
 def _mixture_relabelled(x: np.ndarray, plane: np.ndarray, labels: np.ndarray, k: int,
-                        reg: float, gain: float) -> np.ndarray:
+                        reg: float, gain: float, track: ClusterTrack) -> np.ndarray:
     """``labels`` (P,) in [0, k) or -1 of the points ``x`` (P, 3) (``plane`` (P, 2): their
     ground-plane coordinates) with the kept ones (>= 0) replaced by the mixture's
-    (:func:`_mixture_labels`), ranked along the first plane axis; unchanged where the
-    mixture does not gain ``gain`` or the partition has fewer than ``k`` parts."""
+    (:func:`_mixture_labels`, which updates the ``track``), ranked along the first plane
+    axis; unchanged where the mixture does not gain ``gain`` or the partition has fewer
+    than ``k`` parts."""
     keep = labels >= 0
     if len(np.unique(labels[keep])) < k or keep.sum() <= 4 * k:
         return labels
-    mixed = _mixture_labels(x[keep], labels[keep], k, reg, gain)
+    mixed = _mixture_labels(x[keep], labels[keep], k, reg, gain, track)
     if mixed is None:
         return labels
     kept = plane[keep]
@@ -175,6 +240,7 @@ def cluster_individuals(
     split: bool = True,
     ghost_ratio: float = 0.2,
     mixture_gain: float | None = None,
+    track: ClusterTrack | None = None,
 ) -> Tensor:
     """Individual labels (P,) in [0, k) or -1 (dropped) for occupied voxel centres (P, 3).
 
@@ -196,7 +262,10 @@ def cluster_individuals(
     (individuals apart), where a Gaussian mixture of the kept voxels in 3D explains them
     better by ``mixture_gain`` nats per voxel (None: ``MIXTURE_GAIN``; ``inf``: never;
     ``-inf``: always), its labels replace the k-means': a long quadruped is not cut at
-    the midpoint to an upright neighbour.
+    the midpoint to an upright neighbour. A ``track`` carried through a sequence of frames
+    starts one more mixture from the previous frame's Gaussians and prefers it unless
+    another start is better by more than ``TRACK_SLACK``; it is handed this frame's
+    Gaussians (the kept mixture's, or the k-means partition's).
 
     Without (``k`` is only an upper bound), the ``k`` heaviest components are the
     individuals, nothing is split and components scoring below ``ghost_ratio`` times the
@@ -224,9 +293,12 @@ def cluster_individuals(
         pairs = np.unique(np.stack([comp[kept], column[kept]], 1)[column[kept] >= 0], axis=0)
         # each individual one whole component (apart): nothing for the mixture to mend
         whole = len(pairs) == k and len(np.unique(pairs[:, 0])) == k
+        track = ClusterTrack() if track is None else track
+        x = points.double().numpy()
         if gain < np.inf and (not whole or gain == -np.inf):
-            labels = _mixture_relabelled(points.double().numpy(), xy.double().numpy(), labels,
-                                         k, cell**2, gain)
+            labels = _mixture_relabelled(x, xy.double().numpy(), labels, k, cell**2, gain, track)
+        else:
+            _hand_partition(track, x, labels, k, cell**2)
         return torch.as_tensor(labels)
     point_comp = torch.as_tensor(comp[ij[:, 0].numpy(), ij[:, 1].numpy()]) - 1  # (P,)
     groups = [torch.nonzero(point_comp == c).flatten() for c in range(n)]

@@ -47,7 +47,7 @@ from torch import Tensor
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.projection import project_points
 from nsd.core.errors import ConfigError
-from nsd.cues.clustering import cluster_individuals
+from nsd.cues.clustering import ClusterTrack, cluster_individuals
 
 __all__ = [
     "CONTEST_BAND",
@@ -322,6 +322,7 @@ def multiview_proposals(
     min_views: int | None = None,
     split: bool = True,
     contest: float = 0.0,
+    track: ClusterTrack | None = None,
 ) -> MultiviewProposals:
     """Proposals for all views of one frame from its occupancy.
 
@@ -337,6 +338,7 @@ def multiview_proposals(
             and slots without an individual are invalid).
         contest: :func:`contested_pixels`' band in voxel sides (e.g. ``CONTEST_BAND``;
             0: not computed, ``contested`` is all False).
+        track: carried from the previous frame of a sequence (:func:`cluster_individuals`).
 
     Returns:
         :class:`MultiviewProposals`. Slot ``j`` is the same cluster (individual) in
@@ -355,7 +357,8 @@ def multiview_proposals(
     candidates = torch.zeros(V, k, H, W, dtype=torch.bool)
     if len(idx) < min_voxels:
         return MultiviewProposals(boxes, depths, valid, owners, candidates)
-    labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split)
+    labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split,
+                                 track=track)
     keep = labels >= 0
     idx, labels = idx[keep], labels[keep]
     f = grid.uv.new_tensor([W, H]) / 2  # pixels per normalised unit

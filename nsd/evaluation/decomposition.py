@@ -48,6 +48,7 @@ from sklearn.metrics import adjusted_rand_score
 from torch import Tensor
 
 from nsd.core.device import call_on_device
+from nsd.cues.clustering import ClusterTrack
 from nsd.evaluation.contact import MIN_OVERLAP, PARTS, touches
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import InferenceSettings, decompose_views
@@ -248,6 +249,7 @@ def evaluate_model(
     )
     psnr, ssim = [], []
     tally = Tally()
+    track = ClusterTrack()  # the hull's clustering through the frames in order
     try:
         for t in frames:
             views, bgs = data.views(int(t))
@@ -257,7 +259,8 @@ def evaluate_model(
             if gt is None:
                 continue
             dec = decompose_views(
-                model, views, bgs, V, settings, grid, mask_threshold=threshold, refine=refine
+                model, views, bgs, V, settings, grid, mask_threshold=threshold, refine=refine,
+                track=track,
             )
             truths = instant_truth(gt, data, int(t))
             counts = tally.counts(touches(truths))

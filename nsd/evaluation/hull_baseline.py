@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nsd.cues.clustering import ClusterTrack
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals
 from nsd.evaluation.contact import touches
@@ -56,16 +57,18 @@ def hull_decomposition(
     split: bool = True,
     evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS,
+    track: ClusterTrack | None = None,
 ) -> HullDecomposition:
     """Decompose one instant with the visual hull alone.
 
     Args:
         images, backgrounds: (V, 3, H, W) in [0, 1].
         grid: the hull's voxel grid of these cameras at this size.
-        k: individuals (windows); ``split`` as :func:`nsd.cues.clustering.cluster_individuals`.
+        k: individuals (windows); ``split`` and ``track`` (carried from the previous
+            instant) as :func:`nsd.cues.clustering.cluster_individuals`.
     """
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
-    hull = multiview_proposals(ev, grid, k, split=split)
+    hull = multiview_proposals(ev, grid, k, split=split, track=track)
     slots = torch.arange(k)[None, :, None, None]
     masks = (hull.owners[:, None] == slots).float()
     return HullDecomposition(masks, masks, hull.depths, hull.valid.float(), hull.valid)
@@ -81,10 +84,11 @@ def evaluate_hull(
     novel-view ones) for the hull-only decomposition of ``frames`` of ``data``."""
     tally = Tally()
     V = data.num_views
+    track = ClusterTrack()  # the frames in order, as decompose_views' instants
     for t in frames:
         views, bgs = data.views(int(t))
         dec = hull_decomposition(views, bgs, grid, k, split, evidence_threshold,
-                                 evidence_softness)
+                                 evidence_softness, track)
         truths = instant_truth(gt, data, int(t))
         counts = tally.counts(touches(truths))
         per_view = score_views(dec, truths, threshold, counts)

@@ -38,6 +38,7 @@ from nsd.cameras.calibration import CameraRig
 from nsd.core.config import ConfigSection
 from nsd.core.device import model_device, move
 from nsd.core.errors import ConfigError
+from nsd.cues.clustering import ClusterTrack
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.occupancy import CONTEST_BAND, VoxelGrid, multiview_proposals, voxel_grid
 from nsd.cues.proposals import match_proposals
@@ -201,13 +202,17 @@ def decompose_views(
     grid: VoxelGrid | None = None,
     evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS,
+    track: ClusterTrack | None = None,
     **kwargs,
 ) -> Decomposition:
     """Decompose T instants of V calibrated views, (T * V, 3, H, W) instant-major.
 
     With ``settings.views == "single"`` every image is decomposed alone; otherwise each
     instant's windows are fused with the visual hull of its V views (``grid`` from
-    :meth:`InferenceSettings.grid`). ``kwargs`` go to :func:`nsd.inference.single.decompose`.
+    :meth:`InferenceSettings.grid`). The hull's clustering runs through the T instants in
+    order (:class:`nsd.cues.clustering.ClusterTrack`): from ``track`` where given (a caller
+    going through a sequence call by call), afresh otherwise. ``kwargs`` go to
+    :func:`nsd.inference.single.decompose`.
     """
     common = dict(
         colour_sigma=settings.colour_sigma,
@@ -235,9 +240,10 @@ def decompose_views(
     # windows of the individuals near the pixel may own it
     contest = CONTEST_BAND if settings.hull_contested != settings.hull_ownership else 0.0
     fused, slots, owners, bonus, allowed = [], [], [], [], []
+    track = ClusterTrack() if track is None else track
     for s in range(0, images.shape[0], num_views):
         sl = slice(s, s + num_views)
-        hull = multiview_proposals(ev[sl], grid, k, split=split, contest=contest)
+        hull = multiview_proposals(ev[sl], grid, k, split=split, contest=contest, track=track)
         one = Detections(det.boxes[sl], det.depths[sl], det.presence[sl])
         f, slot = fuse_detections(
             one, hull.boxes, hull.depths, hull.valid, settings.window_blend, settings.depth

@@ -22,6 +22,7 @@ from nsd.cameras.calibration import CameraRig
 from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.core.memory import trim_heap
+from nsd.cues.clustering import ClusterTrack
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import multiview_proposals, voxel_grid
 from nsd.cues.proposals import evidence_proposals
@@ -160,11 +161,12 @@ class SceneData:
         pixel_owners = torch.from_numpy(
             scratch_array(self.frames.path.parent, (T, V, H, W), np.int8)
         ) if owners else None
+        track = ClusterTrack()  # the frames in order: each hull's Gaussians start the next's
         for t in range(T):
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness
             )
-            b, d, ok, own, _ = multiview_proposals(ev, grid, k, split=split)
+            b, d, ok, own, _ = multiview_proposals(ev, grid, k, split=split, track=track)
             boxes.append(b)
             depths.append(d)
             valid.append(ok)

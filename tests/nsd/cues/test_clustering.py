@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.cues.clustering import _partition_loglik, cluster_individuals
+from nsd.cues.clustering import (
+    ClusterTrack,
+    _mixture_labels,
+    _partition_gaussians,
+    _partition_loglik,
+    cluster_individuals,
+)
 
 
 def _columns(centres_xy, radius: float, height: int, cell: float) -> torch.Tensor:
@@ -113,3 +119,46 @@ def test_partition_loglik_matches_a_slow_reference():
                    / np.sqrt((2 * np.pi) ** 3 * np.linalg.det(cov)) for w, mu, cov in parts)
         ref += np.log(dens) / len(x)
     assert _partition_loglik(x, labels, 2, reg) == pytest.approx(ref, rel=1e-10)
+
+
+def _same_partition(a: np.ndarray, b: np.ndarray) -> bool:
+    """Two labellings (P,) split the points alike (whatever the label numbers)."""
+    return len(np.unique(np.stack([a, b], 1), axis=0)) == len(np.unique(a)) == len(np.unique(b))
+
+
+def test_a_track_keeps_the_previous_frames_partition_where_two_are_as_likely():
+    """Four blobs at the corners of a square and two individuals: left | right and
+    top | bottom explain the points equally well (by symmetry), both far better than the
+    diagonal pairs the k-means gave. Carried from a frame that had either, the track
+    keeps it; it is handed the kept mixture."""
+    rng = np.random.default_rng(1)
+    corners = np.array([(-1, -1, 0), (-1, 1, 0), (1, -1, 0), (1, 1, 0)], float)
+    x = np.concatenate([c + rng.normal(0, 0.2, (150, 3)) for c in corners])
+    corner = np.repeat(np.arange(4), 150)
+    diagonal = np.isin(corner, (0, 3)).astype(int)
+    reg = 1e-3
+    for side in (corner // 2, corner % 2):  # left | right, then bottom | top
+        weights, means, covs = _partition_gaussians(x, side, 2, reg)
+        track = ClusterTrack(weights, means, np.linalg.inv(covs))
+        labels = _mixture_labels(x, diagonal, 2, reg, 0.02, track)
+        assert labels is not None and _same_partition(labels, side)
+        assert np.allclose(np.sort(track.means[:, :2], 0), np.sort(means[:, :2], 0), atol=0.05)
+
+
+def test_a_track_is_handed_the_partition_where_the_k_means_is_kept():
+    """Two bodies apart (each one whole component): the k-means' labels stand, and the
+    track is handed their Gaussians: each body's mean and the inverse of its covariance
+    (plus the voxel side squared)."""
+    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
+    pts = _columns([(-1.0, 0.0), (1.0, 0.0)], 0.25, 16, cell)
+    track = ClusterTrack()
+    labels = cluster_individuals(pts, up, cell, 2, track=track).numpy()
+    x = pts.double().numpy()
+    order = np.argsort(track.means[:, 0])
+    for j, body in enumerate((x[:, 0] < 0, x[:, 0] > 0)):
+        assert len(set(labels[body].tolist())) == 1
+        mean = track.means[order[j]]
+        assert np.allclose(mean, x[body].mean(0))
+        cov = np.cov(x[body].T) + cell**2 * np.eye(3)
+        assert np.allclose(track.precisions[order[j]] @ cov, np.eye(3), atol=1e-8)
+    assert np.allclose(np.sort(track.weights), [0.5, 0.5])
