@@ -55,6 +55,7 @@ __all__ = [
     "VoxelGrid",
     "candidate_individuals",
     "contested_pixels",
+    "hull_individuals",
     "hull_min_views",
     "multiview_proposals",
     "occupied_voxels",
@@ -311,6 +312,27 @@ def contested_pixels(fg: Tensor, uv: Tensor, labels: Tensor, k: int, band: float
     return candidate_individuals(fg, uv, labels, k, band).sum(0) >= 2
 
 
+def hull_individuals(
+    evidence: Tensor,
+    grid: VoxelGrid,
+    k: int,
+    min_voxels: int = 4,
+    min_views: int | None = None,
+    split: bool = True,
+    track: ClusterTrack | None = None,
+) -> tuple[Tensor, Tensor] | None:
+    """The occupied voxels of one frame (evidence (V, H, W)) and their individuals: flat
+    grid indices (P,) and labels (P,) in [0, k) or -1 (:func:`cluster_individuals`, which
+    moves ``track`` on by this frame); None (``track`` untouched) with fewer than
+    ``min_voxels``. What :func:`multiview_proposals` clusters, alone: a process can carry a
+    track through the frames whose proposals others compute."""
+    idx = torch.nonzero(occupied_voxels(evidence, grid, min_views)).flatten()
+    if len(idx) < min_voxels:
+        return None
+    return idx, cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split,
+                                    track=track)
+
+
 def multiview_proposals(
     evidence: Tensor,
     grid: VoxelGrid,
@@ -351,14 +373,12 @@ def multiview_proposals(
     boxes[..., :2] = min_scale
     depths = torch.zeros(V, k)
     valid = torch.zeros(V, k, dtype=torch.bool)
-    occ = occupied_voxels(evidence, grid, min_views)
-    idx = torch.nonzero(occ).flatten()
     owners = torch.full((V, H, W), -1, dtype=torch.long)
     candidates = torch.zeros(V, k, H, W, dtype=torch.bool)
-    if len(idx) < min_voxels:
+    clustered = hull_individuals(evidence, grid, k, min_voxels, min_views, split, track)
+    if clustered is None:
         return MultiviewProposals(boxes, depths, valid, owners, candidates)
-    labels = cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split,
-                                 track=track)
+    idx, labels = clustered
     keep = labels >= 0
     idx, labels = idx[keep], labels[keep]
     f = grid.uv.new_tensor([W, H]) / 2  # pixels per normalised unit

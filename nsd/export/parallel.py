@@ -149,19 +149,26 @@ class BatchPool:
             return
         pending: deque = deque()
         for item in items:
-            pending.append((item, self._pool.submit(_run, item)))
+            try:  # a pool whose worker died refuses new items as it fails pending ones
+                future = self._pool.submit(_run, item)
+            except BrokenProcessPool:
+                raise self._died() from None
+            pending.append((item, future))
             if len(pending) >= 2 * self.workers:
                 yield self._take(pending)
         while pending:
             yield self._take(pending)
+
+    def _died(self) -> RuntimeError:
+        return RuntimeError(
+            f"{self.job}: a worker process died (killed by the system, e.g. out of memory, "
+            f"with {self.workers} workers): lower {self.remedy}")
 
     def _take(self, pending: deque) -> tuple[Any, Any]:
         item, future = pending.popleft()
         try:
             result, peak = future.result()
         except BrokenProcessPool:
-            raise RuntimeError(
-                f"{self.job}: a worker process died (killed by the system, e.g. out of memory, "
-                f"with {self.workers} workers): lower {self.remedy}") from None
+            raise self._died() from None
         self.worker_peak_mb = max(self.worker_peak_mb, peak)
         return item, result

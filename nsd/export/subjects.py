@@ -44,7 +44,7 @@ import json
 import logging
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +54,7 @@ from tqdm import tqdm
 
 from nsd.core.atomic import atomic_directory, atomic_write_text
 from nsd.core.threads import available_cores, set_threads
+from nsd.cues.clustering import ClusterTrack
 from nsd.export.config import check_export_config
 from nsd.export.inputs import ExportInputs, prepare_inputs
 from nsd.export.manifest import Timing, build_manifest, share_folder, toolkit_version
@@ -177,10 +178,18 @@ def _stream(writer: SubjectWriter, inp: ExportInputs, cfg: DictConfig, workers: 
         disable=not cfg.progress,
     )
     threads = int(cfg.threads) or available_cores()
-    with BatchPool(writer.decompose, workers, threads) as pool:
+    track = ClusterTrack()  # the hull's clustering through every batch, in order
+
+    def jobs(batches: Iterator[list]) -> Iterator[tuple[list, ClusterTrack]]:
+        for items in batches:
+            start = replace(track)  # keep() rebinds, never writes into, arrays
+            writer.carry_track(items, track)
+            yield items, start
+
+    with BatchPool(lambda job: writer.decompose(*job), workers, threads) as pool:
         decode = workers == 1 or not inp.footage.random_access  # else the workers read files
         batches = _batches(inp, int(cfg.batch_size), decode)
-        for items, results in pool.map(batches):
+        for (items, _), results in pool.map(jobs(batches)):
             writer.write(results)
             bar.update(len(items))
     bar.close()

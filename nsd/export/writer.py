@@ -21,13 +21,15 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 from pycocotools import mask as mask_utils
+from torch import Tensor
 
 from nsd.core.memory import trim_heap
+from nsd.cues.clustering import ClusterTrack
 from nsd.cues.occupancy import working_volume
 from nsd.export.inputs import ExportInputs, ImageEntries, to_model_size
 from nsd.export.positions import point_from_views
 from nsd.inference.association_scores import association_scores
-from nsd.inference.multiview import InferenceSettings, decompose_views
+from nsd.inference.multiview import InferenceSettings, carry_hull_track, decompose_views
 from nsd.inference.single import associate_views
 from nsd.inference.tracking import SubjectObservation, SubjectTracker
 from nsd.io.coco import CocoStreamWriter
@@ -106,22 +108,41 @@ class SubjectWriter:
             self._write_frame(res)
         self.frames_done += len(results)
 
-    @torch.no_grad()
-    def decompose(self, items: list[tuple[int, list[np.ndarray] | None]]) -> list[FrameResult]:
-        """Decompose B instants into what :meth:`write` needs; ``items`` = [(t, native views)],
-        views None: read here (footage with random access, so that workers decode too). Writes
-        no shared file (``frame_images``: each frame's own), so it may run in a worker."""
+    def _read(self, items: list[tuple[int, list[np.ndarray] | None]]
+              ) -> tuple[list[tuple[int, list[np.ndarray]]], Tensor, Tensor]:
+        """``items`` = [(t, native views or None: read here)] with every view read, and the
+        B instants at the model's size (B * V, 3, H, W) with their backgrounds."""
         sources = self.inp.footage.sources
         items = [(t, [s.read(t) for s in sources] if views is None else views)
                  for t, views in items]
+        H, W = self.inp.trained.frame_hw
+        small = np.stack([to_model_size(views, (W, H)) for _, views in items])  # B, V, H, W, 3
+        images = torch.from_numpy(small).flatten(0, 1).permute(0, 3, 1, 2).float().div_(255.0)
+        return items, images, self.inp.backgrounds.repeat(len(items), 1, 1, 1)
+
+    def carry_track(self, items: list[tuple[int, list[np.ndarray] | None]],
+                    track: ClusterTrack) -> None:
+        """Move the hull's ``track`` on through the instants ``items`` (as :meth:`decompose`
+        would, :func:`nsd.inference.multiview.carry_hull_track`): the parent does this for
+        every batch, in order, and hands each batch the track it reached before it, so the
+        hull's clustering runs through the whole export whichever worker decomposes a batch."""
+        if self.grid is None:
+            return
+        _, images, bgs = self._read(items)
+        carry_hull_track(self.model, images, bgs, len(self.names), self.grid, track)
+
+    @torch.no_grad()
+    def decompose(self, items: list[tuple[int, list[np.ndarray] | None]],
+                  track: ClusterTrack | None = None) -> list[FrameResult]:
+        """Decompose B instants into what :meth:`write` needs; ``items`` = [(t, native views)],
+        views None: read here (footage with random access, so that workers decode too); the
+        hull's clustering starts from ``track`` (:meth:`carry_track`; None: afresh). Writes
+        no shared file (``frame_images``: each frame's own), so it may run in a worker."""
+        items, images, bgs = self._read(items)
         if self.cfg.get("frame_images", False):
             for t, views in items:
                 self._frame_images(t, views)
         V = len(self.names)
-        H, W = self.inp.trained.frame_hw
-        small = np.stack([to_model_size(views, (W, H)) for _, views in items])  # B, V, H, W, 3
-        images = torch.from_numpy(small).flatten(0, 1).permute(0, 3, 1, 2).float().div_(255.0)
-        bgs = self.inp.backgrounds.repeat(len(items), 1, 1, 1)
         dec = decompose_views(
             self.model,
             images,
@@ -131,9 +152,10 @@ class SubjectWriter:
             self.grid,
             mask_threshold=float(self.cfg.threshold),
             refine=str(self.cfg.refine),
+            track=track,
         )
         out = [self._frame(dec, b * V, t, views) for b, (t, views) in enumerate(items)]
-        del dec, images, bgs, small
+        del dec, images, bgs
         trim_heap()
         return out
 

@@ -40,14 +40,20 @@ from nsd.core.device import model_device, move
 from nsd.core.errors import ConfigError
 from nsd.cues.clustering import ClusterTrack
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
-from nsd.cues.occupancy import CONTEST_BAND, VoxelGrid, multiview_proposals, voxel_grid
+from nsd.cues.occupancy import (
+    CONTEST_BAND,
+    VoxelGrid,
+    hull_individuals,
+    multiview_proposals,
+    voxel_grid,
+)
 from nsd.cues.proposals import match_proposals
 from nsd.inference.single import Decomposition, decompose
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
 
-__all__ = ["InferenceSettings", "decompose_views", "fuse_detections", "window_candidates",
-           "window_owners"]
+__all__ = ["InferenceSettings", "carry_hull_track", "decompose_views", "fuse_detections",
+           "window_candidates", "window_owners"]
 
 VIEWS = ("multiview", "single")
 DEPTHS = ("hull", "detector")
@@ -192,6 +198,32 @@ def window_candidates(candidates: Tensor, slots: Tensor, contested: Tensor) -> T
     return near | ~contested[:, None]
 
 
+def _hull_split(model: BiNVS) -> bool:
+    """The hull's ``split`` for this model: the count is known unless windows have a
+    presence (as training's ``prior_proposal.split=auto``)."""
+    return not model.detector.use_presence
+
+
+@torch.inference_mode()
+def carry_hull_track(
+    model: BiNVS,
+    images: Tensor,
+    backgrounds: Tensor,
+    num_views: int,
+    grid: VoxelGrid,
+    track: ClusterTrack,
+    evidence_threshold: float = EVIDENCE_THRESHOLD,
+    evidence_softness: float = EVIDENCE_SOFTNESS,
+) -> None:
+    """Move ``track`` on through T instants of V views (T * V, 3, H, W), as the hull of
+    :func:`decompose_views` would, without decomposing them: what a caller hands the
+    process that decomposes the next instants, so that its clustering goes on from there."""
+    ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
+    for s in range(0, images.shape[0], num_views):
+        hull_individuals(ev[s : s + num_views], grid, model.cfg.num_windows,
+                         split=_hull_split(model), track=track)
+
+
 @torch.inference_mode()
 def decompose_views(
     model: BiNVS,
@@ -235,7 +267,7 @@ def decompose_views(
         model.train(was)
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
     k = model.cfg.num_windows
-    split = not model.detector.use_presence  # as training's prior_proposal.split=auto
+    split = _hull_split(model)
     # the contested pixels are found only where they change the bonus; there only the
     # windows of the individuals near the pixel may own it
     contest = CONTEST_BAND if settings.hull_contested != settings.hull_ownership else 0.0

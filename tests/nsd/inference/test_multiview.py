@@ -5,15 +5,18 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 
 from nsd.core.errors import ConfigError
+from nsd.cues.clustering import ClusterTrack
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import CONTEST_BAND, multiview_proposals
 from nsd.inference.association_scores import association_scores
 from nsd.inference.multiview import (
     InferenceSettings,
+    carry_hull_track,
     decompose_views,
     fuse_detections,
     window_candidates,
@@ -217,3 +220,27 @@ def test_contested_pixels_keep_the_learned_owner(tiny_scene):
     assert torch.equal(dec.masks.argmax(1)[sure], win[sure])
     per_pixel = dec.masks.permute(0, 2, 3, 1)  # (V, H, W, N)
     assert torch.equal(per_pixel[unsure], alone.masks.permute(0, 2, 3, 1)[unsure])
+
+
+def test_the_hull_track_carried_alone_is_the_one_decompose_views_carries(tiny_scene):
+    """The export hands each batch the hull's track carried through the earlier instants
+    by the parent (carry_hull_track): it must be the track that decompose_views reaches
+    through the same instants, and decomposing the next instant from it must give what
+    decomposing all of them in one call gives there."""
+    data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
+    model = build_model(tiny_cfg().model)
+    V = data.num_views
+    settings = InferenceSettings.defaults(resolution=16)
+    grid = settings.grid(data.rig, data.frame_hw)
+    frames = [data.views(t) for t in (0, 1, 2)]
+    views, bgs = torch.cat([f[0] for f in frames]), torch.cat([f[1] for f in frames])
+    carried, decomposed = ClusterTrack(), ClusterTrack()
+    carry_hull_track(model, views[: 2 * V], bgs[: 2 * V], V, grid, carried)
+    decompose_views(model, views[: 2 * V], bgs[: 2 * V], V, settings, grid, track=decomposed)
+    assert carried.means is not None
+    for name in ("weights", "means", "precisions"):
+        assert np.array_equal(getattr(carried, name), getattr(decomposed, name))
+    whole = decompose_views(model, views, bgs, V, settings, grid)
+    last = decompose_views(model, views[2 * V :], bgs[2 * V :], V, settings, grid, track=carried)
+    assert torch.equal(last.slots, whole.slots[2 * V :])
+    assert torch.allclose(last.masks, whole.masks[2 * V :])
