@@ -320,15 +320,15 @@ def hull_individuals(
     min_views: int | None = None,
     split: bool = True,
     track: ClusterTrack | None = None,
-) -> tuple[Tensor, Tensor] | None:
+) -> tuple[Tensor, Tensor]:
     """The occupied voxels of one frame (evidence (V, H, W)) and their individuals: flat
     grid indices (P,) and labels (P,) in [0, k) or -1 (:func:`cluster_individuals`, which
-    moves ``track`` on by this frame); None (``track`` untouched) with fewer than
-    ``min_voxels``. What :func:`multiview_proposals` clusters, alone: a process can carry a
-    track through the frames whose proposals others compute."""
+    moves ``track`` on by this frame); every label -1 (``track`` untouched) with fewer than
+    ``min_voxels``. What :func:`multiview_proposals` clusters, alone: one process can carry
+    the track through the frames and hand the labels to those that compute the proposals."""
     idx = torch.nonzero(occupied_voxels(evidence, grid, min_views)).flatten()
     if len(idx) < min_voxels:
-        return None
+        return idx, torch.full((len(idx),), -1, dtype=torch.long)
     return idx, cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split,
                                     track=track)
 
@@ -345,6 +345,7 @@ def multiview_proposals(
     split: bool = True,
     contest: float = 0.0,
     track: ClusterTrack | None = None,
+    clustered: tuple[Tensor, Tensor] | None = None,
 ) -> MultiviewProposals:
     """Proposals for all views of one frame from its occupancy.
 
@@ -361,6 +362,7 @@ def multiview_proposals(
         contest: :func:`contested_pixels`' band in voxel sides (e.g. ``CONTEST_BAND``;
             0: not computed, ``contested`` is all False).
         track: carried from the previous frame of a sequence (:func:`cluster_individuals`).
+        clustered: this frame's :func:`hull_individuals`, computed elsewhere (None: here).
 
     Returns:
         :class:`MultiviewProposals`. Slot ``j`` is the same cluster (individual) in
@@ -375,11 +377,12 @@ def multiview_proposals(
     valid = torch.zeros(V, k, dtype=torch.bool)
     owners = torch.full((V, H, W), -1, dtype=torch.long)
     candidates = torch.zeros(V, k, H, W, dtype=torch.bool)
-    clustered = hull_individuals(evidence, grid, k, min_voxels, min_views, split, track)
     if clustered is None:
-        return MultiviewProposals(boxes, depths, valid, owners, candidates)
+        clustered = hull_individuals(evidence, grid, k, min_voxels, min_views, split, track)
     idx, labels = clustered
     keep = labels >= 0
+    if not keep.any():
+        return MultiviewProposals(boxes, depths, valid, owners, candidates)
     idx, labels = idx[keep], labels[keep]
     f = grid.uv.new_tensor([W, H]) / 2  # pixels per normalised unit
     for v in range(V):

@@ -44,7 +44,7 @@ import json
 import logging
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -180,11 +180,9 @@ def _stream(writer: SubjectWriter, inp: ExportInputs, cfg: DictConfig, workers: 
     threads = int(cfg.threads) or available_cores()
     track = ClusterTrack()  # the hull's clustering through every batch, in order
 
-    def jobs(batches: Iterator[list]) -> Iterator[tuple[list, ClusterTrack]]:
+    def jobs(batches: Iterator[list]) -> Iterator[tuple[list, list | None]]:
         for items in batches:
-            start = replace(track)  # keep() rebinds, never writes into, arrays
-            writer.carry_track(items, track)
-            yield items, start
+            yield items, writer.hull_clusters(items, track)
 
     with BatchPool(lambda job: writer.decompose(*job), workers, threads) as pool:
         decode = workers == 1 or not inp.footage.random_access  # else the workers read files

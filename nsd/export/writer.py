@@ -120,23 +120,24 @@ class SubjectWriter:
         images = torch.from_numpy(small).flatten(0, 1).permute(0, 3, 1, 2).float().div_(255.0)
         return items, images, self.inp.backgrounds.repeat(len(items), 1, 1, 1)
 
-    def carry_track(self, items: list[tuple[int, list[np.ndarray] | None]],
-                    track: ClusterTrack) -> None:
-        """Move the hull's ``track`` on through the instants ``items`` (as :meth:`decompose`
-        would, :func:`nsd.inference.multiview.carry_hull_track`): the parent does this for
-        every batch, in order, and hands each batch the track it reached before it, so the
-        hull's clustering runs through the whole export whichever worker decomposes a batch."""
+    def hull_clusters(self, items: list[tuple[int, list[np.ndarray] | None]],
+                      track: ClusterTrack) -> list[tuple[Tensor, Tensor]] | None:
+        """The hull's individuals of the instants ``items``, with its ``track`` moved on
+        through them (:func:`nsd.inference.multiview.carry_hull_track`; None without the
+        hull): the parent does this for every batch in order and hands each batch its
+        labels, so the hull's clustering runs through the whole export whichever worker
+        decomposes a batch."""
         if self.grid is None:
-            return
+            return None
         _, images, bgs = self._read(items)
-        carry_hull_track(self.model, images, bgs, len(self.names), self.grid, track)
+        return carry_hull_track(self.model, images, bgs, len(self.names), self.grid, track)
 
     @torch.no_grad()
     def decompose(self, items: list[tuple[int, list[np.ndarray] | None]],
-                  track: ClusterTrack | None = None) -> list[FrameResult]:
+                  clusters: list[tuple[Tensor, Tensor]] | None = None) -> list[FrameResult]:
         """Decompose B instants into what :meth:`write` needs; ``items`` = [(t, native views)],
         views None: read here (footage with random access, so that workers decode too); the
-        hull's clustering starts from ``track`` (:meth:`carry_track`; None: afresh). Writes
+        hull's individuals from ``clusters`` (:meth:`hull_clusters`; None: found here). Writes
         no shared file (``frame_images``: each frame's own), so it may run in a worker."""
         items, images, bgs = self._read(items)
         if self.cfg.get("frame_images", False):
@@ -152,7 +153,7 @@ class SubjectWriter:
             self.grid,
             mask_threshold=float(self.cfg.threshold),
             refine=str(self.cfg.refine),
-            track=track,
+            clusters=clusters,
         )
         out = [self._frame(dec, b * V, t, views) for b, (t, views) in enumerate(items)]
         del dec, images, bgs

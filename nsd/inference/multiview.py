@@ -214,14 +214,16 @@ def carry_hull_track(
     track: ClusterTrack,
     evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS,
-) -> None:
-    """Move ``track`` on through T instants of V views (T * V, 3, H, W), as the hull of
-    :func:`decompose_views` would, without decomposing them: what a caller hands the
-    process that decomposes the next instants, so that its clustering goes on from there."""
+) -> list[tuple[Tensor, Tensor]]:
+    """The hull's voxels and individuals of T instants of V views (T * V, 3, H, W), one
+    (indices, labels) pair per instant (:func:`nsd.cues.occupancy.hull_individuals`), with
+    ``track`` moved on through them: what :func:`decompose_views` computes first, done
+    apart, so that one process carries the track through a sequence and others decompose
+    its instants from these labels (``clusters``)."""
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
-    for s in range(0, images.shape[0], num_views):
-        hull_individuals(ev[s : s + num_views], grid, model.cfg.num_windows,
-                         split=_hull_split(model), track=track)
+    return [hull_individuals(ev[s : s + num_views], grid, model.cfg.num_windows,
+                             split=_hull_split(model), track=track)
+            for s in range(0, images.shape[0], num_views)]
 
 
 @torch.inference_mode()
@@ -235,6 +237,7 @@ def decompose_views(
     evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS,
     track: ClusterTrack | None = None,
+    clusters: list[tuple[Tensor, Tensor]] | None = None,
     **kwargs,
 ) -> Decomposition:
     """Decompose T instants of V calibrated views, (T * V, 3, H, W) instant-major.
@@ -243,7 +246,8 @@ def decompose_views(
     instant's windows are fused with the visual hull of its V views (``grid`` from
     :meth:`InferenceSettings.grid`). The hull's clustering runs through the T instants in
     order (:class:`nsd.cues.clustering.ClusterTrack`): from ``track`` where given (a caller
-    going through a sequence call by call), afresh otherwise. ``kwargs`` go to
+    going through a sequence call by call), afresh otherwise; or each instant's hull
+    individuals are given (``clusters``, from :func:`carry_hull_track`). ``kwargs`` go to
     :func:`nsd.inference.single.decompose`.
     """
     common = dict(
@@ -273,9 +277,10 @@ def decompose_views(
     contest = CONTEST_BAND if settings.hull_contested != settings.hull_ownership else 0.0
     fused, slots, owners, bonus, allowed = [], [], [], [], []
     track = ClusterTrack() if track is None else track
-    for s in range(0, images.shape[0], num_views):
+    for i, s in enumerate(range(0, images.shape[0], num_views)):
         sl = slice(s, s + num_views)
-        hull = multiview_proposals(ev[sl], grid, k, split=split, contest=contest, track=track)
+        hull = multiview_proposals(ev[sl], grid, k, split=split, contest=contest, track=track,
+                                   clustered=None if clusters is None else clusters[i])
         one = Detections(det.boxes[sl], det.depths[sl], det.presence[sl])
         f, slot = fuse_detections(
             one, hull.boxes, hull.depths, hull.valid, settings.window_blend, settings.depth

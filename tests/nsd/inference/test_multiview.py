@@ -223,10 +223,10 @@ def test_contested_pixels_keep_the_learned_owner(tiny_scene):
 
 
 def test_the_hull_track_carried_alone_is_the_one_decompose_views_carries(tiny_scene):
-    """The export hands each batch the hull's track carried through the earlier instants
-    by the parent (carry_hull_track): it must be the track that decompose_views reaches
-    through the same instants, and decomposing the next instant from it must give what
-    decomposing all of them in one call gives there."""
+    """The export's parent carries the hull's track through the instants
+    (carry_hull_track) and hands each batch its labels: the track must be the one
+    decompose_views reaches through the same instants, and decomposing from the handed
+    labels must give what decomposing all the instants in one call gives."""
     data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
     model = build_model(tiny_cfg().model)
     V = data.num_views
@@ -235,12 +235,12 @@ def test_the_hull_track_carried_alone_is_the_one_decompose_views_carries(tiny_sc
     frames = [data.views(t) for t in (0, 1, 2)]
     views, bgs = torch.cat([f[0] for f in frames]), torch.cat([f[1] for f in frames])
     carried, decomposed = ClusterTrack(), ClusterTrack()
-    carry_hull_track(model, views[: 2 * V], bgs[: 2 * V], V, grid, carried)
-    decompose_views(model, views[: 2 * V], bgs[: 2 * V], V, settings, grid, track=decomposed)
-    assert carried.means is not None
+    clusters = carry_hull_track(model, views, bgs, V, grid, carried)
+    whole = decompose_views(model, views, bgs, V, settings, grid, track=decomposed)
+    assert carried.means is not None and len(clusters) == 3
     for name in ("weights", "means", "precisions"):
         assert np.array_equal(getattr(carried, name), getattr(decomposed, name))
-    whole = decompose_views(model, views, bgs, V, settings, grid)
-    last = decompose_views(model, views[2 * V :], bgs[2 * V :], V, settings, grid, track=carried)
+    last = decompose_views(model, views[2 * V :], bgs[2 * V :], V, settings, grid,
+                           clusters=clusters[2:])
     assert torch.equal(last.slots, whole.slots[2 * V :])
     assert torch.allclose(last.masks, whole.masks[2 * V :])
