@@ -4,9 +4,9 @@ A profile of ``nsd-export`` on one core (default scene) puts ~80 % of its time i
 :func:`nsd.inference.multiview.decompose_views`, and half of that is not torch (the visual
 hull's proposals and pixel owners are NumPy on one core), so more torch threads buy little
 (1.32x on two cores). Batches are independent until tracking links them (the hull's
-clustering carries its Gaussians through the instants of one batch and starts each batch
-afresh, :class:`nsd.cues.clustering.ClusterTrack`), so each batch is
-decomposed by the next free one of ``P`` workers (forked processes with ``threads // P``
+clustering, which carries its Gaussians from instant to instant, runs in the parent and
+hands each batch its labels: :meth:`nsd.export.writer.SubjectWriter.hull_clusters`), so
+each batch is decomposed by the next free one of ``P`` workers (forked processes with ``threads // P``
 torch threads each) and the parent takes the results back in order, tracks and writes. At
 most ``2 P`` batches are in flight, so memory stays flat in the footage's length. A worker
 that dies (the out-of-memory killer) stops the export with a message, not a wait.
