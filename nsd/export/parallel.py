@@ -6,10 +6,11 @@ hull's proposals and pixel owners are NumPy on one core), so more torch threads 
 (1.32x on two cores). Batches are independent until tracking links them (the hull's
 clustering, which carries its Gaussians from instant to instant, runs in the parent and
 hands each batch its labels: :meth:`nsd.export.writer.SubjectWriter.hull_clusters`), so
-each batch is decomposed by the next free one of ``P`` workers (forked processes with ``threads // P``
-torch threads each) and the parent takes the results back in order, tracks and writes. At
-most ``2 P`` batches are in flight, so memory stays flat in the footage's length. A worker
-that dies (the out-of-memory killer) stops the export with a message, not a wait.
+each batch is decomposed by the next free one of ``P`` workers (forked processes with
+``threads // P`` torch threads each) and the parent takes the results back in order,
+tracks and writes. At most ``2 P`` batches are in flight, so memory stays flat in the
+footage's length. A worker that dies (the out-of-memory killer) stops the export with a
+message, not a wait.
 
 ``workers: auto`` (conf/export.yaml) is one process per available core up to
 :data:`MAX_AUTO_WORKERS`, and 1 (this process alone) on a GPU or where processes cannot be
