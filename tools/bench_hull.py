@@ -22,12 +22,11 @@ Rows per scene: ``before`` (the given checkout of the commit before, scored in a
 subprocess with its own code; left out without ``--before``), ``now`` (the defaults), and
 ``now`` with one rule put back (``min_views=2``, ``owner_radius=1.5``) or the seeds' spread
 at 1.5 instead of 4, and the mixture never (``MIXTURE_GAIN=inf``: the k-means alone) or
-always (``-inf``), or each frame alone (``TRACK_SLACK=-inf``: no frame's Gaussians start the
-next's). ``--rules`` keeps only the named rows. Synthetic scenes of 2-6 individuals, 4-8
-cameras, apart and in contact
-(``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128, 48^3 voxels, the shipped
-background estimate (``data.background``, as training and ``nsd-eval``); metrics as
-``nsd-eval`` (nsd/evaluation/decomposition.py).
+always (``-inf``), or each frame alone (``TRACK_SLACK=-inf``: no frame's Gaussians start
+the next's). ``--rules`` keeps only the named rows. Synthetic scenes of 2-6 individuals,
+4-8 cameras, apart and in contact (``nsd-synth``, seeds fixed), 30 held-out frames each,
+128 x 128, 48^3 voxels, the shipped background estimate (``data.background``, as training
+and ``nsd-eval``); metrics as ``nsd-eval`` (nsd/evaluation/decomposition.py).
 
 Writes ``docs/benchmarks/<--report>.{md,json}`` (default ``hull``; the mixture's rows:
 ``--report hull_mixture``; the track's: ``--report hull_track --rules now "now, k-means

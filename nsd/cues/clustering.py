@@ -293,11 +293,11 @@ def cluster_individuals(
         pairs = np.unique(np.stack([comp[kept], column[kept]], 1)[column[kept] >= 0], axis=0)
         # each individual one whole component (apart): nothing for the mixture to mend
         whole = len(pairs) == k and len(np.unique(pairs[:, 0])) == k
-        track = ClusterTrack() if track is None else track
         x = points.double().numpy()
         if gain < np.inf and (not whole or gain == -np.inf):
-            labels = _mixture_relabelled(x, xy.double().numpy(), labels, k, cell**2, gain, track)
-        else:
+            labels = _mixture_relabelled(x, xy.double().numpy(), labels, k, cell**2, gain,
+                                         ClusterTrack() if track is None else track)
+        elif track is not None:  # nothing fitted: the partition's Gaussians, for the next
             _hand_partition(track, x, labels, k, cell**2)
         return torch.as_tensor(labels)
     point_comp = torch.as_tensor(comp[ij[:, 0].numpy(), ij[:, 1].numpy()]) - 1  # (P,)
