@@ -4,8 +4,18 @@ from __future__ import annotations
 
 import pytest
 import torch
+import torch.nn.functional as F
 
-from nsd.model.focal_st import box_to_pixels, crop, focal_bump, focal_bump_at, paste
+from nsd.model.focal_st import (
+    axis_grid,
+    box_to_pixels,
+    box_to_theta,
+    crop,
+    focal_bump,
+    focal_bump_at,
+    inverse_theta,
+    paste,
+)
 from tests.base import DTYPES, BaseTester
 
 
@@ -96,3 +106,34 @@ class TestCropPaste(BaseTester):
     def test_box_to_pixels(self):
         px = box_to_pixels(torch.tensor([[0.5, 0.25, 0.0, -0.5]]), (40, 80))
         self.assert_close(px, torch.tensor([[20.0, 5.0, 40.0, 10.0]]))
+
+
+class TestAxisGrid(BaseTester):
+    """The separable grid against torch's affine_grid (its batched-product reference)."""
+
+    @staticmethod
+    def _boxes(m: int) -> torch.Tensor:
+        g = torch.Generator().manual_seed(3)
+        s = 0.2 + torch.rand(m, 2, generator=g, dtype=torch.float64)
+        t = 2 * torch.rand(m, 2, generator=g, dtype=torch.float64) - 1
+        return torch.cat([s, t], 1)  # (m, 4) = (sx, sy, tx, ty)
+
+    @pytest.mark.parametrize("size", [(5, 7), (32, 32), (1, 3)])
+    def test_equals_affine_grid(self, size):
+        boxes = self._boxes(4)
+        for theta in (box_to_theta(boxes), inverse_theta(boxes)):  # crop and paste-back
+            ref = F.affine_grid(theta, [4, 1, *size], align_corners=False)
+            self.assert_close(axis_grid(theta, size), ref, rtol=0, atol=1e-13)
+
+    def test_gradient_equals_affine_grids(self):
+        theta = box_to_theta(self._boxes(3)).requires_grad_()
+        w = torch.randn(3, 4, 6, 2, dtype=torch.float64)
+        (axis_grid(theta, (4, 6)) * w).sum().backward()
+        ours, theta.grad = theta.grad, None
+        (F.affine_grid(theta, [3, 1, 4, 6], align_corners=False) * w).sum().backward()
+        keep = torch.tensor([[1.0, 0, 1], [0, 1, 1]], dtype=torch.float64)  # the read terms
+        self.assert_close(ours, theta.grad * keep, rtol=0, atol=1e-12)
+
+    def test_gradcheck(self):
+        theta = box_to_theta(self._boxes(2)).requires_grad_()
+        assert torch.autograd.gradcheck(lambda t: axis_grid(t, (3, 5)), (theta,))
