@@ -20,17 +20,20 @@ voxels better by ``MIXTURE_GAIN`` nats per voxel (bodies of unequal size).
 
 Rows per scene: ``before`` (the given checkout of the commit before, scored in a
 subprocess with its own code; left out without ``--before``), ``now`` (the defaults), and
-``now`` with one rule put back (``min_views=2``, ``owner_radius=1.5``) or the seeds' spread
-at 1.5 instead of 4, and the mixture never (``MIXTURE_GAIN=inf``: the k-means alone) or
-always (``-inf``), or each frame alone (``TRACK_SLACK=-inf``: no frame's Gaussians start
-the next's). ``--rules`` keeps only the named rows. Synthetic scenes of 2-6 individuals,
-4-8 cameras, apart and in contact (``nsd-synth``, seeds fixed), 30 held-out frames each,
-128 x 128, 48^3 voxels, the shipped background estimate (``data.background``, as training
-and ``nsd-eval``); metrics as ``nsd-eval`` (nsd/evaluation/decomposition.py).
+``now`` with one rule put back (``min_views=2``, ``owner_radius=1.5``) or the seeds'
+spread at 1.5 instead of 4, and the mixture never (``MIXTURE_GAIN=inf``: the k-means
+alone) or always (``-inf``), or each frame alone (``TRACK_SLACK=-inf``: no frame's
+Gaussians start the next's), or without the gate per scene (``SCENE_GAIN=-inf``: each
+frame's mixture used where it gains ``MIXTURE_GAIN``, whatever the scene's median gain).
+``--rules`` keeps only the named rows. Synthetic scenes of 2-6 individuals, 4-8 cameras,
+apart and in contact (``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128,
+48^3 voxels, the shipped background estimate (``data.background``, as training and
+``nsd-eval``); metrics as ``nsd-eval`` (nsd/evaluation/decomposition.py).
 
 Writes ``docs/benchmarks/<--report>.{md,json}`` (default ``hull``; the mixture's rows:
 ``--report hull_mixture``; the track's: ``--report hull_track --rules now "now, k-means
-only (no mixture)" "now, each frame alone (no track)"``).
+only (no mixture)" "now, each frame alone (no track)"``; the gate's: ``--report hull_gate
+--rules now "now, k-means only (no mixture)" "now, no gate per scene"``).
 """
 
 from __future__ import annotations
@@ -144,7 +147,7 @@ def main() -> None:
     torch.set_num_threads(2)
     root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
     home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering, "MIXTURE_GAIN": clustering,
-            "TRACK_SLACK": clustering}
+            "TRACK_SLACK": clustering, "SCENE_GAIN": clustering}
     defaults = {key: getattr(module, key) for key, module in home.items()}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
     rows = []
@@ -171,7 +174,8 @@ def main() -> None:
                     ("now, seeds 1.5 radii apart", "auto", {"SEED_SPREAD": 1.5}),
                     ("now, k-means only (no mixture)", "auto", {"MIXTURE_GAIN": np.inf}),
                     ("now, the mixture always", "auto", {"MIXTURE_GAIN": -np.inf}),
-                    ("now, each frame alone (no track)", "auto", {"TRACK_SLACK": -np.inf})]
+                    ("now, each frame alone (no track)", "auto", {"TRACK_SLACK": -np.inf}),
+                    ("now, no gate per scene", "auto", {"SCENE_GAIN": -np.inf})]
         for rule, views, consts in variants:
             if args.rules is not None and rule not in args.rules:
                 continue
@@ -197,9 +201,11 @@ def main() -> None:
                "apart, replaced by a 3D Gaussian mixture of the voxels where it explains "
                f"them better by {clustering.MIXTURE_GAIN} nats per voxel, the previous "
                "scored frame's Gaussians one more start of it, kept unless another is "
-               f"better by {clustering.TRACK_SLACK} "
+               f"better by {clustering.TRACK_SLACK}, used while the median gain of the "
+               f"scored frames so far reaches {clustering.SCENE_GAIN} "
                "(nsd/cues/occupancy.py, nsd/cues/clustering.py); the other rows put one "
-               "rule back, take the mixture never or always, or each frame alone. Touching "
+               "rule back, take the mixture never or always, each frame alone, or no gate "
+               "per scene. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "

@@ -11,7 +11,7 @@ mixture (bodies move little between frames).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -22,7 +22,7 @@ from torch import Tensor
 
 from nsd.ops.vectors import up_frame
 
-__all__ = ["ClusterTrack", "cluster_individuals"]
+__all__ = ["ClusterTrack", "cluster_individuals", "scene_wants_mixture"]
 
 # cluster_individuals with the count known: seeds of the k-means at least SEED_SPREAD typical
 # radii apart; columns beyond GHOST_SPREAD radii of their cluster dropped. With 1.5 radii,
@@ -49,6 +49,13 @@ MIXTURE_ITERATIONS = 100
 # restarts find a body's shape afresh each frame, and where two partitions are nearly as
 # likely they jump between them (docs/nsd.md, "Through time").
 TRACK_SLACK = 0.05
+# and per scene: the mixture is tried only where the median of its gains over SCENE_SAMPLE
+# instants spread over the scene reaches SCENE_GAIN nats per voxel. A scene's median gain is
+# -0.01-0.01 where bipeds touch and 0.06-0.12 with quadrupeds, while single instants of
+# touching bipeds pass MIXTURE_GAIN and their mixture labels are worse (docs/nsd.md, "A gate
+# per scene"). A running median instead lagged where a scene's first instants gain little.
+SCENE_GAIN = 0.03
+SCENE_SAMPLE = 12
 
 
 @dataclass
@@ -60,16 +67,35 @@ class ClusterTrack:
             (or after one that could not fit k Gaussians).
         means: (k, 3).
         precisions: (k, 3, 3) inverse covariances.
+        mixture: whether the 3D mixture may replace the k-means in this scene
+            (:func:`scene_wants_mixture`); False: the k-means alone, nothing fitted.
+        gains: the mixture's gain over the k-means partition (nats per voxel) at each
+            frame so far where it was fitted.
     """
 
     weights: np.ndarray | None = None
     means: np.ndarray | None = None
     precisions: np.ndarray | None = None
+    mixture: bool = True
+    gains: list[float] = field(default_factory=list)
 
     def keep(self, weights: np.ndarray | None, means: np.ndarray | None = None,
              precisions: np.ndarray | None = None) -> None:
         """Hand these Gaussians (None: none) to the next frame."""
         self.weights, self.means, self.precisions = weights, means, precisions
+
+
+def scene_wants_mixture(gains: list[float]) -> bool:
+    """Whether a scene's hull should try the 3D mixture, from its gains (nats per voxel)
+    at instants spread over the scene (a ``ClusterTrack``'s ``gains``): their median
+    reaches ``SCENE_GAIN``, or there are none (every instant's bodies apart: nothing to
+    judge, each instant decides).
+
+    Example:
+        >>> scene_wants_mixture([0.0, 0.12, -0.01]), scene_wants_mixture([0.1, 0.02, 0.08])
+        (False, True)
+    """
+    return not gains or float(np.median(gains)) >= SCENE_GAIN
 
 
 def _stable_rank(centres: np.ndarray) -> np.ndarray:
@@ -176,8 +202,9 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
 
     The best of the mixtures started from the partition, from ``MIXTURE_RESTARTS``
     k-means++ seeds and from the ``track``'s Gaussians (kept unless another is better by
-    more than ``TRACK_SLACK``) must gain ``gain`` nats per point. The ``track`` is handed
-    the kept mixture, or the partition's Gaussians where the mixture is not kept.
+    more than ``TRACK_SLACK``) must gain ``gain`` nats per point; the gain is added to the
+    ``track``'s. The ``track`` is handed the kept mixture, or the partition's Gaussians
+    where the mixture is not kept.
     """
     # lazy: scikit-learn (1.9 s to import) only where the hull's k-means may have cut a body
     from sklearn.mixture import GaussianMixture
@@ -202,7 +229,8 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
             scores.append(fits[-1].score(x))
             if scores[-1] >= scores[best] - TRACK_SLACK:
                 best = len(fits) - 1
-        if scores[best] - base < gain:
+        track.gains.append(float(scores[best] - base))
+        if track.gains[-1] < gain:
             _hand_partition(track, x, labels, k, reg)
             return None
         kept = fits[best]
@@ -265,7 +293,9 @@ def cluster_individuals(
     the midpoint to an upright neighbour. A ``track`` carried through a sequence of frames
     starts one more mixture from the previous frame's Gaussians and prefers it unless
     another start is better by more than ``TRACK_SLACK``; it is handed this frame's
-    Gaussians (the kept mixture's, or the k-means partition's).
+    Gaussians (the kept mixture's, or the k-means partition's) and its gain. A track whose
+    ``mixture`` is False (a scene of bodies of one size, :func:`scene_wants_mixture`)
+    keeps the k-means and fits nothing, unless ``mixture_gain`` is ``-inf``.
 
     Without (``k`` is only an upper bound), the ``k`` heaviest components are the
     individuals, nothing is split and components scoring below ``ghost_ratio`` times the
@@ -294,7 +324,8 @@ def cluster_individuals(
         # each individual one whole component (apart): nothing for the mixture to mend
         whole = len(pairs) == k and len(np.unique(pairs[:, 0])) == k
         x = points.double().numpy()
-        if gain < np.inf and (not whole or gain == -np.inf):
+        tried = track is None or track.mixture or gain == -np.inf
+        if gain < np.inf and (not whole or gain == -np.inf) and tried:
             labels = _mixture_relabelled(x, xy.double().numpy(), labels, k, cell**2, gain,
                                          ClusterTrack() if track is None else track)
         elif track is not None:  # nothing fitted: the partition's Gaussians, for the next

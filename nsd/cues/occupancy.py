@@ -37,6 +37,7 @@ the carving is one gather per view over the grid.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -47,7 +48,12 @@ from torch import Tensor
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.projection import project_points
 from nsd.core.errors import ConfigError
-from nsd.cues.clustering import ClusterTrack, cluster_individuals
+from nsd.cues.clustering import (
+    SCENE_SAMPLE,
+    ClusterTrack,
+    cluster_individuals,
+    scene_wants_mixture,
+)
 
 __all__ = [
     "CONTEST_BAND",
@@ -60,6 +66,7 @@ __all__ = [
     "multiview_proposals",
     "occupied_voxels",
     "owned_pixels",
+    "scene_track",
     "voxel_grid",
     "working_volume",
 ]
@@ -331,6 +338,29 @@ def hull_individuals(
         return idx, torch.full((len(idx),), -1, dtype=torch.long)
     return idx, cluster_individuals(grid.centres[idx], grid.up, grid.size, k, split=split,
                                     track=track)
+
+
+def scene_track(
+    evidence: Callable[[int], Tensor],
+    instants: Sequence[int],
+    grid: VoxelGrid,
+    k: int,
+    split: bool = True,
+    min_views: int | None = None,
+) -> ClusterTrack:
+    """A :class:`ClusterTrack` to carry through a scene's ``instants``, with its ``mixture``
+    decided ahead (:func:`nsd.cues.clustering.scene_wants_mixture`) from the hulls of
+    ``SCENE_SAMPLE`` of them spread evenly, ``evidence(t)`` (V, H, W) each: the
+    instants' own labels then depend on the scene, not on the order they come in.
+    Without ``split`` (``k`` an upper bound) no mixture is fitted and nothing is read."""
+    track = ClusterTrack()
+    if not split or not len(instants):
+        return track
+    spread = np.unique(np.linspace(0, len(instants) - 1, SCENE_SAMPLE).round().astype(int))
+    for i in spread:
+        hull_individuals(evidence(int(instants[i])), grid, k, min_views=min_views,
+                         track=track)
+    return ClusterTrack(mixture=scene_wants_mixture(track.gains))
 
 
 def multiview_proposals(

@@ -51,7 +51,7 @@ from nsd.core.device import call_on_device
 from nsd.cues.clustering import ClusterTrack
 from nsd.evaluation.contact import MIN_OVERLAP, PARTS, touches
 from nsd.inference.association_scores import association_scores
-from nsd.inference.multiview import InferenceSettings, decompose_views
+from nsd.inference.multiview import InferenceSettings, decompose_views, model_scene_track
 from nsd.io.coco_results import decomposition_to_coco
 from nsd.ops.boxes import box_iou_xywh, mask_boxes_xywh, mask_iou, match
 from nsd.ops.ssim import ssim_map
@@ -249,7 +249,8 @@ def evaluate_model(
     )
     psnr, ssim = [], []
     tally = Tally()
-    track = ClusterTrack()  # the hull's clustering through the frames in order
+    # the hull's clustering through the frames in order, the mixture decided for the scene
+    track = ClusterTrack() if grid is None else model_scene_track(model, data.views, frames, grid)
     try:
         for t in frames:
             views, bgs = data.views(int(t))

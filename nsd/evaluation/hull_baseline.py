@@ -20,7 +20,7 @@ from torch import Tensor
 
 from nsd.cues.clustering import ClusterTrack
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
-from nsd.cues.occupancy import VoxelGrid, multiview_proposals
+from nsd.cues.occupancy import VoxelGrid, multiview_proposals, scene_track
 from nsd.evaluation.contact import touches
 from nsd.evaluation.decomposition import (
     Tally,
@@ -84,7 +84,9 @@ def evaluate_hull(
     novel-view ones) for the hull-only decomposition of ``frames`` of ``data``."""
     tally = Tally()
     V = data.num_views
-    track = ClusterTrack()  # the frames in order, as decompose_views' instants
+    # the frames in order, as decompose_views' instants; the mixture decided for the scene
+    track = scene_track(lambda t: foreground_evidence(*data.views(t), evidence_threshold,
+                                                      evidence_softness), frames, grid, k, split)
     for t in frames:
         views, bgs = data.views(int(t))
         dec = hull_decomposition(views, bgs, grid, k, split, evidence_threshold,

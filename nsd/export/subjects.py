@@ -54,7 +54,6 @@ from tqdm import tqdm
 
 from nsd.core.atomic import atomic_directory, atomic_write_text
 from nsd.core.threads import available_cores, set_threads
-from nsd.cues.clustering import ClusterTrack
 from nsd.export.config import check_export_config
 from nsd.export.inputs import ExportInputs, prepare_inputs
 from nsd.export.manifest import Timing, build_manifest, share_folder, toolkit_version
@@ -178,7 +177,7 @@ def _stream(writer: SubjectWriter, inp: ExportInputs, cfg: DictConfig, workers: 
         disable=not cfg.progress,
     )
     threads = int(cfg.threads) or available_cores()
-    track = ClusterTrack()  # the hull's clustering through every batch, in order
+    track = writer.hull_track(inp.frames)  # the hull's clustering through every batch, in order
 
     def jobs(batches: Iterator[list]) -> Iterator[tuple[list, list | None]]:
         for items in batches:

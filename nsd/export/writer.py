@@ -11,6 +11,7 @@ table row (:data:`COLUMN_TYPES`; ``datasets/export.md`` lists every column).
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -29,7 +30,12 @@ from nsd.cues.occupancy import working_volume
 from nsd.export.inputs import ExportInputs, ImageEntries, to_model_size
 from nsd.export.positions import point_from_views
 from nsd.inference.association_scores import association_scores
-from nsd.inference.multiview import InferenceSettings, carry_hull_track, decompose_views
+from nsd.inference.multiview import (
+    InferenceSettings,
+    carry_hull_track,
+    decompose_views,
+    model_scene_track,
+)
 from nsd.inference.single import associate_views
 from nsd.inference.tracking import SubjectObservation, SubjectTracker
 from nsd.io.coco import CocoStreamWriter
@@ -119,6 +125,16 @@ class SubjectWriter:
         small = np.stack([to_model_size(views, (W, H)) for _, views in items])  # B, V, H, W, 3
         images = torch.from_numpy(small).flatten(0, 1).permute(0, 3, 1, 2).float().div_(255.0)
         return items, images, self.inp.backgrounds.repeat(len(items), 1, 1, 1)
+
+    def hull_track(self, frames: Sequence[int]) -> ClusterTrack:
+        """The hull's track to carry through the exported ``frames`` in order
+        (:func:`nsd.inference.multiview.model_scene_track`: a dozen of them read first to
+        decide the mixture for the scene; a video's are sought, seeking need not be
+        frame-exact for a statistic)."""
+        if self.grid is None:
+            return ClusterTrack()
+        return model_scene_track(self.model, lambda t: self._read([(t, None)])[1:], frames,
+                                 self.grid)
 
     def hull_clusters(self, items: list[tuple[int, list[np.ndarray] | None]],
                       track: ClusterTrack) -> list[tuple[Tensor, Tensor]] | None:

@@ -26,7 +26,7 @@ latent stay the learned model's. ``views="single"`` is NSD's own single-image in
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -45,6 +45,7 @@ from nsd.cues.occupancy import (
     VoxelGrid,
     hull_individuals,
     multiview_proposals,
+    scene_track,
     voxel_grid,
 )
 from nsd.cues.proposals import match_proposals
@@ -202,6 +203,21 @@ def _hull_split(model: BiNVS) -> bool:
     """The hull's ``split`` for this model: the count is known unless windows have a
     presence (as training's ``prior_proposal.split=auto``)."""
     return not model.detector.use_presence
+
+
+def model_scene_track(
+    model: BiNVS,
+    views: Callable[[int], tuple[Tensor, Tensor]],
+    instants: Sequence[int],
+    grid: VoxelGrid,
+) -> ClusterTrack:
+    """The hull's :class:`ClusterTrack` for ``model``'s windows through a scene's
+    ``instants`` (:func:`nsd.cues.occupancy.scene_track`: the mixture tried or not for the
+    whole scene); ``views(t)`` gives an instant's images and backgrounds (V, 3, H, W)."""
+    def evidence(t: int) -> Tensor:
+        return foreground_evidence(*views(t), EVIDENCE_THRESHOLD, EVIDENCE_SOFTNESS)
+
+    return scene_track(evidence, instants, grid, model.cfg.num_windows, split=_hull_split(model))
 
 
 @torch.inference_mode()

@@ -22,9 +22,8 @@ from nsd.cameras.calibration import CameraRig
 from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.core.memory import trim_heap
-from nsd.cues.clustering import ClusterTrack
 from nsd.cues.evidence import foreground_evidence
-from nsd.cues.occupancy import multiview_proposals, voxel_grid
+from nsd.cues.occupancy import multiview_proposals, scene_track, voxel_grid
 from nsd.cues.proposals import evidence_proposals
 from nsd.io.footage import MultiViewFootage
 from nsd.io.frame_store import FrameStore, scratch_array
@@ -161,7 +160,11 @@ class SceneData:
         pixel_owners = torch.from_numpy(
             scratch_array(self.frames.path.parent, (T, V, H, W), np.int8)
         ) if owners else None
-        track = ClusterTrack()  # the frames in order: each hull's Gaussians start the next's
+        # the frames in order: each hull's Gaussians start the next's; the mixture tried or
+        # not for the whole scene
+        track = scene_track(lambda t: foreground_evidence(
+            to_float(self.frames[t]), self.backgrounds, threshold, softness), range(T), grid, k,
+            split)
         for t in range(T):
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness

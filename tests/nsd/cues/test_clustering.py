@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from nsd.cues import clustering, occupancy
 from nsd.cues.clustering import (
     ClusterTrack,
     _mixture_labels,
@@ -162,3 +163,48 @@ def test_a_track_is_handed_the_partition_where_the_k_means_is_kept():
         cov = np.cov(x[body].T) + cell**2 * np.eye(3)
         assert np.allclose(track.precisions[order[j]] @ cov, np.eye(3), atol=1e-8)
     assert np.allclose(np.sort(track.weights), [0.5, 0.5])
+
+
+def test_a_scene_without_the_mixture_keeps_the_k_means_and_fits_nothing():
+    """The long body beside the upright one: a track of a scene whose mixture gains little
+    (``mixture=False``) keeps the k-means labels, records no gain and is handed the
+    k-means' Gaussians; a track of a scene that wants it gets the mixture's labels and this
+    frame's gain; forced (``-inf``), the mixture is fitted whatever the scene."""
+    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
+    long_body = _ellipse_columns((0.0, 0.0), (0.8, 0.25), 6, cell)
+    pts = torch.cat([long_body, _columns([(1.3, 0.0)], 0.25, 16, cell)])
+    n = len(long_body)
+    kmeans = cluster_individuals(pts, up, cell, 2, mixture_gain=np.inf)
+    quiet = ClusterTrack(mixture=False)
+    assert torch.equal(cluster_individuals(pts, up, cell, 2, track=quiet), kmeans)
+    assert quiet.gains == []
+    parts = _partition_gaussians(pts.double().numpy(), kmeans.numpy(), 2, cell**2)[1]
+    assert np.allclose(np.sort(quiet.means[:, 0]), np.sort(parts[:, 0]))
+    for track, mixture_gain in ((ClusterTrack(), None),
+                                (ClusterTrack(mixture=False), -np.inf)):
+        labels = cluster_individuals(pts, up, cell, 2, mixture_gain=mixture_gain, track=track)
+        assert set(labels[:n].tolist()) == {0} and set(labels[n:].tolist()) == {1}
+        assert len(track.gains) == 1 and track.gains[0] > clustering.SCENE_GAIN
+
+
+def test_scene_track_decides_from_instants_spread_over_the_scene(monkeypatch):
+    """``scene_track`` reads ``SCENE_SAMPLE`` instants spread evenly from first to last and
+    turns the mixture off where their median gain is below ``SCENE_GAIN``; without
+    ``split`` it reads nothing."""
+    read, gains = [], iter([0.0, 0.2, -0.01, 0.01] * 10)
+
+    def hull(ev, grid, k, min_views=None, track=None):
+        read.append(int(ev))
+        track.gains.append(next(gains))
+        return None, None
+
+    monkeypatch.setattr(occupancy, "hull_individuals", hull)
+    instants = list(range(100, 400, 3))  # 100 instants
+    track = occupancy.scene_track(torch.tensor, instants, None, 2)
+    assert len(read) == clustering.SCENE_SAMPLE and read[0] == 100 and read[-1] == 397
+    assert np.all(np.diff(read) > 0) and not track.mixture and track.gains == []
+    gains = iter([0.05, 0.2, 0.01] * 10)
+    assert occupancy.scene_track(torch.tensor, instants, None, 2).mixture
+    read.clear()
+    assert occupancy.scene_track(torch.tensor, instants, None, 2, split=False).mixture
+    assert read == []
