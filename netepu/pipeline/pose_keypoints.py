@@ -36,7 +36,7 @@ from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.trainer import load_checkpoint
 from nsd.cues.triangulation import nearest_point_to_rays
 from nsd.export.config import load_export_config
-from nsd.inference.multiview import InferenceSettings, decompose_views
+from nsd.inference.multiview import InferenceSettings, decompose_views, model_scene_track
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
 from nsd.io.scene_data import SceneData
 from nsd.model.build import build_model
@@ -124,12 +124,17 @@ def regress_export(
     )
     fitted = SubjectKeypoints()
     dec, dec_frame = None, None
+    # the hull's clustering carried through the decomposed frames, the mixture decided for
+    # the scene as the export decided it
+    frames = sorted({t for (t, _), anns in groups if len(anns) >= min_views})
+    track = model_scene_track(model, data.views, frames, grid) if grid is not None else None
     for (t, sid), anns in groups:  # in frame order: each frame is decomposed once
         if len(anns) < min_views:
             continue
         if dec_frame != t:
             views, bgs = data.views(t)
-            dec = decompose_views(model, views, bgs, len(rig), settings, grid, **decompose_kw)
+            dec = decompose_views(model, views, bgs, len(rig), settings, grid, track=track,
+                                  **decompose_kw)
             dec_frame = t
         kp, spread = _subject_keypoints(pose, dec, anns, images, rig, native)
         fitted.add(t, sid, anns, kp, spread)

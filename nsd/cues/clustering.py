@@ -6,7 +6,8 @@ where bodies of unequal size touch (a long, low quadruped beside an upright bipe
 Gaussian mixture of the voxels in 3D replaces it. As an upper bound, the heaviest connected
 components are the individuals (:func:`cluster_individuals`). Through a sequence, a
 :class:`ClusterTrack` hands each frame's Gaussians to the next as one more start of its
-mixture (bodies move little between frames).
+mixture (bodies move little between frames), and says whether the scene wants the mixture
+at all (:func:`scene_wants_mixture`: bodies of one size keep the k-means).
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ from torch import Tensor, nn
 from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.evaluation.pose import mpjpe
-from nsd.inference.multiview import InferenceSettings, decompose_views
+from nsd.inference.multiview import InferenceSettings, decompose_views, model_scene_track
 from nsd.model.build import build_model
 from nsd.model.pose_regressor import PoseRegressor
 
@@ -94,9 +94,11 @@ class PoseTask:
         rig = self.data.rig
         settings = InferenceSettings.from_config(self.cfg.get("inference")).for_views(len(rig))
         grid = settings.grid(rig, self.data.frame_hw) if settings.multiview else None
+        track = (None if grid is None else  # the hull's clustering through the frames
+                 model_scene_track(self.model, self.data.views, frames, grid))
         for t in frames:
             views, bgs = self.data.views(int(t))
-            dec = decompose_views(self.model, views, bgs, len(rig), settings, grid)
+            dec = decompose_views(self.model, views, bgs, len(rig), settings, grid, track=track)
             kp = self.gt.keypoints3d(self.data.frame_index(t))  # identity -> (K, 3) world
             for v, cam in enumerate(rig):
                 act = np.flatnonzero(dec.active[v].numpy())
