@@ -150,11 +150,14 @@ class SubjectWriter:
 
     @torch.no_grad()
     def decompose(self, items: list[tuple[int, list[np.ndarray] | None]],
-                  clusters: list[tuple[Tensor, Tensor]] | None = None) -> list[FrameResult]:
+                  clusters: list[tuple[Tensor, Tensor]] | None = None,
+                  mixture: bool = True) -> list[FrameResult]:
         """Decompose B instants into what :meth:`write` needs; ``items`` = [(t, native views)],
         views None: read here (footage with random access, so that workers decode too); the
-        hull's individuals from ``clusters`` (:meth:`hull_clusters`; None: found here). Writes
-        no shared file (``frame_images``: each frame's own), so it may run in a worker."""
+        hull's individuals from ``clusters`` (:meth:`hull_clusters`; None: found here, with
+        the 3D mixture tried where ``mixture``, the scene's :meth:`hull_track` decision).
+        Writes no shared file (``frame_images``: each frame's own), so it may run in a
+        worker."""
         items, images, bgs = self._read(items)
         if self.cfg.get("frame_images", False):
             for t, views in items:
@@ -170,6 +173,7 @@ class SubjectWriter:
             mask_threshold=float(self.cfg.threshold),
             refine=str(self.cfg.refine),
             clusters=clusters,
+            track=ClusterTrack(mixture=mixture),
         )
         out = [self._frame(dec, b * V, t, views) for b, (t, views) in enumerate(items)]
         del dec, images, bgs

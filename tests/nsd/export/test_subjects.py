@@ -465,7 +465,7 @@ def test_a_workers_error_reaches_the_caller_and_leaves_nothing(trained, tmp_path
     ckpt, scene = trained
     orig = SubjectWriter.decompose
 
-    def decompose(self, items, clusters=None):
+    def decompose(self, items, clusters=None, mixture=True):
         if items[0][0] == 3:
             raise FootageError("camera 'cam1' (fake, frame 3): frame cannot be decoded")
         return orig(self, items, clusters)
@@ -502,7 +502,7 @@ def test_a_worker_killed_stops_the_export_with_a_message(trained, tmp_path, monk
     ckpt, scene = trained
     orig = SubjectWriter.decompose
 
-    def decompose(self, items, clusters=None):
+    def decompose(self, items, clusters=None, mixture=True):
         if items[0][0] == 3:
             os.kill(os.getpid(), signal.SIGKILL)
         return orig(self, items, clusters)
