@@ -350,9 +350,10 @@ def scene_track(
 ) -> ClusterTrack:
     """A :class:`ClusterTrack` to carry through a scene's ``instants``, with its ``mixture``
     decided ahead (:func:`nsd.cues.clustering.scene_wants_mixture`) from the hulls of
-    ``SCENE_SAMPLE`` of them spread evenly, ``evidence(t)`` (V, H, W) each: the
-    instants' own labels then depend on the scene, not on the order they come in.
-    Without ``split`` (``k`` an upper bound) no mixture is fitted and nothing is read."""
+    ``SCENE_SAMPLE`` of them spread evenly, ``evidence(t)`` (V, H, W) each: one decision
+    for the scene, taken before its first instant (a running one lags where the first
+    instants gain little). Without ``split`` (``k`` an upper bound) no mixture is fitted
+    and nothing is read."""
     track = ClusterTrack()
     if not split or not len(instants):
         return track
