@@ -178,13 +178,13 @@ def _stream(writer: SubjectWriter, inp: ExportInputs, cfg: DictConfig, workers: 
     )
     threads = int(cfg.threads) or available_cores()
     track = writer.hull_track(inp.frames)  # the hull's clustering through every batch, in order
-    # the k-means alone (a scene without the mixture) needs no other instant: each batch's
-    # worker clusters its own, and the parent only writes
-    ordered = track.mixture
 
     def jobs(batches: Iterator[list]) -> Iterator[tuple[list, list | None, bool]]:
         for items in batches:
-            yield items, writer.hull_clusters(items, track) if ordered else None, track.mixture
+            # the k-means alone (a scene without the mixture) needs no other instant: each
+            # batch's worker clusters its own, and the parent only writes
+            clusters = writer.hull_clusters(items, track) if track.mixture else None
+            yield items, clusters, track.mixture
 
     with BatchPool(lambda job: writer.decompose(*job), workers, threads) as pool:
         decode = workers == 1 or not inp.footage.random_access  # else the workers read files
