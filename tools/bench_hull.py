@@ -16,15 +16,16 @@ changed together:
   the ``k`` heaviest components, the largest bisected while fewer).
 
 Later, the k-means gained a 3D Gaussian mixture that replaces it where it explains the
-voxels better by ``MIXTURE_GAIN`` nats per voxel (bodies of unequal size).
+voxels better by ``inference.mixture_gain`` nats per voxel (bodies of unequal size).
 
 Rows per scene: ``before`` (the given checkout of the commit before, scored in a
 subprocess with its own code; left out without ``--before``), ``now`` (the defaults), and
 ``now`` with one rule put back (``min_views=2``, ``owner_radius=1.5``) or the seeds'
-spread at 1.5 instead of 4, and the mixture never (``MIXTURE_GAIN=inf``: the k-means
-alone) or always (``-inf``), or each frame alone (``TRACK_SLACK=-inf``: no frame's
-Gaussians start the next's), or without the gate per scene (``SCENE_GAIN=-inf``: each
-frame's mixture used where it gains ``MIXTURE_GAIN``, whatever the scene's median gain).
+spread at 1.5 instead of 4, and the mixture never (``mixture_gain=inf``: the k-means
+alone) or always (``-inf``), or each frame alone (``mixture_slack=-inf``: no frame's
+Gaussians start the next's), or without the gate per scene (``mixture_scene_gain=-inf``:
+each frame's mixture used where it gains ``mixture_gain``, whatever the scene's median
+gain); these are the ``inference.mixture_*`` keys (:class:`nsd.cues.clustering.MixtureRules`).
 ``--rules`` keeps only the named rows. Synthetic scenes of 2-6 individuals, 4-8 cameras,
 apart and in contact (``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128,
 48^3 voxels, the shipped background estimate (``data.background``, as training and
@@ -146,8 +147,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(2)
     root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
-    home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering, "MIXTURE_GAIN": clustering,
-            "TRACK_SLACK": clustering, "SCENE_GAIN": clustering}
+    home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering}
+    shipped = clustering.MixtureRules.defaults()
     defaults = {key: getattr(module, key) for key, module in home.items()}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
     rows = []
@@ -172,18 +173,20 @@ def main() -> None:
         variants = [("now", "auto", {}), ("now, min_views=2", 2, {}),
                     ("now, owner_radius=1.5", "auto", {"OWNER_RADIUS": 1.5}),
                     ("now, seeds 1.5 radii apart", "auto", {"SEED_SPREAD": 1.5}),
-                    ("now, k-means only (no mixture)", "auto", {"MIXTURE_GAIN": np.inf}),
-                    ("now, the mixture always", "auto", {"MIXTURE_GAIN": -np.inf}),
-                    ("now, each frame alone (no track)", "auto", {"TRACK_SLACK": -np.inf}),
-                    ("now, no gate per scene", "auto", {"SCENE_GAIN": -np.inf})]
-        for rule, views, consts in variants:
+                    ("now, k-means only (no mixture)", "auto", {"mixture_gain": np.inf}),
+                    ("now, the mixture always", "auto", {"mixture_gain": -np.inf}),
+                    ("now, each frame alone (no track)", "auto", {"mixture_slack": -np.inf}),
+                    ("now, no gate per scene", "auto", {"mixture_scene_gain": -np.inf})]
+        for rule, views, changed in variants:
             if args.rules is not None and rule not in args.rules:
                 continue
-            for key, value in {**defaults, **consts}.items():
-                setattr(home[key], key, value)  # read by the hull at each call
+            for key, value in defaults.items():  # module constants, read by the hull at each call
+                setattr(home[key], key, changed.get(key, value))
+            rules = clustering.MixtureRules.defaults(
+                **{key: value for key, value in changed.items() if key not in home})
             grid = voxel_grid(data.rig, data.frame_hw, 48, min_views=views)
             t0 = time.perf_counter()
-            m = evaluate_hull(data, idx, gt, grid, k)
+            m = evaluate_hull(data, idx, gt, grid, k, rules=rules)
             label = rule if rule != "now" else f"now (min_views {hull_min_views(V)})"
             rows.append(_row(name, V, label, m, time.perf_counter() - t0, len(idx)))
             print(rows[-1], flush=True)
@@ -199,11 +202,11 @@ def main() -> None:
                "front-most individual with a voxel within 0.6 voxel sides, the individuals "
                "by a k-means of the plane's columns seeded by components 4 typical radii "
                "apart, replaced by a 3D Gaussian mixture of the voxels where it explains "
-               f"them better by {clustering.MIXTURE_GAIN} nats per voxel, the previous "
+               f"them better by {shipped.mixture_gain} nats per voxel, the previous "
                "scored frame's Gaussians one more start of it, kept unless another is "
-               f"better by {clustering.TRACK_SLACK}, tried only in scenes where its median "
-               f"gain at {clustering.SCENE_SAMPLE} instants spread over the scored frames "
-               f"reaches {clustering.SCENE_GAIN} "
+               f"better by {shipped.mixture_slack}, tried only in scenes where its median "
+               f"gain at {shipped.mixture_scene_sample} instants spread over the scored "
+               f"frames reaches {shipped.mixture_scene_gain} (the `inference.mixture_*` keys) "
                "(nsd/cues/occupancy.py, nsd/cues/clustering.py); the other rows put one "
                "rule back, take the mixture never or always, each frame alone, or no gate "
                "per scene. Touching "

@@ -127,7 +127,8 @@ def regress_export(
     # the hull's clustering carried through the decomposed frames, the mixture decided for
     # the scene as the export decided it
     frames = sorted({t for (t, _), anns in groups if len(anns) >= min_views})
-    track = model_scene_track(model, data.views, frames, grid) if grid is not None else None
+    track = (model_scene_track(model, data.views, frames, grid, settings.mixture)
+             if grid is not None else None)
     for (t, sid), anns in groups:  # in frame order: each frame is decomposed once
         if len(anns) < min_views:
             continue

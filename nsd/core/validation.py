@@ -143,6 +143,7 @@ POS = _r("int", low=1)  # a count or size
 RATE = _r("number", above=0)  # a learning rate or physical scale
 FRACTION = _r("number", low=0, high=1)
 SIGNED = _r("number")
+NATS = _r("number", allow=(math.inf, -math.inf))  # a log-likelihood margin, or never / always
 SIZE2 = _r("ints", low=1, length=2)  # [width, height]
 VEC3 = _r("numbers", length=3)
 WIDTHS = _r("ints", low=1)
@@ -198,7 +199,10 @@ RULES: dict[str, dict[str, Rule]] = {
         "numbers", low=0)},
     "inference": {"views": _r("str", choices=("multiview", "single")),
                   "window_blend": FRACTION, "depth": _r("str", choices=("hull", "detector")),
-                  "resolution": _r("int", low=8), "min_views": _r("int", low=2, allow=("auto",))},
+                  "resolution": _r("int", low=8), "min_views": _r("int", low=2, allow=("auto",)),
+                  # nats per voxel; inf: never, -inf: always (nsd.cues.clustering.MixtureRules)
+                  "mixture_gain": NATS, "mixture_slack": NATS, "mixture_scene_gain": NATS,
+                  "mixture_scene_sample": POS},
     "train": {  # conf/train.yaml's own keys
         "device": DEVICE,
         "stage": _r("str", choices=("decomposition", "pose")), "batch_size": POS,

@@ -13,6 +13,7 @@ at all (:func:`scene_wants_mixture`: bodies of one size keep the k-means).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -21,9 +22,11 @@ from scipy.stats import multivariate_normal
 from threadpoolctl import threadpool_limits
 from torch import Tensor
 
+from nsd.core.config import ConfigSection
+from nsd.core.errors import ConfigError
 from nsd.ops.vectors import up_frame
 
-__all__ = ["ClusterTrack", "cluster_individuals", "scene_wants_mixture"]
+__all__ = ["ClusterTrack", "MixtureRules", "cluster_individuals", "scene_wants_mixture"]
 
 # cluster_individuals with the count known: seeds of the k-means at least SEED_SPREAD typical
 # radii apart; columns beyond GHOST_SPREAD radii of their cluster dropped. With 1.5 radii,
@@ -34,29 +37,49 @@ GHOST_SPREAD = 3.0
 KMEANS_ITERATIONS = 10
 # then a Gaussian mixture of the voxels in 3D (full covariances: a long, low quadruped beside
 # upright bipeds), the best of fits from the k-means partition and from MIXTURE_RESTARTS
-# k-means++ starts, replaces the k-means where it explains the voxels better than Gaussians
-# fitted to the k-means partition by at least MIXTURE_GAIN nats per voxel. The k-means cuts
-# bodies of unequal size at the midpoint between centres: on the mixed group (2 bipeds, 2
-# quadrupeds) hull-only detection 0.58 -> 0.80 and mask mIoU 0.47 -> 0.67. Always taking the
-# mixture costs equal bipeds that touch (3 bipeds: detection 0.98 -> 0.94); at 0.02, over ten
-# scenes, voxel labels are never more than 0.005 below the k-means' and 0.13-0.27 above them
-# with quadrupeds; 0.05 lost half the gain on scenes the rule was not chosen on (docs/nsd.md,
-# "Bodies of unequal size"; docs/benchmarks/hull_mixture.md).
+# k-means++ starts, replaces the k-means where the MixtureRules say so (their values and why:
+# conf/inference/default.yaml).
 MIXTURE_RESTARTS = 10
-MIXTURE_GAIN = 0.02
 MIXTURE_ITERATIONS = 100
-# with a ClusterTrack, the mixture started from the previous frame's Gaussians is kept unless
-# another start explains the voxels better by more than TRACK_SLACK nats per voxel: the
-# restarts find a body's shape afresh each frame, and where two partitions are nearly as
-# likely they jump between them (docs/nsd.md, "Through time").
-TRACK_SLACK = 0.05
-# and per scene: the mixture is tried only where the median of its gains over SCENE_SAMPLE
-# instants spread over the scene reaches SCENE_GAIN nats per voxel. A scene's median gain is
-# -0.01-0.01 where bipeds touch and 0.06-0.12 with quadrupeds, while single instants of
-# touching bipeds pass MIXTURE_GAIN and their mixture labels are worse (docs/nsd.md, "A gate
-# per scene"). A running median instead lagged where a scene's first instants gain little.
-SCENE_GAIN = 0.03
-SCENE_SAMPLE = 12
+
+
+@dataclass(frozen=True)
+class MixtureRules(ConfigSection):
+    """When the hull's 3D Gaussian mixture replaces its k-means (the ``mixture_*`` keys of
+    the ``inference`` block, shared by training's hull proposals; defaults and the
+    measurements behind them: conf/inference/default.yaml).
+
+    Attributes:
+        mixture_gain: the mixture's labels replace the k-means' where it explains the
+            voxels better than Gaussians fitted to the k-means partition by at least this
+            many nats per voxel (``inf``: never; ``-inf``: always, whatever the scene).
+        mixture_slack: through a sequence, the mixture started from the previous frame's
+            Gaussians is kept unless another start is better by more than this (nats per
+            voxel; ``-inf``: each frame alone).
+        mixture_scene_gain: per scene, the mixture is tried only where the median of its
+            gains at ``mixture_scene_sample`` instants spread over the scene reaches this
+            (nats per voxel; ``-inf``: every scene).
+        mixture_scene_sample: instants read for that decision (>= 1).
+    """
+
+    APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `inference`
+    KEY: ClassVar[str] = "inference"
+
+    mixture_gain: float
+    mixture_slack: float
+    mixture_scene_gain: float
+    mixture_scene_sample: int
+
+    def validate(self) -> None:
+        for key in ("mixture_gain", "mixture_slack", "mixture_scene_gain"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int | float) or value != value:
+                raise ConfigError(f"inference.{key} must be a number (nats per voxel; inf and "
+                                  f"-inf allowed), got {value!r}")
+        n = self.mixture_scene_sample
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ConfigError(f"inference.mixture_scene_sample must be a whole number of "
+                              f"instants >= 1, got {n!r}")
 
 
 @dataclass
@@ -72,6 +95,7 @@ class ClusterTrack:
             (:func:`scene_wants_mixture`); False: the k-means alone, nothing fitted.
         gains: the mixture's gain over the k-means partition (nats per voxel) at each
             frame so far where it was fitted.
+        rules: when the mixture replaces the k-means (None: the shipped defaults).
     """
 
     weights: np.ndarray | None = None
@@ -79,6 +103,11 @@ class ClusterTrack:
     precisions: np.ndarray | None = None
     mixture: bool = True
     gains: list[float] = field(default_factory=list)
+    rules: MixtureRules | None = None
+
+    def __post_init__(self) -> None:
+        if self.rules is None:
+            self.rules = MixtureRules.defaults()
 
     def keep(self, weights: np.ndarray | None, means: np.ndarray | None = None,
              precisions: np.ndarray | None = None) -> None:
@@ -86,17 +115,19 @@ class ClusterTrack:
         self.weights, self.means, self.precisions = weights, means, precisions
 
 
-def scene_wants_mixture(gains: list[float]) -> bool:
+def scene_wants_mixture(gains: list[float], scene_gain: float) -> bool:
     """Whether a scene's hull should try the 3D mixture, from its gains (nats per voxel)
     at instants spread over the scene (a ``ClusterTrack``'s ``gains``): their median
-    reaches ``SCENE_GAIN``, or there are none (every instant's bodies apart: nothing to
-    judge, each instant decides).
+    reaches ``scene_gain`` (``MixtureRules.mixture_scene_gain``), or there are none (every
+    instant's bodies apart: nothing to judge, each instant decides).
 
     Example:
-        >>> scene_wants_mixture([0.0, 0.12, -0.01]), scene_wants_mixture([0.1, 0.02, 0.08])
-        (False, True)
+        >>> scene_wants_mixture([0.0, 0.12, -0.01], 0.03)
+        False
+        >>> scene_wants_mixture([0.1, 0.02, 0.08], 0.03)
+        True
     """
-    return not gains or float(np.median(gains)) >= SCENE_GAIN
+    return not gains or float(np.median(gains)) >= scene_gain
 
 
 def _stable_rank(centres: np.ndarray) -> np.ndarray:
@@ -203,8 +234,8 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
 
     The best of the mixtures started from the partition, from ``MIXTURE_RESTARTS``
     k-means++ seeds and from the ``track``'s Gaussians (kept unless another is better by
-    more than ``TRACK_SLACK``) must gain ``gain`` nats per point; the gain is added to the
-    ``track``'s. The ``track`` is handed the kept mixture, or the partition's Gaussians
+    more than its rules' ``mixture_slack``) must gain ``gain`` nats per point; the gain is
+    added to the ``track``'s. The ``track`` is handed the kept mixture, or the partition's Gaussians
     where the mixture is not kept.
     """
     # lazy: scikit-learn (1.9 s to import) only where the hull's k-means may have cut a body
@@ -228,7 +259,7 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
             fits.append(fit(weights_init=track.weights, means_init=track.means,
                             precisions_init=track.precisions, random_state=0))
             scores.append(fits[-1].score(x))
-            if scores[-1] >= scores[best] - TRACK_SLACK:
+            if scores[-1] >= scores[best] - track.rules.mixture_slack:
                 best = len(fits) - 1
         track.gains.append(float(scores[best] - base))
         if track.gains[-1] < gain:
@@ -289,11 +320,12 @@ def cluster_individuals(
     ``GHOST_SPREAD`` times their cluster's RMS radius from its centre are dropped (ghosts).
     The k-means assumes bodies of one size. Unless each cluster is one whole component
     (individuals apart), where a Gaussian mixture of the kept voxels in 3D explains them
-    better by ``mixture_gain`` nats per voxel (None: ``MIXTURE_GAIN``; ``inf``: never;
-    ``-inf``: always), its labels replace the k-means': a long quadruped is not cut at
-    the midpoint to an upright neighbour. A ``track`` carried through a sequence of frames
-    starts one more mixture from the previous frame's Gaussians and prefers it unless
-    another start is better by more than ``TRACK_SLACK``; it is handed this frame's
+    better by ``mixture_gain`` nats per voxel (None: the ``track``'s rules', or the shipped
+    default without a track; ``inf``: never; ``-inf``: always), its labels replace the
+    k-means': a long quadruped is not cut at the midpoint to an upright neighbour. A
+    ``track`` carried through a sequence of frames starts one more mixture from the
+    previous frame's Gaussians and prefers it unless another start is better by more than
+    its rules' ``mixture_slack``; it is handed this frame's
     Gaussians (the kept mixture's, or the k-means partition's) and its gain. A track whose
     ``mixture`` is False (a scene of bodies of one size, :func:`scene_wants_mixture`)
     keeps the k-means and fits nothing, unless ``mixture_gain`` is ``-inf``.
@@ -320,7 +352,8 @@ def cluster_individuals(
         column[kept] = _seeded_columns((np.argwhere(kept) + 0.5) * cell, counts[kept] ** 2,
                                        comp[kept] - 1, n, k, cell)
         labels = column[ij[:, 0].numpy(), ij[:, 1].numpy()]
-        gain = MIXTURE_GAIN if mixture_gain is None else mixture_gain
+        carried = ClusterTrack() if track is None else track
+        gain = carried.rules.mixture_gain if mixture_gain is None else mixture_gain
         pairs = np.unique(np.stack([comp[kept], column[kept]], 1)[column[kept] >= 0], axis=0)
         # each individual one whole component (apart): nothing for the mixture to mend
         whole = len(pairs) == k and len(np.unique(pairs[:, 0])) == k
@@ -328,7 +361,7 @@ def cluster_individuals(
         tried = track is None or track.mixture or gain == -np.inf
         if gain < np.inf and (not whole or gain == -np.inf) and tried:
             labels = _mixture_relabelled(x, xy.double().numpy(), labels, k, cell**2, gain,
-                                         ClusterTrack() if track is None else track)
+                                         carried)
         elif track is not None:  # nothing fitted: the partition's Gaussians, for the next
             _hand_partition(track, x, labels, k, cell**2)
         return torch.as_tensor(labels)

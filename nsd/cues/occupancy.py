@@ -49,8 +49,8 @@ from nsd.cameras.calibration import CameraRig
 from nsd.cameras.projection import project_points
 from nsd.core.errors import ConfigError
 from nsd.cues.clustering import (
-    SCENE_SAMPLE,
     ClusterTrack,
+    MixtureRules,
     cluster_individuals,
     scene_wants_mixture,
 )
@@ -347,21 +347,25 @@ def scene_track(
     k: int,
     split: bool = True,
     min_views: int | None = None,
+    rules: MixtureRules | None = None,
 ) -> ClusterTrack:
     """A :class:`ClusterTrack` to carry through a scene's ``instants``, with its ``mixture``
     decided ahead (:func:`nsd.cues.clustering.scene_wants_mixture`) from the hulls of
-    ``SCENE_SAMPLE`` of them spread evenly, ``evidence(t)`` (V, H, W) each: one decision
+    ``rules.mixture_scene_sample`` of them spread evenly (``rules``: None, the shipped
+    defaults; the returned track carries them), ``evidence(t)`` (V, H, W) each: one decision
     for the scene, taken before its first instant (a running one lags where the first
     instants gain little). Without ``split`` (``k`` an upper bound) no mixture is fitted
     and nothing is read."""
-    track = ClusterTrack()
+    track = ClusterTrack(rules=rules)
     if not split or not len(instants):
         return track
-    spread = np.unique(np.linspace(0, len(instants) - 1, SCENE_SAMPLE).round().astype(int))
-    for i in spread:
+    spread = np.linspace(0, len(instants) - 1, track.rules.mixture_scene_sample)
+    for i in np.unique(spread.round().astype(int)):
         hull_individuals(evidence(int(instants[i])), grid, k, min_views=min_views,
                          track=track)
-    return ClusterTrack(mixture=scene_wants_mixture(track.gains))
+    return ClusterTrack(mixture=scene_wants_mixture(track.gains,
+                                                    track.rules.mixture_scene_gain),
+                        rules=track.rules)
 
 
 def multiview_proposals(

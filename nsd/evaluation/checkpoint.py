@@ -111,7 +111,8 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
         settings = inference or InferenceSettings.defaults()
         model = trained.model
         hull = evaluate_hull(data, idx, gt, settings.grid(data.rig, data.frame_hw),
-                             model.cfg.num_windows, split=not model.detector.use_presence)
+                             model.cfg.num_windows, split=not model.detector.use_presence,
+                             rules=settings.mixture)
         metrics.update({f"hull_{k}": v for k, v in hull.items()})
     metrics.update({"frames": float(len(idx)), "step": float(trained.step)})
     return metrics

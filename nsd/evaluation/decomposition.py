@@ -250,7 +250,8 @@ def evaluate_model(
     psnr, ssim = [], []
     tally = Tally()
     # the hull's clustering through the frames in order, the mixture decided for the scene
-    track = ClusterTrack() if grid is None else model_scene_track(model, data.views, frames, grid)
+    track = (ClusterTrack(rules=settings.mixture) if grid is None
+             else model_scene_track(model, data.views, frames, grid, settings.mixture))
     try:
         for t in frames:
             views, bgs = data.views(int(t))

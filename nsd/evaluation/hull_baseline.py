@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nsd.cues.clustering import ClusterTrack
+from nsd.cues.clustering import ClusterTrack, MixtureRules
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals, scene_track
 from nsd.evaluation.contact import touches
@@ -78,15 +78,17 @@ def hull_decomposition(
 def evaluate_hull(
     data, frames: Sequence[int], gt, grid: VoxelGrid, k: int, split: bool = True,
     threshold: float = 0.5, evidence_threshold: float = EVIDENCE_THRESHOLD,
-    evidence_softness: float = EVIDENCE_SOFTNESS,
+    evidence_softness: float = EVIDENCE_SOFTNESS, rules: MixtureRules | None = None,
 ) -> dict[str, float]:
     """The metrics of :func:`nsd.evaluation.decomposition.evaluate_model` (without the
-    novel-view ones) for the hull-only decomposition of ``frames`` of ``data``."""
+    novel-view ones) for the hull-only decomposition of ``frames`` of ``data``; ``rules``:
+    when the hull's 3D mixture replaces its k-means (None: the shipped defaults)."""
     tally = Tally()
     V = data.num_views
     # the frames in order, as decompose_views' instants; the mixture decided for the scene
     track = scene_track(lambda t: foreground_evidence(*data.views(t), evidence_threshold,
-                                                      evidence_softness), frames, grid, k, split)
+                                                      evidence_softness), frames, grid, k, split,
+                         rules=rules)
     for t in frames:
         views, bgs = data.views(int(t))
         dec = hull_decomposition(views, bgs, grid, k, split, evidence_threshold,

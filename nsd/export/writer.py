@@ -131,10 +131,11 @@ class SubjectWriter:
         (:func:`nsd.inference.multiview.model_scene_track`: a dozen of them read first to
         decide the mixture for the scene; a video's are sought, seeking need not be
         frame-exact for a statistic)."""
+        rules = self.inference.mixture
         if self.grid is None:
-            return ClusterTrack()
+            return ClusterTrack(rules=rules)
         return model_scene_track(self.model, lambda t: self._read([(t, None)])[1:], frames,
-                                 self.grid)
+                                 self.grid, rules)
 
     def hull_clusters(self, items: list[tuple[int, list[np.ndarray] | None]],
                       track: ClusterTrack) -> list[tuple[Tensor, Tensor]] | None:
@@ -173,7 +174,7 @@ class SubjectWriter:
             mask_threshold=float(self.cfg.threshold),
             refine=str(self.cfg.refine),
             clusters=clusters,
-            track=ClusterTrack(mixture=mixture),
+            track=ClusterTrack(mixture=mixture, rules=self.inference.mixture),
         )
         out = [self._frame(dec, b * V, t, views) for b, (t, views) in enumerate(items)]
         del dec, images, bgs

@@ -38,7 +38,7 @@ from nsd.cameras.calibration import CameraRig
 from nsd.core.config import ConfigSection
 from nsd.core.device import model_device, move
 from nsd.core.errors import ConfigError
-from nsd.cues.clustering import ClusterTrack
+from nsd.cues.clustering import ClusterTrack, MixtureRules
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.occupancy import (
     CONTEST_BAND,
@@ -81,6 +81,9 @@ class InferenceSettings(ConfigSection):
             learned ownership alone).
         hull_contested: that bonus where the hull cannot settle the owner, on pixels near
             two or more individuals (:func:`nsd.cues.occupancy.contested_pixels`).
+        mixture_gain, mixture_slack, mixture_scene_gain, mixture_scene_sample: when the
+            hull's 3D mixture replaces its k-means (:class:`nsd.cues.clustering.MixtureRules`,
+            :attr:`mixture`).
     """
 
     APP: ClassVar[str] = "train"  # defaults: conf/train.yaml, section `inference`
@@ -95,6 +98,10 @@ class InferenceSettings(ConfigSection):
     colour_sigma: float
     hull_ownership: float
     hull_contested: float
+    mixture_gain: float
+    mixture_slack: float
+    mixture_scene_gain: float
+    mixture_scene_sample: int
 
     def validate(self) -> None:
         def need(ok: bool, key: str, what: str) -> None:
@@ -113,6 +120,7 @@ class InferenceSettings(ConfigSection):
         need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
         need(float(self.hull_ownership) >= 0.0, "hull_ownership", "must be >= 0 (0: off)")
         need(float(self.hull_contested) >= 0.0, "hull_contested", "must be >= 0 (0: off)")
+        self.mixture  # noqa: B018  (validates the mixture_* keys)
 
     @classmethod
     def from_config(cls, node: DictConfig | Mapping[str, Any] | None) -> InferenceSettings:
@@ -123,6 +131,12 @@ class InferenceSettings(ConfigSection):
         if unknown:
             raise ConfigError(f"inference has no setting {unknown[0]!r}")
         return cls.defaults(**items)
+
+    @property
+    def mixture(self) -> MixtureRules:
+        """The hull's :class:`nsd.cues.clustering.MixtureRules` from the ``mixture_*`` keys."""
+        return MixtureRules.from_config(
+            {f.name: getattr(self, f.name) for f in dataclasses.fields(MixtureRules)})
 
     @property
     def multiview(self) -> bool:
@@ -210,14 +224,17 @@ def model_scene_track(
     views: Callable[[int], tuple[Tensor, Tensor]],
     instants: Sequence[int],
     grid: VoxelGrid,
+    rules: MixtureRules | None = None,
 ) -> ClusterTrack:
     """The hull's :class:`ClusterTrack` for ``model``'s windows through a scene's
     ``instants`` (:func:`nsd.cues.occupancy.scene_track`: the mixture tried or not for the
-    whole scene); ``views(t)`` gives an instant's images and backgrounds (V, 3, H, W)."""
+    whole scene, by ``rules``, e.g. :attr:`InferenceSettings.mixture`; None: the shipped
+    defaults); ``views(t)`` gives an instant's images and backgrounds (V, 3, H, W)."""
     def evidence(t: int) -> Tensor:
         return foreground_evidence(*views(t), EVIDENCE_THRESHOLD, EVIDENCE_SOFTNESS)
 
-    return scene_track(evidence, instants, grid, model.cfg.num_windows, split=_hull_split(model))
+    return scene_track(evidence, instants, grid, model.cfg.num_windows, split=_hull_split(model),
+                       rules=rules)
 
 
 @torch.inference_mode()
@@ -292,7 +309,7 @@ def decompose_views(
     # windows of the individuals near the pixel may own it
     contest = CONTEST_BAND if settings.hull_contested != settings.hull_ownership else 0.0
     fused, slots, owners, bonus, allowed = [], [], [], [], []
-    track = ClusterTrack() if track is None else track
+    track = ClusterTrack(rules=settings.mixture) if track is None else track
     for i, s in enumerate(range(0, images.shape[0], num_views)):
         sl = slice(s, s + num_views)
         hull = multiview_proposals(ev[sl], grid, k, split=split, contest=contest, track=track,

@@ -22,6 +22,7 @@ from nsd.cameras.calibration import CameraRig
 from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.core.memory import trim_heap
+from nsd.cues.clustering import MixtureRules
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import multiview_proposals, scene_track, voxel_grid
 from nsd.cues.proposals import evidence_proposals
@@ -144,13 +145,14 @@ class SceneData:
 
     def compute_multiview_proposals(
         self, k: int, threshold: float, softness: float, resolution: int = 48, split: bool = True,
-        owners: bool = True, min_views: int | str = "auto",
+        owners: bool = True, min_views: int | str = "auto", rules: MixtureRules | None = None,
     ) -> None:
         """Visual-hull proposals (boxes, depths, shared slots) for every frame (nsd.cues.occupancy);
         ``split``: see :func:`nsd.cues.clustering.cluster_individuals`; ``owners``: also keep
         every pixel's hull individual (``self.owners``, (T, V, H, W) int8, a third of the
         frames' size, on disk next to the frames: only the mask prior reads it); ``min_views``:
-        :func:`nsd.cues.occupancy.hull_min_views`' setting."""
+        :func:`nsd.cues.occupancy.hull_min_views`' setting; ``rules``: when the hull's 3D
+        mixture replaces its k-means (None: the shipped defaults)."""
 
         grid = voxel_grid(self.rig, self.frame_hw, resolution, min_views=min_views,
                           key="prior_proposal.min_views")
@@ -164,7 +166,7 @@ class SceneData:
         # not for the whole scene
         track = scene_track(lambda t: foreground_evidence(
             to_float(self.frames[t]), self.backgrounds, threshold, softness), range(T), grid, k,
-            split)
+            split, rules=rules)
         for t in range(T):
             ev = foreground_evidence(
                 to_float(self.frames[t]), self.backgrounds, threshold, softness

@@ -95,7 +95,7 @@ class PoseTask:
         settings = InferenceSettings.from_config(self.cfg.get("inference")).for_views(len(rig))
         grid = settings.grid(rig, self.data.frame_hw) if settings.multiview else None
         track = (None if grid is None else  # the hull's clustering through the frames
-                 model_scene_track(self.model, self.data.views, frames, grid))
+                 model_scene_track(self.model, self.data.views, frames, grid, settings.mixture))
         for t in frames:
             views, bgs = self.data.views(int(t))
             dec = decompose_views(self.model, views, bgs, len(rig), settings, grid, track=track)

@@ -174,7 +174,9 @@ class NSDTask:
                     split = not cfg.model.detector.presence
                 data.compute_multiview_proposals(*args, resolution=pp.resolution, split=split,
                                                  owners=cfg.prior_mask.weight > 0,
-                                                 min_views=pp.min_views)
+                                                 min_views=pp.min_views,
+                                                 rules=InferenceSettings.from_config(
+                                                     cfg.get("inference")).mixture)
                 if self.presence_target == "hull":
                     self._hull_counts(cfg.prior_presence, data)
             elif pp.source == "single_view":

@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from nsd.cues import clustering, occupancy
+from nsd.core.errors import ConfigError
+from nsd.cues import occupancy
 from nsd.cues.clustering import (
     ClusterTrack,
+    MixtureRules,
     _mixture_labels,
     _partition_gaussians,
     _partition_loglik,
@@ -184,13 +186,14 @@ def test_a_scene_without_the_mixture_keeps_the_k_means_and_fits_nothing():
                                 (ClusterTrack(mixture=False), -np.inf)):
         labels = cluster_individuals(pts, up, cell, 2, mixture_gain=mixture_gain, track=track)
         assert set(labels[:n].tolist()) == {0} and set(labels[n:].tolist()) == {1}
-        assert len(track.gains) == 1 and track.gains[0] > clustering.SCENE_GAIN
+        assert len(track.gains) == 1 and track.gains[0] > track.rules.mixture_scene_gain
 
 
 def test_scene_track_decides_from_instants_spread_over_the_scene(monkeypatch):
-    """``scene_track`` reads ``SCENE_SAMPLE`` instants spread evenly from first to last and
-    turns the mixture off where their median gain is below ``SCENE_GAIN``; without
-    ``split`` it reads nothing."""
+    """``scene_track`` reads ``mixture_scene_sample`` instants spread evenly from first to
+    last and turns the mixture off where their median gain is below
+    ``mixture_scene_gain``; the track it returns carries its rules; without ``split`` it
+    reads nothing."""
     read, gains = [], iter([0.0, 0.2, -0.01, 0.01] * 10)
 
     def hull(ev, grid, k, min_views=None, track=None):
@@ -201,10 +204,45 @@ def test_scene_track_decides_from_instants_spread_over_the_scene(monkeypatch):
     monkeypatch.setattr(occupancy, "hull_individuals", hull)
     instants = list(range(100, 400, 3))  # 100 instants
     track = occupancy.scene_track(torch.tensor, instants, None, 2)
-    assert len(read) == clustering.SCENE_SAMPLE and read[0] == 100 and read[-1] == 397
+    assert len(read) == track.rules.mixture_scene_sample == 12
+    assert read[0] == 100 and read[-1] == 397
     assert np.all(np.diff(read) > 0) and not track.mixture and track.gains == []
     gains = iter([0.05, 0.2, 0.01] * 10)
     assert occupancy.scene_track(torch.tensor, instants, None, 2).mixture
     read.clear()
     assert occupancy.scene_track(torch.tensor, instants, None, 2, split=False).mixture
     assert read == []
+    # other rules: 5 instants, a median gain of 0.01 is enough where the bar is 0.005
+    rules = MixtureRules.defaults(mixture_scene_sample=5, mixture_scene_gain=0.005)
+    gains = iter([0.0, 0.2, -0.01, 0.01, 0.01])
+    track = occupancy.scene_track(torch.tensor, instants, None, 2, rules=rules)
+    assert read == [100, 175, 250, 322, 397] and track.mixture and track.rules == rules
+
+
+def test_a_track_s_rules_decide_the_mixture_of_each_frame():
+    """The ``mixture_gain`` of a track's rules is the bar of each frame: ``inf`` keeps the
+    k-means and fits nothing, the shipped bar takes the mixture where a long body beside a
+    round one gains more, ``-inf`` takes it whatever the gain."""
+    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
+    long_body = _ellipse_columns((0.0, 0.0), (0.8, 0.25), 6, cell)
+    pts = torch.cat([long_body, _columns([(1.3, 0.0)], 0.25, 16, cell)])
+    kmeans = cluster_individuals(pts, up, cell, 2, mixture_gain=np.inf)
+    never = ClusterTrack(rules=MixtureRules.defaults(mixture_gain=np.inf))
+    assert torch.equal(cluster_individuals(pts, up, cell, 2, track=never), kmeans)
+    assert never.gains == []
+    shipped = ClusterTrack()
+    mixed = cluster_individuals(pts, up, cell, 2, track=shipped)
+    assert not torch.equal(mixed, kmeans)
+    gain = shipped.gains[0]
+    above = ClusterTrack(rules=MixtureRules.defaults(mixture_gain=gain + 1e-6))
+    assert torch.equal(cluster_individuals(pts, up, cell, 2, track=above), kmeans)
+    below = ClusterTrack(rules=MixtureRules.defaults(mixture_gain=gain - 1e-6))
+    assert torch.equal(cluster_individuals(pts, up, cell, 2, track=below), mixed)
+
+
+@pytest.mark.parametrize("key, value", [("mixture_gain", float("nan")), ("mixture_slack", "x"),
+                                        ("mixture_scene_sample", 0),
+                                        ("mixture_scene_sample", 2.5)])
+def test_mixture_rules_name_a_bad_key(key, value):
+    with pytest.raises(ConfigError, match=rf"inference\.{key}"):
+        MixtureRules.defaults(**{key: value})

@@ -196,3 +196,25 @@ def test_hull_mask_prior_trains_the_compositor_masks_towards_the_hull_owners(tin
     assert out["prior_mask"].item() == pytest.approx(expect.item(), rel=1e-5)
     with pytest.raises(ConfigError, match=r"prior_mask=hull needs prior_proposal\.source"):
         NSDTask(tiny_cfg("prior_mask=hull", "prior_proposal=residual"), tiny_data)
+
+
+def test_hull_proposals_cluster_by_the_inference_mixture_keys(tiny_data, monkeypatch):
+    """Training's hull proposals decide the 3D mixture by ``inference.mixture_*`` (the keys
+    nsd-eval and the export read), and a bad value stops the task before any work."""
+    from nsd.core.errors import ConfigError
+    from nsd.cues.clustering import MixtureRules
+    from nsd.io import scene_data
+
+    seen = []
+
+    def recorded(*args, rules=None, **kw):
+        seen.append(rules)
+        return real(*args, rules=rules, **kw)
+
+    real = scene_data.scene_track
+    monkeypatch.setattr(scene_data, "scene_track", recorded)
+    NSDTask(tiny_cfg("inference.mixture_gain=inf", "inference.mixture_scene_sample=3"), tiny_data)
+    assert seen == [MixtureRules.defaults(mixture_gain=float("inf"), mixture_scene_sample=3)]
+    with pytest.raises(ConfigError, match=r"inference\.mixture_scene_sample"):
+        NSDTask(tiny_cfg("inference.mixture_scene_sample=0"), tiny_data)
+    assert len(seen) == 1
