@@ -25,7 +25,9 @@ spread at 1.5 instead of 4, and the mixture never (``mixture_gain=inf``: the k-m
 alone) or always (``-inf``), or each frame alone (``mixture_slack=-inf``: no frame's
 Gaussians start the next's), or without the gate per scene (``mixture_scene_gain=-inf``:
 each frame's mixture used where it gains ``mixture_gain``, whatever the scene's median
-gain); these are the ``inference.mixture_*`` keys (:class:`nsd.cues.clustering.MixtureRules`).
+gain); these are the ``inference.mixture_*`` keys (:class:`nsd.cues.clustering.MixtureRules`);
+or with the mixture's restarts run at every frame of a track (``RESTART_TOLERANCE=-inf``),
+not only where the track's start is less likely than the partition's.
 ``--rules`` keeps only the named rows. Synthetic scenes of 2-6 individuals, 4-8 cameras,
 apart and in contact (``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128,
 48^3 voxels, the shipped background estimate (``data.background``, as training and
@@ -147,7 +149,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(2)
     root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
-    home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering}
+    home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering,
+            "RESTART_TOLERANCE": clustering}
     shipped = clustering.MixtureRules.defaults()
     defaults = {key: getattr(module, key) for key, module in home.items()}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
@@ -176,7 +179,8 @@ def main() -> None:
                     ("now, k-means only (no mixture)", "auto", {"mixture_gain": np.inf}),
                     ("now, the mixture always", "auto", {"mixture_gain": -np.inf}),
                     ("now, each frame alone (no track)", "auto", {"mixture_slack": -np.inf}),
-                    ("now, no gate per scene", "auto", {"mixture_scene_gain": -np.inf})]
+                    ("now, no gate per scene", "auto", {"mixture_scene_gain": -np.inf}),
+                    ("now, restarts every frame", "auto", {"RESTART_TOLERANCE": -np.inf})]
         for rule, views, changed in variants:
             if args.rules is not None and rule not in args.rules:
                 continue
@@ -207,9 +211,11 @@ def main() -> None:
                f"better by {shipped.mixture_slack}, tried only in scenes where its median "
                f"gain at {shipped.mixture_scene_sample} instants spread over the scored "
                f"frames reaches {shipped.mixture_scene_gain} (the `inference.mixture_*` keys) "
-               "(nsd/cues/occupancy.py, nsd/cues/clustering.py); the other rows put one "
-               "rule back, take the mixture never or always, each frame alone, or no gate "
-               "per scene. Touching "
+               "(nsd/cues/occupancy.py, nsd/cues/clustering.py), its 10 restarts run "
+               "only where the carried start is less likely than the partition's by "
+               f"more than {clustering.RESTART_TOLERANCE}; the other rows put one "
+               "rule back, take the mixture never or always, each frame alone, no gate "
+               "per scene, or the restarts at every frame. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "

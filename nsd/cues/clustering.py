@@ -41,6 +41,11 @@ KMEANS_ITERATIONS = 10
 # conf/inference/default.yaml).
 MIXTURE_RESTARTS = 10
 MIXTURE_ITERATIONS = 100
+# with a track, the restarts run only where its start is less likely than the partition's by
+# more than RESTART_TOLERANCE nats per voxel, what two fits of one optimum differ by (the EM's
+# stopping tolerance, sklearn's default); -inf: every frame (docs/nsd.md, "Restarts only where
+# the track may be lost")
+RESTART_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -235,8 +240,11 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
     The best of the mixtures started from the partition, from ``MIXTURE_RESTARTS``
     k-means++ seeds and from the ``track``'s Gaussians (kept unless another is better by
     more than its rules' ``mixture_slack``) must gain ``gain`` nats per point; the gain is
-    added to the ``track``'s. The ``track`` is handed the kept mixture, or the partition's Gaussians
-    where the mixture is not kept.
+    added to the ``track``'s. The ``track`` is handed the kept mixture, or the partition's
+    Gaussians where the mixture is not kept. Where the track's start is as likely as the
+    partition's (within ``RESTART_TOLERANCE``) or more, the bodies are where the last frame
+    left them and the restarts are not run (docs/nsd.md, "Restarts only where the track
+    may be lost").
     """
     # lazy: scikit-learn (1.9 s to import) only where the hull's k-means may have cut a body
     from sklearn.mixture import GaussianMixture
@@ -252,14 +260,22 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
         means = np.stack([x[labels == j].mean(0) if (labels == j).any() else x.mean(0)
                           for j in range(k)])
         fits = [fit(means_init=means, random_state=0)]
-        fits += [fit(init_params="k-means++", random_state=s) for s in range(MIXTURE_RESTARTS)]
-        scores = [g.score(x) for g in fits]
-        best = int(np.argmax(scores))
+        scores = [fits[0].score(x)]
+        carried = None
         if track.weights is not None:
-            fits.append(fit(weights_init=track.weights, means_init=track.means,
-                            precisions_init=track.precisions, random_state=0))
-            scores.append(fits[-1].score(x))
-            if scores[-1] >= scores[best] - track.rules.mixture_slack:
+            carried = fit(weights_init=track.weights, means_init=track.means,
+                          precisions_init=track.precisions, random_state=0)
+            carried_score = carried.score(x)
+        # no track, or it may have lost a body
+        if carried is None or carried_score < scores[0] - RESTART_TOLERANCE:
+            fits += [fit(init_params="k-means++", random_state=s)
+                     for s in range(MIXTURE_RESTARTS)]
+            scores += [g.score(x) for g in fits[1:]]
+        best = int(np.argmax(scores))
+        if carried is not None:
+            fits.append(carried)
+            scores.append(carried_score)
+            if carried_score >= scores[best] - track.rules.mixture_slack:
                 best = len(fits) - 1
         track.gains.append(float(scores[best] - base))
         if track.gains[-1] < gain:

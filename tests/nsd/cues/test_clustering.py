@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nsd.core.errors import ConfigError
-from nsd.cues import occupancy
+from nsd.cues import clustering, occupancy
 from nsd.cues.clustering import (
     ClusterTrack,
     MixtureRules,
@@ -246,3 +246,38 @@ def test_a_track_s_rules_decide_the_mixture_of_each_frame():
 def test_mixture_rules_name_a_bad_key(key, value):
     with pytest.raises(ConfigError, match=rf"inference\.{key}"):
         MixtureRules.defaults(**{key: value})
+
+
+def test_the_restarts_run_only_where_the_track_may_have_lost_a_body(monkeypatch):
+    """A long body beside a round one. The first frame has no track: the partition's start
+    and ``MIXTURE_RESTARTS`` k-means++ starts are fitted. The next frame, the same bodies:
+    the track's start is at least as likely as the partition's, so only those two are
+    fitted, and the labels stay. Once the bodies have moved far from the track's
+    Gaussians, its start is the less likely one and the restarts run again; the labels
+    still follow the bodies."""
+    from sklearn.mixture import GaussianMixture
+
+    fitted = []
+    real_fit = GaussianMixture.fit
+
+    def counted(self, x, y=None):
+        fitted.append(self.init_params if self.means_init is None else "given")
+        return real_fit(self, x)
+
+    monkeypatch.setattr(GaussianMixture, "fit", counted)
+    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
+    long_body = _ellipse_columns((0.0, 0.0), (0.8, 0.25), 6, cell)
+    pts = torch.cat([long_body, _columns([(1.3, 0.0)], 0.25, 16, cell)])
+    n = len(long_body)
+    track = ClusterTrack()
+    first = cluster_individuals(pts, up, cell, 2, track=track)
+    assert fitted == ["given"] + ["k-means++"] * clustering.MIXTURE_RESTARTS
+    fitted.clear()
+    assert torch.equal(cluster_individuals(pts, up, cell, 2, track=track), first)
+    assert fitted == ["given", "given"]
+    fitted.clear()
+    moved = pts + torch.tensor([0.0, 6.0, 0.0])
+    labels = cluster_individuals(moved, up, cell, 2, track=track)
+    assert fitted == ["given", "given"] + ["k-means++"] * clustering.MIXTURE_RESTARTS
+    assert len(set(labels[:n].tolist())) == 1 and len(set(labels[n:].tolist())) == 1
+    assert labels[0] != labels[-1]
