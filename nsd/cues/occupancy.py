@@ -43,6 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from nsd.cameras.calibration import CameraRig
@@ -232,40 +233,78 @@ OWNER_REACH = 4.5
 # hull's owner is right for 71 % of the pixels and the trained auto-encoder's ownership for
 # 81 %, elsewhere for 96 % and 93 % (docs/nsd.md, "Where the hull cannot settle").
 CONTEST_BAND = 1.5
-def _pixel_distances(fg: Tensor, uv: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The foreground pixels' rows and columns (F,) and their distances to the voxels'
-    projections uv (P, 2): (F, P)."""
+class PixelVoxels(NamedTuple):
+    """Which voxel projections lie near which foreground pixels of one view
+    (:func:`_pixel_voxels`): the pixels' rows and columns ``ys``, ``xs`` (F,), each pixel's
+    nearest voxel ``nearest`` (F,) and its distance ``nearest_distance`` (F,) (inf beyond
+    the reach asked), and every pixel-voxel pair within the band asked: pixel
+    ``pair_pixel`` (E,), voxel ``pair_voxel`` (E,), distance ``pair_distance`` (E,)."""
+
+    ys: Tensor
+    xs: Tensor
+    nearest: np.ndarray
+    nearest_distance: np.ndarray
+    pair_pixel: np.ndarray
+    pair_voxel: np.ndarray
+    pair_distance: np.ndarray
+
+
+def _pixel_voxels(fg: Tensor, uv: Tensor, band: float, reach: float) -> PixelVoxels:
+    """The foreground pixels of ``fg`` (H, W) bool against the voxels' projections ``uv``
+    (P, 2) (x, y): pairs within ``band`` pixels and each pixel's nearest voxel within
+    ``reach`` (both inclusive, distances in float64). A k-d tree of each
+    (``scipy.spatial.cKDTree``) instead of the (F, P) matrix of all distances: an 8-camera
+    group's hull has ~2,000 foreground pixels and ~2,000 voxels per view, and the dense
+    matrix, its masks and arg-minima were half of the training's hull proposals."""
     ys, xs = torch.nonzero(fg, as_tuple=True)
-    pix = torch.stack([xs, ys], -1).to(uv.dtype)
-    return ys, xs, torch.cdist(pix, uv)
+    pix = np.stack([xs.numpy(), ys.numpy()], -1).astype(np.float64)
+    pts = uv.detach().double().numpy()
+    empty = np.zeros(0, np.int64)
+    if len(pix) == 0 or len(pts) == 0:
+        none = np.full(len(pix), np.inf)
+        return PixelVoxels(ys, xs, np.zeros(len(pix), np.int64), none, empty, empty,
+                           np.zeros(0))
+    voxels = cKDTree(pts)
+    dist, nearest = voxels.query(pix, k=1, distance_upper_bound=np.nextafter(reach, np.inf))
+    pairs = cKDTree(pix).sparse_distance_matrix(voxels, np.nextafter(band, np.inf),
+                                                output_type="ndarray")
+    inside = pairs["v"] <= band
+    nearest = np.where(np.isfinite(dist), nearest, 0).astype(np.int64)
+    return PixelVoxels(ys, xs, nearest, dist, pairs["i"][inside].astype(np.int64),
+                       pairs["j"][inside].astype(np.int64), pairs["v"][inside])
 
 
-def _owners(shape: tuple[int, int], ys: Tensor, xs: Tensor, d: Tensor, depth: Tensor,
-            labels: Tensor, radius: float, reach: float) -> Tensor:
-    """:func:`owned_pixels` from :func:`_pixel_distances`."""
+def _owners(shape: tuple[int, int], near: PixelVoxels, depth: Tensor, labels: Tensor,
+            radius: float, reach: float) -> Tensor:
+    """:func:`owned_pixels` from :func:`_pixel_voxels` (its band >= ``radius``, its reach
+    >= ``reach``)."""
     owner = torch.full(shape, -1, dtype=torch.long)
-    if d.numel() == 0:
+    if len(near.ys) == 0 or len(labels) == 0:
         return owner
-    near = d <= radius
-    zbuf = torch.where(near, depth[None].expand_as(d), torch.full_like(d, float("inf")))
-    front = zbuf.argmin(1)
-    nearest = d.argmin(1)
-    has_near = near.any(1)
-    pick = torch.where(has_near, front, nearest)
-    ok = has_near | (d.gather(1, nearest[:, None])[:, 0] <= reach)
-    owner[ys[ok], xs[ok]] = labels[pick[ok]]
+    close = near.pair_distance <= radius
+    pi, pj = near.pair_pixel[close], near.pair_voxel[close]
+    # each pixel's front-most voxel within the radius (the lowest index of equal depths)
+    order = np.lexsort((pj, depth.numpy().astype(np.float64)[pj], pi))
+    pi, pj = pi[order], pj[order]
+    first = np.ones(len(pi), bool)
+    first[1:] = pi[1:] != pi[:-1]
+    front = np.full(len(near.ys), -1, np.int64)
+    front[pi[first]] = pj[first]
+    has_near = front >= 0
+    pick = np.where(has_near, front, near.nearest)
+    ok = torch.from_numpy(has_near | (near.nearest_distance <= reach))
+    owner[near.ys[ok], near.xs[ok]] = labels[torch.from_numpy(pick)[ok]]
     return owner
 
 
-def _candidates(shape: tuple[int, int], ys: Tensor, xs: Tensor, d: Tensor, labels: Tensor,
-                k: int, band: float) -> Tensor:
-    """:func:`candidate_individuals` from :func:`_pixel_distances`."""
+def _candidates(shape: tuple[int, int], near: PixelVoxels, labels: Tensor, k: int,
+                band: float) -> Tensor:
+    """:func:`candidate_individuals` from :func:`_pixel_voxels` (its band >= ``band``)."""
     out = torch.zeros(k, *shape, dtype=torch.bool)
-    if d.numel() == 0:
-        return out
-    nearest = d.new_full((len(ys), k), float("inf"))
-    nearest.scatter_reduce_(1, labels[None].expand_as(d), d, "amin")  # (F, k) per individual
-    out[:, ys, xs] = (nearest <= band).T
+    close = near.pair_distance <= band
+    pi = torch.from_numpy(near.pair_pixel[close])
+    pj = torch.from_numpy(near.pair_voxel[close])
+    out[labels[pj], near.ys[pi], near.xs[pi]] = True
     return out
 
 
@@ -293,7 +332,8 @@ def owned_pixels(
     Returns:
         owner map (H, W) int64 in [-1, k).
     """
-    return _owners(fg.shape, *_pixel_distances(fg, uv), depth, labels, radius, reach)
+    return _owners(fg.shape, _pixel_voxels(fg, uv, radius, reach), depth, labels, radius,
+                   reach)
 
 
 def candidate_individuals(fg: Tensor, uv: Tensor, labels: Tensor, k: int,
@@ -310,7 +350,7 @@ def candidate_individuals(fg: Tensor, uv: Tensor, labels: Tensor, k: int,
         (k, H, W) bool: individual ``j`` has a voxel projecting within ``band`` pixels of
         the foreground pixel.
     """
-    return _candidates(fg.shape, *_pixel_distances(fg, uv), labels, k, band)
+    return _candidates(fg.shape, _pixel_voxels(fg, uv, band, 0.0), labels, k, band)
 
 
 def contested_pixels(fg: Tensor, uv: Tensor, labels: Tensor, k: int, band: float) -> Tensor:
@@ -424,11 +464,13 @@ def multiview_proposals(
         vis = grid.inside[v, idx]
         z = grid.depth[v, idx[vis]]
         voxel_px = float(grid.size * grid.focal[v] / z.median()) if len(z) else 1.0
-        ys, xs, d = _pixel_distances(evidence[v] > 0.5, grid.uv[v, idx[vis]])  # once for both
-        owners[v] = _owners((H, W), ys, xs, d, z, labels[vis],
-                            OWNER_RADIUS * voxel_px, OWNER_REACH * voxel_px)
+        radius, reach, band = (OWNER_RADIUS * voxel_px, OWNER_REACH * voxel_px,
+                               contest * voxel_px)
+        near = _pixel_voxels(evidence[v] > 0.5, grid.uv[v, idx[vis]], max(radius, band),
+                             reach)  # once for both
+        owners[v] = _owners((H, W), near, z, labels[vis], radius, reach)
         if contest > 0:
-            candidates[v] = _candidates((H, W), ys, xs, d, labels[vis], k, contest * voxel_px)
+            candidates[v] = _candidates((H, W), near, labels[vis], k, band)
         for j in range(k):
             sel = labels[vis] == j
             ys, xs = torch.nonzero(owners[v] == j, as_tuple=True)

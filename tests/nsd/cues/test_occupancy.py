@@ -100,6 +100,43 @@ def test_owned_pixels_front_wins():
     assert owner[0].tolist() == [0, 0, 1, 1, 1]
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_owned_pixels_match_a_slow_reference(seed):
+    """Each foreground pixel goes to the front-most individual among the voxels projecting
+    within ``radius`` of it, else to the nearest voxel's within ``reach``, else to nobody:
+    the k-d trees against every distance written out, pixel by pixel."""
+    gen = torch.Generator().manual_seed(seed)
+    fg = torch.rand(13, 17, generator=gen) > 0.3
+    uv = torch.rand(60, 2, generator=gen) * torch.tensor([21.0, 17.0]) - 2.0
+    depth = torch.rand(60, generator=gen) * 5 + 1
+    labels = torch.randint(0, 4, (60,), generator=gen)
+    got = owned_pixels(fg, uv, depth, labels, 4, radius=1.2, reach=2.5)
+    want = torch.full_like(got, -1)
+    for y in range(13):
+        for x in range(17):
+            if not fg[y, x]:
+                continue
+            d = [float(np.hypot(float(u) - x, float(v) - y)) for u, v in uv]
+            near = [j for j in range(60) if d[j] <= 1.2]
+            if near:
+                want[y, x] = labels[min(near, key=lambda j: (float(depth[j]), j))]
+            elif min(d) <= 2.5:
+                want[y, x] = labels[int(np.argmin(d))]
+    assert torch.equal(got, want)
+    assert (want >= 0).sum() < fg.sum() and len(set(want[want >= 0].tolist())) == 4
+
+
+def test_owned_pixels_of_no_voxels_or_no_foreground_are_nobody_s():
+    fg = torch.ones(3, 4, dtype=torch.bool)
+    none = torch.zeros(0, dtype=torch.long)
+    assert (owned_pixels(fg, torch.zeros(0, 2), torch.zeros(0), none, 2, 0.6, 1.5) == -1).all()
+    one = torch.tensor([[1.0, 1.0]])
+    got = owned_pixels(torch.zeros(3, 4, dtype=torch.bool), one, torch.ones(1),
+                       torch.zeros(1, dtype=torch.long), 2, 0.6, 1.5)
+    assert (got == -1).all()
+    assert not candidate_individuals(fg, torch.zeros(0, 2), none, 2, 1.0).any()
+
+
 def test_contested_pixels_match_a_slow_reference():
     """A pixel is contested when voxels of two or more individuals project within the band;
     background pixels never are."""
