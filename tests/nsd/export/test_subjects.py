@@ -60,8 +60,9 @@ def _export(ckpt, scene, out, **changes):
 
 def _reference(ckpt, scene):
     """The model's own outputs on every frame, one frame (all views) at a time, with the
-    export's default (multi-view) inference."""
-    from nsd.inference.multiview import InferenceSettings, decompose_views
+    export's default (multi-view) inference: the hull's clustering carried through the
+    frames in order, the mixture decided for the scene, as the export does."""
+    from nsd.inference.multiview import InferenceSettings, decompose_views, model_scene_track
     from nsd.io.scene_data import SceneData
     from nsd.model.checkpoint import load_decomposition
 
@@ -72,8 +73,10 @@ def _reference(ckpt, scene):
     st = InferenceSettings.defaults()
     grid = st.grid(data.rig, data.frame_hw)
     V = data.num_views
+    frames = range(len(data.frames))
+    track = model_scene_track(trained.model, data.views, frames, grid, st.mixture)
     return data, [
-        decompose_views(trained.model, *data.views(t), V, st, grid) for t in range(len(data.frames))
+        decompose_views(trained.model, *data.views(t), V, st, grid, track=track) for t in frames
     ]
 
 
