@@ -233,7 +233,9 @@ OWNER_REACH = 4.5
 # hull's owner is right for 71 % of the pixels and the trained auto-encoder's ownership for
 # 81 %, elsewhere for 96 % and 93 % (docs/nsd.md, "Where the hull cannot settle").
 CONTEST_BAND = 1.5
-class PixelVoxels(NamedTuple):
+
+
+class _PixelVoxels(NamedTuple):
     """Which voxel projections lie near which foreground pixels of one view
     (:func:`_pixel_voxels`): the pixels' rows and columns ``ys``, ``xs`` (F,), each pixel's
     nearest voxel ``nearest`` (F,) and its distance ``nearest_distance`` (F,) (inf beyond
@@ -249,7 +251,7 @@ class PixelVoxels(NamedTuple):
     pair_distance: np.ndarray
 
 
-def _pixel_voxels(fg: Tensor, uv: Tensor, band: float, reach: float) -> PixelVoxels:
+def _pixel_voxels(fg: Tensor, uv: Tensor, band: float, reach: float) -> _PixelVoxels:
     """The foreground pixels of ``fg`` (H, W) bool against the voxels' projections ``uv``
     (P, 2) (x, y): pairs within ``band`` pixels and each pixel's nearest voxel within
     ``reach`` (both inclusive, distances in float64). A k-d tree of each
@@ -262,7 +264,7 @@ def _pixel_voxels(fg: Tensor, uv: Tensor, band: float, reach: float) -> PixelVox
     empty = np.zeros(0, np.int64)
     if len(pix) == 0 or len(pts) == 0:
         none = np.full(len(pix), np.inf)
-        return PixelVoxels(ys, xs, np.zeros(len(pix), np.int64), none, empty, empty,
+        return _PixelVoxels(ys, xs, np.zeros(len(pix), np.int64), none, empty, empty,
                            np.zeros(0))
     voxels = cKDTree(pts)
     dist, nearest = voxels.query(pix, k=1, distance_upper_bound=np.nextafter(reach, np.inf))
@@ -270,11 +272,11 @@ def _pixel_voxels(fg: Tensor, uv: Tensor, band: float, reach: float) -> PixelVox
                                                 output_type="ndarray")
     inside = pairs["v"] <= band
     nearest = np.where(np.isfinite(dist), nearest, 0).astype(np.int64)
-    return PixelVoxels(ys, xs, nearest, dist, pairs["i"][inside].astype(np.int64),
+    return _PixelVoxels(ys, xs, nearest, dist, pairs["i"][inside].astype(np.int64),
                        pairs["j"][inside].astype(np.int64), pairs["v"][inside])
 
 
-def _owners(shape: tuple[int, int], near: PixelVoxels, depth: Tensor, labels: Tensor,
+def _owners(shape: tuple[int, int], near: _PixelVoxels, depth: Tensor, labels: Tensor,
             radius: float, reach: float) -> Tensor:
     """:func:`owned_pixels` from :func:`_pixel_voxels` (its band >= ``radius``, its reach
     >= ``reach``)."""
@@ -297,7 +299,7 @@ def _owners(shape: tuple[int, int], near: PixelVoxels, depth: Tensor, labels: Te
     return owner
 
 
-def _candidates(shape: tuple[int, int], near: PixelVoxels, labels: Tensor, k: int,
+def _candidates(shape: tuple[int, int], near: _PixelVoxels, labels: Tensor, k: int,
                 band: float) -> Tensor:
     """:func:`candidate_individuals` from :func:`_pixel_voxels` (its band >= ``band``)."""
     out = torch.zeros(k, *shape, dtype=torch.bool)
