@@ -43,8 +43,8 @@ MIXTURE_RESTARTS = 10
 MIXTURE_ITERATIONS = 100
 # with a track, the restarts run only where its start is less likely than the partition's by
 # more than RESTART_TOLERANCE nats per voxel, what two fits of one optimum differ by (the EM's
-# stopping tolerance, sklearn's default); -inf: every frame (docs/nsd.md, "Restarts only where
-# the track may be lost")
+# stopping tolerance, sklearn's default); -inf: every frame (docs/nsd.md, "A cheaper hull
+# for groups")
 RESTART_TOLERANCE = 1e-3
 
 
@@ -243,8 +243,7 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
     added to the ``track``'s. The ``track`` is handed the kept mixture, or the partition's
     Gaussians where the mixture is not kept. Where the track's start is as likely as the
     partition's (within ``RESTART_TOLERANCE``) or more, the bodies are where the last frame
-    left them and the restarts are not run (docs/nsd.md, "Restarts only where the track
-    may be lost").
+    left them and the restarts are not run (docs/nsd.md, "A cheaper hull for groups").
     """
     # lazy: scikit-learn (1.9 s to import) only where the hull's k-means may have cut a body
     from sklearn.mixture import GaussianMixture
