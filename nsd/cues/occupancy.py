@@ -268,12 +268,11 @@ def _pixel_voxels(fg: Tensor, uv: Tensor, band: float, reach: float) -> _PixelVo
                            np.zeros(0))
     voxels = cKDTree(pts)
     dist, nearest = voxels.query(pix, k=1, distance_upper_bound=np.nextafter(reach, np.inf))
-    pairs = cKDTree(pix).sparse_distance_matrix(voxels, np.nextafter(band, np.inf),
-                                                output_type="ndarray")
-    inside = pairs["v"] <= band
+    # every pair at most band apart (sparse_distance_matrix keeps distances <= its bound)
+    pairs = cKDTree(pix).sparse_distance_matrix(voxels, band, output_type="ndarray")
     nearest = np.where(np.isfinite(dist), nearest, 0).astype(np.int64)
-    return _PixelVoxels(ys, xs, nearest, dist, pairs["i"][inside].astype(np.int64),
-                       pairs["j"][inside].astype(np.int64), pairs["v"][inside])
+    return _PixelVoxels(ys, xs, nearest, dist, pairs["i"].astype(np.int64),
+                        pairs["j"].astype(np.int64), pairs["v"])
 
 
 def _owners(shape: tuple[int, int], near: _PixelVoxels, depth: Tensor, labels: Tensor,

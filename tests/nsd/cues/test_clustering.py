@@ -73,6 +73,13 @@ def _ellipse_columns(centre, semi: tuple[float, float], height: int, cell: float
     return torch.tensor(pts, dtype=torch.float32)
 
 
+def _long_beside_round(cell: float) -> tuple[torch.Tensor, int]:
+    """Voxel centres (P, 3) of a long, low body at the origin beside a round, upright one
+    1.3 to its side, and how many of them (the first) are the long body's."""
+    long_body = _ellipse_columns((0.0, 0.0), (0.8, 0.25), 6, cell)
+    return torch.cat([long_body, _columns([(1.3, 0.0)], 0.25, 16, cell)]), len(long_body)
+
+
 def test_a_long_low_body_beside_an_upright_one_is_not_cut_at_the_midpoint():
     """A quadruped-like body (1.6 m long, 0.6 m high) with an upright one 0.25 m beyond its
     nose: the k-means of the columns gives the nose to the upright body (it lies nearer
@@ -173,9 +180,7 @@ def test_a_scene_without_the_mixture_keeps_the_k_means_and_fits_nothing():
     k-means' Gaussians; a track of a scene that wants it gets the mixture's labels and this
     frame's gain; forced (``-inf``), the mixture is fitted whatever the scene."""
     cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
-    long_body = _ellipse_columns((0.0, 0.0), (0.8, 0.25), 6, cell)
-    pts = torch.cat([long_body, _columns([(1.3, 0.0)], 0.25, 16, cell)])
-    n = len(long_body)
+    pts, n = _long_beside_round(cell)
     kmeans = cluster_individuals(pts, up, cell, 2, mixture_gain=np.inf)
     quiet = ClusterTrack(mixture=False)
     assert torch.equal(cluster_individuals(pts, up, cell, 2, track=quiet), kmeans)
@@ -224,8 +229,7 @@ def test_a_track_s_rules_decide_the_mixture_of_each_frame():
     k-means and fits nothing, the shipped bar takes the mixture where a long body beside a
     round one gains more, ``-inf`` takes it whatever the gain."""
     cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
-    long_body = _ellipse_columns((0.0, 0.0), (0.8, 0.25), 6, cell)
-    pts = torch.cat([long_body, _columns([(1.3, 0.0)], 0.25, 16, cell)])
+    pts, _ = _long_beside_round(cell)
     kmeans = cluster_individuals(pts, up, cell, 2, mixture_gain=np.inf)
     never = ClusterTrack(rules=MixtureRules.defaults(mixture_gain=np.inf))
     assert torch.equal(cluster_individuals(pts, up, cell, 2, track=never), kmeans)
@@ -266,9 +270,7 @@ def test_the_restarts_run_only_where_the_track_may_have_lost_a_body(monkeypatch)
 
     monkeypatch.setattr(GaussianMixture, "fit", counted)
     cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
-    long_body = _ellipse_columns((0.0, 0.0), (0.8, 0.25), 6, cell)
-    pts = torch.cat([long_body, _columns([(1.3, 0.0)], 0.25, 16, cell)])
-    n = len(long_body)
+    pts, n = _long_beside_round(cell)
     track = ClusterTrack()
     first = cluster_individuals(pts, up, cell, 2, track=track)
     assert fitted == ["given"] + ["k-means++"] * clustering.MIXTURE_RESTARTS
