@@ -96,6 +96,16 @@ def _identity_split(out: Path, scene: Path) -> dict:
     return identity_accuracy_by_contact(out / "export", scene, rows, rows["identity"], (128, 128))
 
 
+def _identities_from(rec: dict) -> str:
+    """What the run's identities were computed from: texture codes (of which species'
+    models) or NSD's appearance vectors."""
+    ident = rec["identities"]["summary"]
+    if ident.get("column") == "app":
+        return "NSD appearance vectors"
+    species = sorted(ident.get("species", {}))
+    return "texture codes" + (f" within each species ({', '.join(species)})" if species else "")
+
+
 def _carried(scenes: list[str], report: str) -> list[dict]:
     """The rows of ``scenes`` in the current docs/benchmarks/<report>.json, marked with their
     date and commit (a scene not re-run this time keeps its figures, visibly older)."""
@@ -177,7 +187,10 @@ def main() -> None:
                     f"identity_accuracy{part}")
             learned["idf1"] = ident.get("tracking", {}).get("identities", {}).get("idf1")
             learned["identities"] = (f"{ident.get('method', 'rows')}, "
-                                     f"fill {ident.get('fill', 'tracks')}")
+                                     f"fill {ident.get('fill', 'tracks')}, "
+                                     f"{_identities_from(rec)}")
+            kp = rec.get("keypoints", {}).get("summary", {})
+            learned["species_accuracy"] = kp.get("species_accuracy", {}).get("accuracy")
             learned["train_steps"] = rec["train"]["summary"].get("steps")
             rows.append(learned)
             if not any(r["method"] == "hull-only" and r["scene"] == name and r["seed"] == seed
@@ -205,7 +218,10 @@ def main() -> None:
                "of the residuals alone (nsd/evaluation/hull_baseline.py). Identity accuracy "
                "and IDF1 (whole export, all frames, split apart / touching by frame) exist for the "
                "learned rows only: the hull-only decomposition has no identities over time; "
-               "`identities`: how they were assigned (`netepu.identities.method`, `.fill`). "
+               "`identities`: how they were assigned (`netepu.identities.method`, `.fill`, and "
+               "from what). `species_accuracy`: in scenes of two species, the share of "
+               "inverted subject-frames that took the species of the individual they match "
+               "(netepu/pipeline/species_choice.py). "
                "`measured`: this run, or the date and commit of rows carried from an "
                "earlier report (`--carry`: scenes not re-run)."),
     )

@@ -43,7 +43,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from netepu.pipeline.species_models import SpeciesModels, resolve_species_models
+from netepu.pipeline.species_models import SpeciesModels, resolve_scene_models
 from netepu.pipeline.stages import (
     DEFAULT_SCENE,
     evaluate_stage,
@@ -104,26 +104,35 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
 
     resolved: list[SpeciesModels] = []
 
-    def models() -> SpeciesModels:  # the NeTePu models of the scene's species (after scene)
-        if not resolved:  # once, for the keypoints and the texture stage
+    def models() -> list[SpeciesModels]:  # the NeTePu models of the scene's species (after
+        if not resolved:  # scene), once for the keypoints, texture and identities stages
             n = cfg.netepu
-            resolved.append(resolve_species_models(
+            resolved.extend(resolve_scene_models(
                 str(n.species), n.geometry, n.texture, runner.results["scene"].summary["path"],
                 initialiser=n.keypoints.initialiser))
-        return resolved[0]
+        return resolved
+
+    def several() -> list[str]:  # the species of a run of several, each with its own models
+        inverse = cfg.netepu.keypoints.source != "regressor"  # the regressor fits one body
+        return [m.species for m in models()] if len(models()) > 1 and inverse else []
+
+    def chosen() -> list[SpeciesModels]:  # one set per species of a run of several, else one
+        return models() if several() else models()[:1]
 
     return [
         lambda: scene_stage(cfg),
         lambda: train_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
         lambda: evaluate_stage(cfg, bool(runner.results["scene"].summary["ground_truth"])),
         lambda: export_stage(cfg),
-        lambda: keypoints_stage(cfg, models()),
-        lambda: texture_stage(cfg, models(), _ran(runner, "keypoints")),
+        lambda: keypoints_stage(cfg, chosen()),
+        lambda: texture_stage(cfg, chosen(), _ran(runner, "keypoints")),
         lambda: identities_stage(
-            cfg, _ran(runner, "texture"), bool(runner.results["scene"].summary["ground_truth"])
+            cfg, _ran(runner, "texture"), bool(runner.results["scene"].summary["ground_truth"]),
+            several(),
         ),
         lambda: quality_stage(cfg, _ran(runner, "identities")),
-        lambda: formats_stage(cfg, _ran(runner, "identities"), _ran(runner, "keypoints")),
+        lambda: formats_stage(cfg, _ran(runner, "identities"),
+                              _ran(runner, "keypoints") and not several()),
         lambda: overlays_stage(cfg, _ran(runner, "identities")),
         lambda: grids_stage(cfg),
     ]

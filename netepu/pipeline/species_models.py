@@ -31,12 +31,14 @@ __all__ = [
     "builtin_initialisers",
     "builtin_models",
     "resolve_initialiser",
+    "resolve_scene_models",
     "resolve_species_models",
     "scene_species",
 ]
 
 BUILTIN = "builtin"  # the value of netepu.geometry / netepu.texture that picks the shipped model
-SPECIES = ("auto", "biped", "quadruped")  # netepu.species (auto: the scene's own)
+SPECIES = ("auto", "biped", "quadruped", "mixed")  # netepu.species (auto: the scene's own;
+# mixed: every shipped species, each subject taking the one that fits it)
 MODELS = Path(__file__).with_name("models")  # package data: <species>.pt and models.json
 
 
@@ -85,6 +87,7 @@ class SpeciesModels:
     initialiser: str | None = None
     key_initialiser: str | None = None
     why_initialiser: str = "netepu.keypoints.initialiser=null"
+    species: str = ""  # the built-in models' species ("" for checkpoints of the user's own)
 
 
 def _builtin(species: str, scene: str | Path, folder: Path) -> tuple[dict | None, str]:
@@ -117,6 +120,9 @@ def resolve_species_models(
     """
     if species not in SPECIES:
         raise ConfigError(f"netepu.species must be one of {SPECIES}, got {species!r}")
+    if species == "mixed":
+        return SpeciesModels(None, None, *["netepu.species=mixed takes one model per species "
+                                           "(resolve_scene_models)"] * 2, None, None)
     # the scene's species is read only when a built-in model is asked for
     entry, why = _builtin(species, scene, folder) if BUILTIN in (
         str(geometry), str(texture)) else (None, "")
@@ -141,7 +147,36 @@ def resolve_species_models(
     else:
         init, init_key, init_why = resolve_initialiser(initialiser, species, scene, folder)
     return SpeciesModels(paths[0], paths[1], whys[0], whys[1], keys[0], keys[1], init, init_key,
-                         init_why)
+                         init_why, entry["species"] if entry else "")
+
+
+def resolve_scene_models(
+    species: str, geometry: str | None, texture: str | None, scene: str | Path,
+    folder: Path = MODELS, initialiser: str | None = None,
+) -> list[SpeciesModels]:
+    """The NeTePu models of a run: one :class:`SpeciesModels`, or one per species where the
+    run holds several (``netepu.species=mixed``: every shipped species; ``auto`` on a scene
+    that declares several), each with the built-in models of its species.
+
+    Raises:
+        ConfigError: an unknown species, or ``mixed`` with checkpoints of the user's own (a
+            model of another body cannot tell which species a subject is).
+    """
+    own = [v for v in (geometry, texture) if v is not None and str(v) != BUILTIN]
+    if species == "mixed" and (own or geometry is None):
+        raise ConfigError("netepu.species=mixed takes the built-in models of every species (their "
+                          "geometry models tell which species a subject is): set "
+                          "netepu.geometry=builtin and netepu.texture to builtin or null, or "
+                          "netepu.species=auto with checkpoints of your own")
+    several = sorted(builtin_models(folder)) if species == "mixed" else (
+        scene_species(scene) if species == "auto" and not own and str(geometry) == BUILTIN
+        else [])
+    if len(several) < 2:
+        if species == "mixed":  # fewer than two species shipped: the one there is
+            species = several[0] if several else "biped"
+        return [resolve_species_models(species, geometry, texture, scene, folder, initialiser)]
+    return [resolve_species_models(s, geometry, texture, scene, folder, initialiser)
+            for s in several]
 
 
 def resolve_initialiser(value: str | None, species: str, scene: str | Path,

@@ -18,6 +18,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from netepu.pipeline.embed import embed_into_copy
 from netepu.pipeline.pose_keypoints import regress_export
+from netepu.pipeline.species_choice import (
+    choose_species,
+    read_species_csv,
+    species_of_rows,
+    split_fits,
+    write_species_csv,
+)
 from netepu.pipeline.species_models import BUILTIN, SpeciesModels
 from netepu.pipeline.subject_keypoints import invert_export, load_initialiser_checked
 from netepu.reid.identities import assign_identities, transfer_identities
@@ -28,7 +35,7 @@ from nsd.core.stages import Stage, StageResult, config_hash
 from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
 from nsd.evaluation.identity import identity_accuracy_by_contact
-from nsd.evaluation.pose import keypoint_error
+from nsd.evaluation.pose import keypoint_error, species_accuracy
 from nsd.evaluation.quality import quality_markdown, quality_report
 from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
@@ -283,35 +290,46 @@ def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:
         load_initialiser_checked(init)  # a missing or foreign file: now, not after training
 
 
-def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
-    """3D keypoints of the exported subjects: NeTePu inverse rendering with ``models.geometry``
-    (label-free), or NSD's pose regressor (``netepu.keypoints.source=regressor``)."""
+def keypoints_stage(cfg: DictConfig, models: list[SpeciesModels]) -> Stage:
+    """3D keypoints of the exported subjects: NeTePu inverse rendering with the geometry model
+    (label-free), or NSD's pose regressor (``netepu.keypoints.source=regressor``).
+
+    With several species (``models``: one set per species), every subject-frame is inverted
+    with each species' model (``<species>/all/``) and takes the species that fits it best
+    (:mod:`netepu.pipeline.species_choice`: ``species.csv``, ``<species>/keypoints3d.npz``)."""
     k = cfg.netepu.keypoints
     regress = k.source == "regressor"
+    several = len(models) > 1
     settings = {"source": k.source, **{name: k[name] for name in _INVERSE_KEYS}}
     if regress:  # the regressor is trained on the decomposition of the train stage
         settings |= {"label_fraction": k.label_fraction, "regressor_steps": k.regressor_steps}
     else:
-        settings["geometry"] = models.key_geometry
-        settings["initialiser"] = models.key_initialiser
+        keys = [(m.key_geometry, m.key_initialiser) for m in models]
+        settings["geometry"] = [g for g, _ in keys] if several else keys[0][0]
+        settings["initialiser"] = [i for _, i in keys] if several else keys[0][1]
         settings["fps"] = cfg.formats.get("fps")  # the travel's time base
+
+    def invert(m: SpeciesModels, export: Path, scene: str, out: Path) -> dict[str, Any]:
+        workers = resolve_workers(k.workers, int(cfg.threads), "cpu")  # inverts on the CPU
+        if m.initialiser is None:
+            log.info("keypoints: no learned initialiser (%s); cold starts screen the "
+                     "template poses", m.why_initialiser)
+        return invert_export(
+            export, scene, m.geometry, out, workers=workers, initialiser=m.initialiser,
+            fps=settings["fps"], **{name: k[name] for name in _INVERSE_KEYS},
+        )
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         scene = up["scene"].summary["path"]
         export = up["export"].folder
+        truth = up["scene"].summary["ground_truth"]
         if regress:
             summary = _regress_keypoints(cfg, scene, _checkpoint(up), export, out)
+        elif not several:
+            summary = invert(models[0], export, scene, out)
         else:
-            workers = resolve_workers(k.workers, int(cfg.threads), "cpu")  # inverts on the CPU
-            if models.initialiser is None:
-                log.info("keypoints: no learned initialiser (%s); cold starts screen the "
-                         "template poses", models.why_initialiser)
-            summary = invert_export(
-                export, scene, models.geometry, out, workers=workers,
-                initialiser=models.initialiser, fps=settings["fps"],
-                **{name: k[name] for name in _INVERSE_KEYS},
-            )
-        if up["scene"].summary["ground_truth"]:
+            return _keypoints_of_species(models, invert, export, scene, out, truth)
+        if truth:
             summary["accuracy"] = keypoint_error(export, scene, out / "keypoints3d.npz")
         return summary
 
@@ -320,9 +338,31 @@ def keypoints_stage(cfg: DictConfig, models: SpeciesModels) -> Stage:
         run,
         settings,
         needs=("scene", "train", "export") if regress else ("scene", "export"),
-        enabled=regress or models.geometry is not None,
-        why_disabled=f"no geometry model ({models.why_geometry}) and source=inverse",
+        enabled=regress or all(m.geometry is not None for m in models),
+        why_disabled=f"no geometry model ({models[0].why_geometry}) and source=inverse",
     )
+
+
+def _keypoints_of_species(models: list[SpeciesModels], invert, export: Path, scene: str,
+                          out: Path, truth: bool) -> dict[str, Any]:
+    """The keypoints stage of a run of several species (:func:`keypoints_stage`)."""
+    fits, per_species = {}, {}
+    for m in models:
+        log.info("keypoints: every subject fitted with the %s model", m.species)
+        per_species[m.species] = invert(m, export, scene, out / m.species / "all")
+        fits[m.species] = out / m.species / "all" / "keypoints3d.npz"
+    choices = choose_species(fits)
+    write_species_csv(out / "species.csv", choices)
+    kept = split_fits(fits, choices, {s: out / s / "keypoints3d.npz" for s in fits})
+    log.info("keypoints: subject-frames by species %s; the pose tools' files (formats) take "
+             "one skeleton, so they are written without these keypoints: %s/<species>/"
+             "keypoints3d.npz hold them", kept, out)
+    summary: dict[str, Any] = {"species": kept, "fitted": per_species}
+    if truth:
+        summary["species_accuracy"] = species_accuracy(export, scene, choices)
+        summary["accuracy"] = {s: keypoint_error(export, scene, out / s / "keypoints3d.npz",
+                                                 other_bodies=True) for s in fits}
+    return summary
 
 
 def _regress_keypoints(
@@ -352,53 +392,65 @@ def _regress_keypoints(
     return summary
 
 
-def texture_stage(cfg: DictConfig, models: SpeciesModels, have_keypoints: bool) -> Stage:
+def texture_stage(cfg: DictConfig, models: list[SpeciesModels], have_keypoints: bool) -> Stage:
     """Texture codes, their re-id embeddings and NNOPCS maps of the exported subjects
-    (``models.texture``; netepu.pipeline.embed)."""
+    (the texture model; netepu.pipeline.embed). With several species, each species' texture
+    model codes the subjects that took it (``<species>/``, the keypoints stage's choice)."""
+    several = len(models) > 1
 
-    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
+    def embed(m: SpeciesModels, up: dict[str, StageResult], out: Path, kp: Path | None):
         res = embed_into_copy(
-            up["export"].folder, out, models.texture, kp, up["scene"].summary["path"],
+            up["export"].folder, out, m.texture, kp, up["scene"].summary["path"],
             maps=out / "nnopcs.npz", device=cfg.device,
         )  # fmt: skip
-        return {
-            "table": Path(res["path"]).name,
-            "rows": res["rows"],
-            "encoded": res["encoded"],
-            "maps": "nnopcs.npz",
-        }
+        return {"table": Path(res["path"]).name, "rows": res["rows"], "encoded": res["encoded"],
+                "maps": "nnopcs.npz"}
+
+    def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
+        kp = up["keypoints"].folder if have_keypoints else None
+        if not several:
+            return embed(models[0], up, out, kp / "keypoints3d.npz" if kp else None)
+        if kp is None:
+            raise ConfigError("texture: a run of several species codes each subject with the "
+                              "model of its species, which the keypoints stage chooses; it "
+                              "did not run")
+        return {m.species: embed(m, up, out / m.species, kp / m.species / "keypoints3d.npz")
+                for m in models}
 
     return Stage(
         "texture",
         run,
-        {"texture": models.key_texture},
+        {"texture": [m.key_texture for m in models] if several else models[0].key_texture},
         needs=("scene", "export", "keypoints"),
-        enabled=models.texture is not None,
-        why_disabled=f"no texture model ({models.why_texture})",
+        enabled=all(m.texture is not None for m in models),
+        why_disabled=f"no texture model ({models[0].why_texture})",
     )
 
 
-def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) -> Stage:
+def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
+                     species: list[str] | None = None) -> Stage:
+    """Identities of the rows from their texture codes (NSD's appearance vectors without a
+    texture stage), netepu.reid.identities. With several ``species`` (the texture stage's
+    folders), each species' rows are assigned among themselves, their identities numbered
+    after the species before (sorted names), and ``species.csv`` of the keypoints stage says
+    which rows are which."""
     i = cfg.netepu.identities
     column = str(i.column) if have_texture else "app"
+    several = bool(species) and len(species) > 1 and have_texture
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         if not have_texture:
             log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
-        source = up["texture"].folder if have_texture else up["export"].folder
         keys = ["id", "camera", "frame", "subject_id"]
-        by_app = column != "app" and str(i.fill) == "app"
-        table = read_embeddings(source, [*keys, column, *(["app"] if by_app else [])])
-        identity, summary = assign_identities(  # rows without a code hold NaN
-            table, column, int(i.k), str(i.method), int(i.restarts),
-            "nearest" if by_app else str(i.fill),  # by_app: replaced just below
-        )
-        summary["fill"] = str(i.fill)
-        if by_app:  # rows without a code: by their appearance vector, not their track
-            coded = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
-            identity = transfer_identities(table, identity, coded, "app")
-            summary["fill"] = "app: nearest identity by appearance vector"
+        if not several:
+            source = up["texture"].folder if have_texture else up["export"].folder
+            table, identity, summary = _assign(source, None, column, i, int(i.k))
+        else:
+            table, identity, summary = _identities_of_species(up, species, column, i)
+            if int(i.k) > 0:
+                log.warning("identities: netepu.identities.k=%d is not used with several "
+                            "species: each species takes its own count", int(i.k))
+        table = {c: table[c] for c in keys}
         write_identities(out / "identities.csv",
                          {**{c: table[c].tolist() for c in keys}, "identity": identity.tolist()})
         by_row = dict(zip(table["id"].tolist(), identity.tolist(), strict=True))
@@ -421,11 +473,66 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool) ->
     return Stage(
         "identities",
         run,
-        {**_container(i), "column": column},
-        needs=("scene", "export", "texture"),
+        {**_container(i), "column": column, **({"species": species} if several else {})},
+        needs=("scene", "export", "keypoints", "texture") if several else (
+            "scene", "export", "texture"),
         enabled=bool(i.enabled),
         why_disabled="netepu.identities.enabled=false",
     )
+
+
+def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: int
+            ) -> tuple[dict, np.ndarray, dict]:
+    """The identities (``netepu.identities`` = ``i``, ``k`` of them or 0: the median count) of
+    the rows of the embedding table at ``source`` (those of ids ``rows`` only, if given):
+    ``(table, identity, summary)``."""
+    keys = ["id", "camera", "frame", "subject_id"]
+    by_app = column != "app" and str(i.fill) == "app"
+    table = read_embeddings(source, [*keys, column, *(["app"] if by_app else [])])
+    if rows is not None:
+        keep = np.isin(np.asarray(table["id"], np.int64), sorted(rows))
+        table = {c: v[keep] for c, v in table.items()}
+    identity, summary = assign_identities(  # rows without a code hold NaN
+        table, column, k, str(i.method), int(i.restarts),
+        "nearest" if by_app else str(i.fill),  # by_app: replaced just below
+    )
+    summary["fill"] = str(i.fill)
+    if by_app:  # rows without a code: by their appearance vector, not their track
+        coded = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
+        identity = transfer_identities(table, identity, coded, "app")
+        summary["fill"] = "app: nearest identity by appearance vector"
+    return table, identity, summary
+
+
+def _identities_of_species(up: dict[str, StageResult], species: list[str], column: str,
+                           i: DictConfig) -> tuple[dict, np.ndarray, dict]:
+    """Identities of a run of several species: every row takes a species
+    (:func:`netepu.pipeline.species_choice.species_of_rows`, from the keypoints stage's
+    ``species.csv``), and each species' rows are assigned among themselves from the texture
+    stage's ``<species>/`` table (:func:`_assign`, as many identities as the species shows at
+    once), numbered after the species before. Returns the whole table's keys, the identities
+    (-1: a row of no species) and the summary with one entry per species."""
+    keys = ["id", "camera", "frame", "subject_id"]
+    choices = read_species_csv(up["keypoints"].folder / "species.csv")
+    table = read_embeddings(up["export"].folder, keys)
+    of_row = species_of_rows(table["subject_id"], table["frame"], choices)
+    identity = np.full(len(of_row), -1, np.int64)
+    row = {int(r): n for n, r in enumerate(table["id"].tolist())}
+    summary: dict[str, Any] = {"species": {}}
+    offset = 0
+    for s in sorted(species):
+        ids_of_s = {int(r) for r, x in zip(table["id"].tolist(), of_row, strict=True) if x == s}
+        if not ids_of_s:
+            summary["species"][s] = {"rows": 0}
+            continue
+        sub, ident, part = _assign(up["texture"].folder / s, ids_of_s, column, i, 0)
+        at = np.array([row[int(r)] for r in sub["id"].tolist()], np.int64)
+        identity[at] = np.where(ident >= 0, ident + offset, -1)
+        summary["species"][s] = part | {"rows": len(at), "first_identity": offset}
+        offset += int(ident.max()) + 1 if (ident >= 0).any() else 0
+        summary |= {k: v for k, v in part.items() if k in ("method", "fill")}
+    summary["identities"] = len(set(identity[identity >= 0].tolist()))
+    return table, identity, summary
 
 
 def formats_stage(cfg: DictConfig, have_identities: bool, have_keypoints: bool) -> Stage:

@@ -215,7 +215,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "evaluate.frames": ALWAYS, "evaluate.refine": _r("str", choices=("residual", "none")),
         "netepu.geometry": NULL_TEXT, "netepu.texture": NULL_TEXT,
         # netepu.pipeline.species_models.SPECIES (a test keeps them equal)
-        "netepu.species": _r("str", choices=("auto", "biped", "quadruped")),
+        "netepu.species": _r("str", choices=("auto", "biped", "quadruped", "mixed")),
         "netepu.keypoints.frame_step": POS, "netepu.keypoints.min_views": _r("int", low=2),
         "netepu.keypoints.steps": POS, "netepu.keypoints.templates": POS,
         "netepu.keypoints.workers": _r("int", low=1, allow=("auto",)),

@@ -5,9 +5,12 @@ synthetic scene (subjects matched to ground-truth individuals by mask IoU,
 
 from __future__ import annotations
 
+import json
 import os
 from collections import Counter, defaultdict
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from torch import Tensor
@@ -16,7 +19,8 @@ from nsd.core.errors import ConfigError
 from nsd.evaluation.identity import ground_truth_identities
 from nsd.io.ground_truth import GroundTruth
 
-__all__ = ["keypoint_error", "mirror_errors", "mpjpe", "subject_frame_errors"]
+__all__ = ["keypoint_error", "mirror_errors", "mpjpe", "species_accuracy",
+           "subject_frame_errors"]
 
 
 def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
@@ -24,29 +28,52 @@ def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).double().norm(dim=-1).mean()
 
 
+def _subject_truth(export: str | os.PathLike, scene: str | os.PathLike
+                   ) -> dict[tuple[int, int], int]:
+    """(frame, subject_id) -> the ground-truth individual most of the subject-frame's rows
+    match (:func:`nsd.evaluation.identity.ground_truth_identities`)."""
+    votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
+    for _cam, t, sid, ident in ground_truth_identities(export, scene).values():
+        votes[(t, sid)][ident] += 1
+    return {k: v.most_common(1)[0][0] for k, v in votes.items()}
+
+
 def _matched(export: str | os.PathLike, scene: str | os.PathLike,
-             keypoints: str | os.PathLike) -> tuple[int, list[tuple[np.ndarray, np.ndarray]]]:
+             keypoints: str | os.PathLike, other_bodies: bool = False
+             ) -> tuple[int, list[tuple[np.ndarray, np.ndarray]]]:
     """``(subject-frames in the file, (inverted, true) keypoints (K, 3) of each one matched)``:
     each inverted subject-frame is matched to the ground-truth individual most of its rows
-    match (:func:`nsd.evaluation.identity.ground_truth_identities`); unmatched ones are left
-    out."""
+    match (:func:`_subject_truth`); unmatched ones are left out, and with ``other_bodies``
+    those matched to an individual of another number of keypoints (another species)."""
     truth = GroundTruth.load(scene).scene.keypoints3d
-    matched = ground_truth_identities(export, scene)
-    votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
-    for _cam, t, sid, ident in matched.values():
-        votes[(t, sid)][ident] += 1
+    matched = _subject_truth(export, scene)
     with np.load(keypoints) as z:
         frames, sids, kps = z["subject_frame"], z["subject_id"], z["subject_keypoints"]
     pairs = []
     for t, sid, kp in zip(frames.tolist(), sids.tolist(), kps, strict=True):
-        v = votes.get((t, sid))
-        if not v:
+        if (t, sid) not in matched:
             continue
-        gt = truth[v.most_common(1)[0][0]][t]
+        gt = truth[matched[(t, sid)]][t]
         if gt.shape != kp.shape:
+            if other_bodies:
+                continue
             raise ConfigError(f"keypoints: {kp.shape[0]} keypoints, the scene has {gt.shape[0]}")
         pairs.append((kp, gt))
     return len(frames), pairs
+
+
+def species_accuracy(export: str | os.PathLike, scene: str | os.PathLike,
+                     choices: Sequence[Any]) -> dict[str, float]:
+    """Share of the subject-frames whose chosen species (``choices``: items with ``frame``,
+    ``subject_id``, ``species``, :class:`netepu.pipeline.species_choice.SpeciesChoice`) is the
+    species of the ground-truth individual they match, over those matched (``scored``)."""
+    individuals = json.loads((Path(scene) / "gt" / "scene.json").read_text())["individuals"]
+    body = {int(i["identity_id"]): str(i["species"]) for i in individuals}
+    matched = _subject_truth(export, scene)
+    right = [c.species == body[matched[(c.frame, c.subject_id)]] for c in choices
+             if (c.frame, c.subject_id) in matched]
+    return {"scored": float(len(right)),
+            "accuracy": float(np.mean(right)) if right else float("nan")}
 
 
 def _mm(kp: np.ndarray, gt: np.ndarray) -> float:
@@ -54,11 +81,12 @@ def _mm(kp: np.ndarray, gt: np.ndarray) -> float:
 
 
 def subject_frame_errors(
-    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
+    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike,
+    other_bodies: bool = False,
 ) -> tuple[int, list[float]]:
     """``(subject-frames in the file, MPJPE in mm of each one matched)`` (matched as in
     :func:`_matched`; unmatched ones are left out)."""
-    inverted, pairs = _matched(export, scene, keypoints)
+    inverted, pairs = _matched(export, scene, keypoints, other_bodies)
     return inverted, [_mm(kp, gt) for kp, gt in pairs]
 
 
@@ -74,13 +102,15 @@ def mirror_errors(
 
 
 def keypoint_error(
-    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike
+    export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike,
+    other_bodies: bool = False,
 ) -> dict[str, float]:
     """MPJPE (mm) of the inverted subjects against a synthetic scene's 3D keypoints, mean and
     median over the matched subject-frames (:func:`subject_frame_errors`); unmatched ones
-    are counted but not scored."""
+    (and with ``other_bodies``, those matched to an individual of another species) are
+    counted but not scored."""
 
-    inverted, errors = subject_frame_errors(export, scene, keypoints)
+    inverted, errors = subject_frame_errors(export, scene, keypoints, other_bodies)
     return {
         "inverted": float(inverted),
         "scored": float(len(errors)),

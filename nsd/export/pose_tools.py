@@ -41,7 +41,8 @@ from nsd.core.atomic import atomic_write_text
 from nsd.export.positions import mask_centroid
 from nsd.io.footage import ImageFolderSource, find_source, footage_frame_rate
 
-__all__ = ["POSE_TOOL_FORMATS", "read_trc", "write_c3d", "write_pose_tool_files", "write_trc"]
+__all__ = ["POSE_TOOL_FORMATS", "one_row_per_identity", "read_trc", "write_c3d",
+           "write_pose_tool_files", "write_trc"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,32 @@ def _session(rig: CameraRig, videos: dict[str, sio.Video]) -> sio.RecordingSessi
     for name, video in videos.items():
         session.add_video(video, cams[name])
     return session
+
+
+def one_row_per_identity(annotations: list[dict], row_ids: dict[int, int]
+                         ) -> tuple[dict[int, int], int]:
+    """``row_ids`` with at most one row per identity and camera-frame: where several rows of
+    a camera-frame share an identity (the identities of rows between coded frames come from
+    their tracks, which can meet), the row of highest score keeps it (then the larger
+    area, then the lower id) and the others get -1. Returns the new map and how many rows
+    lost their identity."""
+    def rank(a: dict) -> tuple[float, float, int]:
+        return float(a.get("score", 1.0)), float(a.get("area", 0.0)), -int(a["id"])
+
+    best: dict[tuple[str, int, int], dict] = {}
+    out = dict(row_ids)
+    for a in annotations:
+        ident = row_ids.get(int(a["id"]), -1)
+        if ident < 0:
+            continue
+        key = (str(a["camera"]), int(a["frame"]), ident)
+        held = best.setdefault(key, a)
+        if held is a:
+            continue
+        keep, lose = (a, held) if rank(a) > rank(held) else (held, a)
+        best[key] = keep
+        out[int(lose["id"])] = -1
+    return out, sum(1 for k, v in out.items() if v < 0 <= row_ids.get(k, -1))
 
 
 def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int],
@@ -270,6 +297,12 @@ def write_pose_tool_files(
             kp_rows = dict(zip(z["id"].tolist(), z["keypoints"], strict=True))
     rate = _frame_rate(scene, rig.names, fps)
     summary: dict[str, Any] = {"fps": rate}
+    row_ids, doubled = one_row_per_identity(coco["annotations"], row_ids)
+    if doubled:
+        log.warning("pose tools: %d rows share their identity with another row of their "
+                    "camera-frame; the tools' files hold one instance per identity and "
+                    "camera-frame, so the row of higher score is kept", doubled)
+        summary["rows_left_out"] = doubled
     if not any(row_ids.get(int(a["id"]), -1) >= 0 for a in coco["annotations"]):
         log.warning("pose tools: the export holds no subject with an identity: no files written")
         summary.update(instances=0, tracks=0, files=[], skipped="no subjects")

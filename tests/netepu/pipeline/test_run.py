@@ -591,6 +591,49 @@ def test_default_run_takes_the_builtin_model_of_the_scenes_species(tmp_path, tin
     assert "does not declare its species" in results["keypoints"].summary["disabled"]
 
 
+def test_a_scene_of_two_species_fits_both_bodies_and_assigns_identities_within_each(tmp_path):
+    """A scene that declares bipeds and quadrupeds: every subject-frame is inverted with both
+    built-in geometry models, takes one species (species.csv), is coded by that species'
+    texture model only, and identities are numbered species by species."""
+    from netepu.pipeline.species_choice import read_species_csv
+    from nsd.io.embeddings import read_embeddings
+    from nsd.synth.skeleton import get_species
+
+    scene = write_scene(tiny_config(species=["biped", "quadruped"], num_individuals=2),
+                        tmp_path / "scene")
+    out = tmp_path / "run"
+    res = run_pipeline(_cfg(scene, out, "train.data.image_size=[48,48]", "evaluate.max_frames=2",
+                            "netepu.keypoints.frame_step=3", "netepu.keypoints.steps=4",
+                            "netepu.keypoints.templates=1", "netepu.keypoints.min_area=1"))
+    kp = out / "keypoints"
+    choices = read_species_csv(kp / "species.csv")
+    fitted = {s: np.load(kp / s / "all" / "keypoints3d.npz") for s in ("biped", "quadruped")}
+    assert len(choices) == len(fitted["biped"]["subject_frame"]) > 0
+    for s, z in fitted.items():  # each body's own keypoints
+        assert z["subject_keypoints"].shape[1:] == (get_species(s).num_keypoints, 3)
+    for c in choices:  # the lower loss, unless the track's neighbours outvote it
+        assert c.losses.keys() == {"biped", "quadruped"}
+    kept = res["keypoints"].summary["species"]
+    assert sum(kept.values()) == len(choices)
+    for s in ("biped", "quadruped"):
+        with np.load(kp / s / "keypoints3d.npz") as z:
+            mine = {(c.frame, c.subject_id) for c in choices if c.species == s}
+            assert set(zip(z["subject_frame"].tolist(), z["subject_id"].tolist(),
+                           strict=True)) == mine
+            table = read_embeddings(out / "texture" / s)
+            assert np.array_equal(table["texture_valid"], np.isin(table["id"], z["id"]))
+    summary = res["identities"].summary
+    assert set(summary["species"]) == {"biped", "quadruped"}
+    rows = sum(summary["species"][s]["rows"] for s in ("biped", "quadruped"))
+    _, *lines = (out / "identities" / "identities.csv").read_text().split()
+    identified = sum(int(line.split(",")[4]) >= 0 for line in lines)
+    assert identified <= rows <= len(lines) and summary["identities"] >= 1
+    acc = res["keypoints"].summary["species_accuracy"]
+    assert acc["scored"] == 0 or 0 <= acc["accuracy"] <= 1
+    formats = json.loads((out / "formats" / "stage.json").read_text())["config"]
+    assert formats["keypoints"] is False  # the pose tools' files take one skeleton
+
+
 def test_every_run_writes_a_label_free_quality_report(tiny_run):
     _, out, results = tiny_run
     q = results["quality"].summary

@@ -14,6 +14,7 @@ from netepu.pipeline.species_models import (
     builtin_initialisers,
     builtin_models,
     resolve_initialiser,
+    resolve_scene_models,
     resolve_species_models,
     scene_species,
 )
@@ -108,10 +109,32 @@ def test_builtin_says_why_when_no_model_fits(synth_scene, tiny_scene, tmp_path):
         resolve_species_models("cow", BUILTIN, BUILTIN, tiny_scene, folder)
 
 
-def test_two_species_in_one_scene_need_a_choice(tmp_path):
+def test_a_scene_of_two_species_takes_the_models_of_both(tmp_path, synth_scene):
+    """auto on a scene that declares two species, or mixed: one model set per species, each
+    with its initialiser; one species per scene, or checkpoints of the user's own: one set."""
     scene = write_scene(tiny_config(species=["biped", "quadruped"]), tmp_path / "scene")
-    m = resolve_species_models("auto", BUILTIN, BUILTIN, scene, _folder(tmp_path / "m"))
+    folder = _folder(tmp_path / "m", ("biped", "quadruped"))
+    m = resolve_species_models("auto", BUILTIN, BUILTIN, scene, folder)  # one set cannot
     assert m.geometry is None and "biped and quadruped" in m.why_geometry
+    for species in ("auto", "mixed"):
+        sets = resolve_scene_models(species, BUILTIN, BUILTIN, scene, folder, BUILTIN)
+        assert [s.species for s in sets] == ["biped", "quadruped"]
+        assert [s.geometry for s in sets] == [str(folder / f"{x}.pt") for x in ("biped",
+                                                                              "quadruped")]
+        assert [s.key_texture for s in sets] == ["builtin:biped-hash", "builtin:quadruped-hash"]
+    no_texture = resolve_scene_models("auto", BUILTIN, None, scene, folder)
+    assert [s.texture for s in no_texture] == [None, None] and len(no_texture) == 2
+    one = resolve_scene_models("auto", BUILTIN, BUILTIN, synth_scene, folder)
+    assert [s.species for s in one] == ["biped"]
+    own = resolve_scene_models("auto", "my/geo.pt", BUILTIN, scene, folder)
+    assert len(own) == 1 and own[0].geometry == "my/geo.pt" and own[0].texture is None
+    mixed_on_biped_scene = resolve_scene_models("mixed", BUILTIN, BUILTIN, synth_scene, folder)
+    assert len(mixed_on_biped_scene) == 2  # mixed: every shipped species, whatever is declared
+    for geometry, texture in (("my/geo.pt", BUILTIN), (BUILTIN, "my/tex.pt"), (None, BUILTIN)):
+        with pytest.raises(ConfigError, match=r"netepu\.species=mixed"):
+            resolve_scene_models("mixed", geometry, texture, scene, folder)
+    only = resolve_scene_models("mixed", BUILTIN, BUILTIN, scene, _folder(tmp_path / "o"))
+    assert [s.species for s in only] == ["biped"]  # one species shipped: that one
 
 
 def test_the_shipped_models_are_what_the_manifest_says():

@@ -39,3 +39,31 @@ def test_mirrored_subjects_are_told_apart_from_fitted_ones(world, tmp_path):
     inverted, errors = subject_frame_errors(world["export"], world["scene"], path)
     assert inverted == len(frames)
     np.testing.assert_allclose(errors, [e[0] for e in expected], atol=1e-3)
+
+
+def test_species_choices_and_keypoints_of_another_body_are_scored_against_the_truth(
+        world, tmp_path):
+    """The world holds bipeds: subject-frames said to be bipeds are right, quadrupeds wrong,
+    and unmatched ones are not scored; a file of another body's keypoints stops the scoring
+    unless told that several bodies are fitted, which leaves those subject-frames out."""
+    import pytest
+
+    from netepu.pipeline.species_choice import SpeciesChoice
+    from nsd.core.errors import ConfigError
+    from nsd.evaluation.pose import keypoint_error, species_accuracy
+
+    truth = _truth(world)
+    choices = [SpeciesChoice(t, ident + 1, "biped" if t < 3 else "quadruped", {})
+               for t in range(4) for ident in truth]
+    choices.append(SpeciesChoice(0, 99, "biped", {}))  # no such subject: not scored
+    got = species_accuracy(world["export"], world["scene"], choices)
+    assert got == {"scored": 4.0 * len(truth), "accuracy": 0.75}
+    path = tmp_path / "keypoints3d.npz"
+    n = 2 * len(truth)
+    np.savez(path, subject_frame=np.repeat([0, 1], len(truth)),
+             subject_id=np.tile([i + 1 for i in truth], 2),
+             subject_keypoints=np.zeros((n, 25, 3), np.float32))  # a quadruped's 25
+    with pytest.raises(ConfigError, match="25 keypoints"):
+        keypoint_error(world["export"], world["scene"], path)
+    other = keypoint_error(world["export"], world["scene"], path, other_bodies=True)
+    assert other["inverted"] == n and other["scored"] == 0 and np.isnan(other["mpjpe_mm"])

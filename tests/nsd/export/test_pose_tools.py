@@ -210,3 +210,28 @@ def test_a_camera_without_any_identified_row_still_gets_an_nwb_file(gt_export, t
     assert summary["instances"] == n
     labels = sio.load_slp(str(tmp_path / "subjects.slp"))
     assert all(lf.instances for lf in labels.labeled_frames)  # no empty frames
+
+
+def test_two_rows_of_one_identity_in_a_camera_frame_keep_the_better_one(gt_export, tmp_path,
+                                                                       caplog):
+    """Identities filled in from tracks can give two rows of one camera-frame the same
+    identity; NWB then failed inside its writer (a duplicate index). The row of higher score
+    keeps the identity, the other is left out of the tools' files, and the log says so."""
+    from nsd.export.pose_tools import one_row_per_identity
+
+    anns = [{"id": 1, "camera": "a", "frame": 0, "score": 0.5, "area": 9},
+            {"id": 2, "camera": "a", "frame": 0, "score": 0.9, "area": 4},
+            {"id": 3, "camera": "a", "frame": 0, "score": 0.9, "area": 4},  # tie: lower id
+            {"id": 4, "camera": "b", "frame": 0, "score": 0.1, "area": 1},  # another camera
+            {"id": 5, "camera": "a", "frame": 1, "score": 0.1, "area": 1}]  # another frame
+    got, lost = one_row_per_identity(anns, {1: 0, 2: 0, 3: 0, 4: 0, 5: 0, 6: -1})
+    assert got == {1: -1, 2: 0, 3: -1, 4: 0, 5: 0, 6: -1} and lost == 2
+    coco, rig = gt_export["coco"], gt_export["rig"]
+    row_ids = {a["id"]: 0 for a in coco["annotations"]}  # every row one identity
+    summary = write_pose_tool_files(gt_export["export"], gt_export["scene"], rig, tmp_path,
+                                    row_ids, formats=("slp", "nwb"))
+    frames = {(a["camera"], a["frame"]) for a in coco["annotations"]}
+    assert summary["rows_left_out"] == len(coco["annotations"]) - len(frames)
+    assert summary["instances"] <= len(frames) and "share their identity" in caplog.text
+    with NWBHDF5IO(str(tmp_path / "subjects.nwb"), "r") as io:
+        assert any(isinstance(o, PoseEstimation) for o in io.read().objects.values())
