@@ -57,6 +57,13 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
         4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
             "motion.area_radius=2.0"]),
     "6 bipeds, 8 cameras": (6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0"]),
+    # scenes of both species made for bench_hull.py (the same nsd-synth overrides and seeds)
+    "3 (2 quadrupeds, 1 biped), 8 cameras, seed 11": (
+        3, ["num_individuals=3", "species=[quadruped,biped]", "rig.count=8",
+            "motion.area_radius=2.5", "seed=11"]),
+    "5 (bipeds, quadrupeds), 8 cameras, seed 12": (
+        5, ["num_individuals=5", "species=[biped,quadruped]", "rig.count=8",
+            "motion.area_radius=3.0", "seed=12"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
@@ -155,8 +162,9 @@ def main() -> None:
         n, synth = SCENES[name]
         scene = root / f"scene{i}"
         if not args.rescore and not (scene / "calibration.toml").exists():
+            seed = [] if any(o.startswith("seed=") for o in synth) else ["seed=1"]
             subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", "motion.interaction=huddle",
-                            "seed=1", *synth], check=True, capture_output=True)
+                            *seed, *synth], check=True, capture_output=True)
         for seed, variant in [(s, v) for s in args.seeds for v in args.variants]:
             slug = "" if variant == "default" else "-" + variant.replace(" ", "_")
             out = root / f"run{i}-{seed}{slug}"
@@ -214,7 +222,8 @@ def main() -> None:
                "of the held-out tail (nsd-eval's metrics, nsd/evaluation/decomposition.py), "
                "split by nsd/evaluation/contact.py: an instant is touching when two "
                "individuals' amodal masks overlap in most cameras that see both. Scenes: "
-               "`nsd-synth motion.interaction=huddle seed=1`. `hull-only`: the visual hull "
+               "`nsd-synth motion.interaction=huddle seed=1` (or the seed the scene names). "
+               "`hull-only`: the visual hull "
                "of the residuals alone (nsd/evaluation/hull_baseline.py). Identity accuracy "
                "and IDF1 (whole export, all frames, split apart / touching by frame) exist for the "
                "learned rows only: the hull-only decomposition has no identities over time; "
