@@ -2,6 +2,8 @@
 
     .venv/bin/python tools/bench_geometry_recipe.py                     # biped and quadruped
     .venv/bin/python tools/bench_geometry_recipe.py --species biped --steps 1000
+    .venv/bin/python tools/bench_geometry_recipe.py --species quadruped --ladder-only \
+        --variants "nepu + separate heads" "+ separate heads" --report <name>  # some rungs
 
 Three sections per species, written to ``docs/benchmarks/netepu_geometry_recipe.{md,json}``:
 
@@ -309,6 +311,10 @@ def main() -> None:
                     help="ladder variants to train (finished runs in --work are always reported)")
     ap.add_argument("--run", action="append", default=[], metavar="LABEL=DIR",
                     help="a finished netepu-train run whose evaluations join the table")
+    ap.add_argument("--report", default="netepu_geometry_recipe",
+                    help="docs/benchmarks/<report>.{md,json}")
+    ap.add_argument("--ladder-only", action="store_true",
+                    help="the ladder's rows alone: no floor, no scores of the built-in models")
     ap.add_argument("--floor-poses", type=int, default=6)
     ap.add_argument("--floor-resamples", type=int, default=8)
     args = ap.parse_args()
@@ -331,7 +337,7 @@ def main() -> None:
         "",
     ]
     folders = {"shipped": MODELS, "previous": args.previous_models}
-    for s in args.species:
+    for s in [] if args.ladder_only else args.species:
         scores, places = {}, {}
         for label, folder in folders.items():
             if folder is not None:
@@ -354,7 +360,7 @@ def main() -> None:
                             scores)
         notes += _table(f"{s}, where the errors lie (held-out poses)", places)
     notes.append(__doc__.split("\n\n", 2)[2])
-    write_report("netepu_geometry_recipe", "NeTePu geometry: where the error is, and the recipe",
+    write_report(args.report, "NeTePu geometry: where the error is, and the recipe",
                  rows, notes="\n".join(notes), extra=extra)
 
 
