@@ -119,7 +119,8 @@ def _carried(scenes: list[str], report: str) -> list[dict]:
     if not scenes:
         return []
     old = json.loads((ROOT / "docs" / "benchmarks" / f"{report}.json").read_text())
-    rows = [dict(r, measured=f"{old['date']}, `{old['commit']}`")
+    rows = [dict(r, measured=r["measured"] if r.get("measured", "this run") != "this run"
+                 else f"{old['date']}, `{old['commit']}`")  # a row carried before keeps its date
             for r in old["rows"] if r["scene"] in scenes]
     missing = set(scenes) - {r["scene"] for r in rows}
     if missing:
