@@ -26,13 +26,14 @@ from __future__ import annotations
 import csv
 import io
 import os
-from collections import Counter, defaultdict
+from collections import defaultdict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from netepu.reid.identities import majority_in_window, nearest_in_time
 from nsd.core.atomic import atomic_save_npz, atomic_write_text
 
 __all__ = ["SpeciesChoice", "choose_species", "read_species_csv", "species_of_rows",
@@ -77,17 +78,13 @@ def choose_species(fits: Mapping[str, str | os.PathLike], window: int = WINDOW
                              z["subject_loss"].tolist(), strict=True):
             loss[(t, sid)][s] = float(x)
     keys = sorted(k for k, v in loss.items() if len(v) == len(names))
-    own = {k: min(names, key=lambda s, k=k: loss[k][s]) for k in keys}
     by_track: dict[int, list[tuple[int, int]]] = defaultdict(list)
     for k in keys:
         by_track[k[1]].append(k)
-    chosen = dict(own)
-    for frames in by_track.values():
-        for i, k in enumerate(frames):
-            votes = Counter(own[j] for j in frames[max(0, i - window): i + window + 1])
-            best = max(votes.values())
-            if votes[own[k]] < best:
-                chosen[k] = min(s for s, n in votes.items() if n == best)
+    chosen = {}
+    for frames in by_track.values():  # each frame's body of lowest loss, voted along the track
+        own = [min(names, key=lambda s, k=k: loss[k][s]) for k in frames]
+        chosen |= dict(zip(frames, majority_in_window(own, window), strict=True))
     return [SpeciesChoice(t, sid, chosen[(t, sid)], loss[(t, sid)]) for t, sid in keys]
 
 
@@ -132,11 +129,7 @@ def species_of_rows(subject_id: np.ndarray, frame: np.ndarray, choices: list[Spe
         if not len(rows):
             continue
         fitted.sort(key=lambda c: c.frame)
-        times = np.array([c.frame for c in fitted])
-        after = np.clip(np.searchsorted(times, frame[rows]), 0, len(times) - 1)
-        before = np.clip(after - 1, 0, len(times) - 1)
-        pick = np.where(np.abs(frame[rows] - times[before]) <= np.abs(times[after] - frame[rows]),
-                        before, after)
+        pick = nearest_in_time(np.array([c.frame for c in fitted]), frame[rows])
         out[rows] = [fitted[i].species for i in pick]
     return out
 

@@ -35,7 +35,7 @@ from nsd.core.stages import Stage, StageResult, config_hash
 from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
 from nsd.evaluation.identity import identity_accuracy_by_contact
-from nsd.evaluation.pose import keypoint_error, species_accuracy
+from nsd.evaluation.pose import keypoint_error, species_accuracy, subject_truth
 from nsd.evaluation.quality import quality_markdown, quality_report
 from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
@@ -359,9 +359,11 @@ def _keypoints_of_species(models: list[SpeciesModels], invert, export: Path, sce
              "keypoints3d.npz hold them", kept, out)
     summary: dict[str, Any] = {"species": kept, "fitted": per_species}
     if truth:
-        summary["species_accuracy"] = species_accuracy(export, scene, choices)
+        matched = subject_truth(export, scene)  # every row's mask decoded and matched once
+        summary["species_accuracy"] = species_accuracy(export, scene, choices, matched)
         summary["accuracy"] = {s: keypoint_error(export, scene, out / s / "keypoints3d.npz",
-                                                 other_bodies=True) for s in fits}
+                                                 other_bodies=True, matched=matched)
+                               for s in fits}
     return summary
 
 

@@ -44,7 +44,7 @@ Their accuracy against ground truth: :mod:`nsd.evaluation.identity`.
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections import Counter, defaultdict
 from typing import Any
 
 import numpy as np
@@ -58,6 +58,8 @@ __all__ = [
     "assign_identities",
     "constrained_average_linkage",
     "constrained_kmeans",
+    "majority_in_window",
+    "nearest_in_time",
     "transfer_identities",
 ]
 
@@ -244,17 +246,43 @@ def _nearest_coded(coded_frame: np.ndarray, coded_id: np.ndarray, frames: np.nda
     whose codes were wrong does not flip the rows around it, a swap that lasts two coded
     frames does. Returns (G,) int64."""
     times = np.unique(coded_frame)
-    own = np.array([_most_frequent(coded_id[coded_frame == t]) for t in times])
-    ids = own.copy()
-    for i in range(len(own)):
-        window = own[max(0, i - 1) : i + 2]
-        values, counts = np.unique(window, return_counts=True)
-        if counts.max() > (window == own[i]).sum():
-            ids[i] = values[counts.argmax()]
+    own = [_most_frequent(coded_id[coded_frame == t]) for t in times]
+    ids = np.array(majority_in_window(own, 1))
+    return ids[nearest_in_time(times, frames)]
+
+
+def majority_in_window(labels: list, window: int) -> list:
+    """Each of ``labels`` (in time order) replaced by the most frequent label of it and its
+    ``window`` neighbours on either side; its own wins a tie it is in, otherwise the
+    smallest of the tied. One odd label among its neighbours is outvoted, a change that
+    lasts longer than the window is followed.
+
+    Example:
+        >>> majority_in_window([0, 0, 1, 0, 1, 1, 1], 1)
+        [0, 0, 0, 1, 1, 1, 1]
+    """
+    out = list(labels)
+    for i, own in enumerate(labels):
+        votes = Counter(labels[max(0, i - window): i + window + 1])
+        best = max(votes.values())
+        if votes[own] < best:
+            out[i] = min(v for v, n in votes.items() if n == best)
+    return out
+
+
+def nearest_in_time(times: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """For each of ``frames`` (G,), the index of the nearest of the sorted ``times`` (T,)
+    (the earlier on a tie). Returns (G,) int64.
+
+    Example:
+        >>> nearest_in_time(np.array([0, 10, 20]), np.array([4, 5, 6, 30])).tolist()
+        [0, 0, 1, 2]
+    """
+    frames = np.asarray(frames)
     after = np.clip(np.searchsorted(times, frames), 0, len(times) - 1)
     before = np.clip(after - 1, 0, len(times) - 1)
     take_before = np.abs(frames - times[before]) <= np.abs(times[after] - frames)
-    return ids[np.where(take_before, before, after)]
+    return np.where(take_before, before, after)
 
 
 def transfer_identities(

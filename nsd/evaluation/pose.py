@@ -5,11 +5,9 @@ synthetic scene (subjects matched to ground-truth individuals by mask IoU,
 
 from __future__ import annotations
 
-import json
 import os
 from collections import Counter, defaultdict
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -20,7 +18,7 @@ from nsd.evaluation.identity import ground_truth_identities
 from nsd.io.ground_truth import GroundTruth
 
 __all__ = ["keypoint_error", "mirror_errors", "mpjpe", "species_accuracy",
-           "subject_frame_errors"]
+           "subject_frame_errors", "subject_truth"]
 
 
 def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
@@ -28,10 +26,11 @@ def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).double().norm(dim=-1).mean()
 
 
-def _subject_truth(export: str | os.PathLike, scene: str | os.PathLike
-                   ) -> dict[tuple[int, int], int]:
+def subject_truth(export: str | os.PathLike, scene: str | os.PathLike
+                  ) -> dict[tuple[int, int], int]:
     """(frame, subject_id) -> the ground-truth individual most of the subject-frame's rows
-    match (:func:`nsd.evaluation.identity.ground_truth_identities`)."""
+    match (:func:`nsd.evaluation.identity.ground_truth_identities`: every row's mask decoded
+    and matched, so a caller scoring several files of one export computes it once)."""
     votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
     for _cam, t, sid, ident in ground_truth_identities(export, scene).values():
         votes[(t, sid)][ident] += 1
@@ -39,14 +38,16 @@ def _subject_truth(export: str | os.PathLike, scene: str | os.PathLike
 
 
 def _matched(export: str | os.PathLike, scene: str | os.PathLike,
-             keypoints: str | os.PathLike, other_bodies: bool = False
+             keypoints: str | os.PathLike, other_bodies: bool = False,
+             matched: dict[tuple[int, int], int] | None = None,
              ) -> tuple[int, list[tuple[np.ndarray, np.ndarray]]]:
     """``(subject-frames in the file, (inverted, true) keypoints (K, 3) of each one matched)``:
     each inverted subject-frame is matched to the ground-truth individual most of its rows
-    match (:func:`_subject_truth`); unmatched ones are left out, and with ``other_bodies``
-    those matched to an individual of another number of keypoints (another species)."""
+    match (:func:`subject_truth`); unmatched ones are left out, and with ``other_bodies``
+    those matched to an individual of another number of keypoints (another species);
+    ``matched``: :func:`subject_truth`, if computed already."""
     truth = GroundTruth.load(scene).scene.keypoints3d
-    matched = _subject_truth(export, scene)
+    matched = subject_truth(export, scene) if matched is None else matched
     with np.load(keypoints) as z:
         frames, sids, kps = z["subject_frame"], z["subject_id"], z["subject_keypoints"]
     pairs = []
@@ -63,13 +64,15 @@ def _matched(export: str | os.PathLike, scene: str | os.PathLike,
 
 
 def species_accuracy(export: str | os.PathLike, scene: str | os.PathLike,
-                     choices: Sequence[Any]) -> dict[str, float]:
+                     choices: Sequence[Any], matched: dict[tuple[int, int], int] | None = None
+                     ) -> dict[str, float]:
     """Share of the subject-frames whose chosen species (``choices``: items with ``frame``,
     ``subject_id``, ``species``, :class:`netepu.pipeline.species_choice.SpeciesChoice`) is the
-    species of the ground-truth individual they match, over those matched (``scored``)."""
-    individuals = json.loads((Path(scene) / "gt" / "scene.json").read_text())["individuals"]
+    species of the ground-truth individual they match, over those matched (``scored``;
+    ``matched``: :func:`subject_truth`, if computed already)."""
+    individuals = GroundTruth.load(scene).scene.individuals
     body = {int(i["identity_id"]): str(i["species"]) for i in individuals}
-    matched = _subject_truth(export, scene)
+    matched = subject_truth(export, scene) if matched is None else matched
     right = [c.species == body[matched[(c.frame, c.subject_id)]] for c in choices
              if (c.frame, c.subject_id) in matched]
     return {"scored": float(len(right)),
@@ -82,11 +85,11 @@ def _mm(kp: np.ndarray, gt: np.ndarray) -> float:
 
 def subject_frame_errors(
     export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike,
-    other_bodies: bool = False,
+    other_bodies: bool = False, matched: dict[tuple[int, int], int] | None = None,
 ) -> tuple[int, list[float]]:
     """``(subject-frames in the file, MPJPE in mm of each one matched)`` (matched as in
     :func:`_matched`; unmatched ones are left out)."""
-    inverted, pairs = _matched(export, scene, keypoints, other_bodies)
+    inverted, pairs = _matched(export, scene, keypoints, other_bodies, matched)
     return inverted, [_mm(kp, gt) for kp, gt in pairs]
 
 
@@ -103,14 +106,14 @@ def mirror_errors(
 
 def keypoint_error(
     export: str | os.PathLike, scene: str | os.PathLike, keypoints: str | os.PathLike,
-    other_bodies: bool = False,
+    other_bodies: bool = False, matched: dict[tuple[int, int], int] | None = None,
 ) -> dict[str, float]:
     """MPJPE (mm) of the inverted subjects against a synthetic scene's 3D keypoints, mean and
     median over the matched subject-frames (:func:`subject_frame_errors`); unmatched ones
     (and with ``other_bodies``, those matched to an individual of another species) are
     counted but not scored."""
 
-    inverted, errors = subject_frame_errors(export, scene, keypoints, other_bodies)
+    inverted, errors = subject_frame_errors(export, scene, keypoints, other_bodies, matched)
     return {
         "inverted": float(inverted),
         "scored": float(len(errors)),
