@@ -132,7 +132,8 @@ def build_stages(cfg: DictConfig, runner: StageRunner) -> list[Callable[[], Stag
         ),
         lambda: quality_stage(cfg, _ran(runner, "identities")),
         lambda: formats_stage(cfg, _ran(runner, "identities"),
-                              _ran(runner, "keypoints") and not several()),
+                              [m.species for m in chosen()] if _ran(runner, "keypoints")
+                              else []),
         lambda: overlays_stage(cfg, _ran(runner, "identities")),
         lambda: grids_stage(cfg),
     ]

@@ -42,7 +42,7 @@ from nsd.export.config import load_export_config
 from nsd.export.grids import write_grids
 from nsd.export.overlay import write_overlay_videos
 from nsd.export.parallel import resolve_workers
-from nsd.export.pose_tools import write_pose_tool_files
+from nsd.export.pose_tools import KeypointFile, write_pose_tool_files
 from nsd.export.positions import read_positions, triangulate_positions, write_positions
 from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
@@ -53,6 +53,8 @@ from nsd.io.identities import identity_by_row, write_identities
 from nsd.io.mot import write_identity_tracks
 from nsd.io.scene_check import check_scene, scene_fingerprint
 from nsd.io.scenes import resolve_scene
+from nsd.synth.skeleton import SPECIES as SPECIES_BODIES
+from nsd.synth.skeleton import get_species
 from nsd.training.train import train
 
 __all__ = [
@@ -354,9 +356,8 @@ def _keypoints_of_species(models: list[SpeciesModels], invert, export: Path, sce
     choices = choose_species(fits)
     write_species_csv(out / "species.csv", choices)
     kept = split_fits(fits, choices, {s: out / s / "keypoints3d.npz" for s in fits})
-    log.info("keypoints: subject-frames by species %s; the pose tools' files (formats) take "
-             "one skeleton, so they are written without these keypoints: %s/<species>/"
-             "keypoints3d.npz hold them", kept, out)
+    log.info("keypoints: subject-frames by species %s (%s/<species>/keypoints3d.npz)",
+             kept, out)
     summary: dict[str, Any] = {"species": kept, "fitted": per_species}
     if truth:
         matched = subject_truth(export, scene)  # every row's mask decoded and matched once
@@ -537,10 +538,26 @@ def _identities_of_species(up: dict[str, StageResult], species: list[str], colum
     return table, identity, summary
 
 
-def formats_stage(cfg: DictConfig, have_identities: bool, have_keypoints: bool) -> Stage:
+def _keypoint_file(folder: Path, species: str) -> KeypointFile:
+    """The keypoints stage's ``keypoints3d.npz`` in ``folder`` on the skeleton of
+    ``species``: its keypoint names and bones where the keypoints are that species' (the
+    regressor's keypoints follow the labels it was given), else ``kp0``..."""
+    path = folder / "keypoints3d.npz"
+    if species not in SPECIES_BODIES:
+        return KeypointFile(path, species or "subject")
+    body = get_species(species)
+    with np.load(path) as z:
+        k = z["keypoints"].shape[1] if z["keypoints"].ndim == 3 else 0
+    if k != body.num_keypoints:
+        return KeypointFile(path, species)
+    return KeypointFile(path, species, body.keypoint_names, body.skeleton)
+
+
+def formats_stage(cfg: DictConfig, have_identities: bool, keypoints: list[str]) -> Stage:
     """The export in the pose tools' files (nsd.export.pose_tools): SLEAP, NWB, DeepLabCut,
     TRC and C3D, under the final identities (the per-camera tracks when the identities
-    stage did not run) and with the 3D keypoints when the keypoints stage ran."""
+    stage did not run) and with the 3D keypoints of the keypoints stage, on the skeleton of
+    each species of ``keypoints`` (empty: the stage did not run; "" a species unknown)."""
     f = cfg.formats
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
@@ -552,12 +569,14 @@ def formats_stage(cfg: DictConfig, have_identities: bool, have_keypoints: bool) 
             positions = read_positions(up["identities"].folder / "positions.csv")
         else:
             positions = triangulate_positions(export, rig)
-        kp = up["keypoints"].folder / "keypoints3d.npz" if have_keypoints else None
+        folder = up["keypoints"].folder
+        kp = [_keypoint_file(folder / s if len(keypoints) > 1 else folder, s)
+              for s in keypoints]
         return write_pose_tool_files(export, scene, rig, out, row_ids, positions, kp,
                                      tuple(f.which), f.fps)
 
     return Stage("formats", run,
-                 {**_container(f), "identities": have_identities, "keypoints": have_keypoints},
+                 {**_container(f), "identities": have_identities, "keypoints": keypoints},
                  needs=("scene", "export", "keypoints", "identities"),
                  enabled=bool(f.enabled) and len(f.which) > 0,
                  why_disabled="formats.enabled=false or formats.which=[]")

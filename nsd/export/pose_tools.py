@@ -8,24 +8,36 @@ per camera); ezc3d writes C3D. TRC (OpenSim, Pose2Sim) has no maintained Python 
 it is a tab-separated text format, written here.
 
 The pose of a subject in a camera: its 3D keypoints projected into that camera when the
-pipeline fitted keypoints (``keypoints3d.npz``, nodes ``kp0``..), else one node,
-``centroid``, the centroid of its visible mask. 3D files hold, per identity, its world
-position (:mod:`nsd.export.positions`) and, with keypoints, its keypoints, in metres.
+pipeline fitted keypoints (:class:`KeypointFile`: a ``keypoints3d.npz`` and the skeleton it
+is on, nodes named by the species or ``kp0``..), else one node, ``centroid``, the centroid
+of its visible mask. 3D files hold, per identity, its world position
+(:mod:`nsd.export.positions`) and, with keypoints, its keypoints, in metres.
+
+Several skeletons (a scene of two species, one keypoint file each): the ``.slp`` file holds
+every skeleton, each instance on its own; the NWB file holds every skeleton, each track's
+``PoseEstimation`` linked to its own (built from sleap-io's parts, :func:`_write_nwb`);
+DeepLabCut's tables take one skeleton, so they are written per skeleton; TRC and C3D name
+each identity's markers by its own skeleton's nodes.
 
 Layout (``<out>/``)::
 
     subjects.slp            SLEAP labels (sleap-io, SLEAP, the movement package read it)
     subjects.nwb            NWB with ndx-pose PoseEstimation per camera and track
     dlc/<camera>.csv        DeepLabCut multi-animal CSV (scorer nsd-netepu)
-    trajectories.trc        markers id<k> (and id<k>_kp<j>) per frame, metres
+    dlc/<skeleton>/<camera>.csv   the same, per skeleton, when there are several
+    trajectories.trc        markers id<k> (and id<k>_<node>) per frame, metres
     trajectories.c3d        the same markers, metres
 """
 
 from __future__ import annotations
 
+import datetime
 import json
 import logging
 import os
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +46,7 @@ import ezc3d
 import numpy as np
 import sleap_io as sio
 from pycocotools import mask as mask_utils
+from pynwb import NWBHDF5IO, NWBFile
 from sleap_io.io import nwb_predictions
 
 from nsd.cameras.calibration import CameraRig
@@ -41,13 +54,64 @@ from nsd.core.atomic import atomic_write_text
 from nsd.export.positions import mask_centroid
 from nsd.io.footage import ImageFolderSource, find_source, footage_frame_rate
 
-__all__ = ["POSE_TOOL_FORMATS", "one_row_per_identity", "read_trc", "write_c3d",
-           "write_pose_tool_files", "write_trc"]
+__all__ = ["POSE_TOOL_FORMATS", "KeypointFile", "one_row_per_identity", "read_trc",
+           "write_c3d", "write_pose_tool_files", "write_trc"]
 
 log = logging.getLogger(__name__)
 
 POSE_TOOL_FORMATS = ("slp", "nwb", "dlc", "trc", "c3d")
 SCORER = "nsd-netepu"
+
+
+@dataclass(frozen=True)
+class KeypointFile:
+    """Fitted 3D keypoints and the skeleton they are on.
+
+    Attributes:
+        path: a ``keypoints3d.npz``: ``id`` (R,) annotation ids, ``keypoints`` (R, K, 3)
+            world keypoints, metres.
+        skeleton: the skeleton's name (a species); distinct per file.
+        nodes: its K node names (default ``kp0``..``kp<K-1>``).
+        edges: its bones, pairs of node indices.
+    """
+
+    path: Path
+    skeleton: str = "subject"
+    nodes: tuple[str, ...] = ()
+    edges: tuple[tuple[int, int], ...] = ()
+
+
+@dataclass
+class _Bodies:
+    """The keypoint files read: every skeleton, and every row's skeleton and keypoints."""
+
+    skeletons: dict[str, sio.Skeleton]
+    rows: dict[int, tuple[str, np.ndarray]]  # annotation id -> (skeleton, (K, 3))
+
+
+def _read_bodies(files: Sequence[KeypointFile]) -> _Bodies | None:
+    """Read ``files``; ValueError naming the file for a node count that does not match its
+    keypoints, a skeleton named twice, or a row fitted in two files."""
+    skeletons: dict[str, sio.Skeleton] = {}
+    rows: dict[int, tuple[str, np.ndarray]] = {}
+    for f in files:
+        with np.load(f.path) as z:
+            ids, kps = z["id"].tolist(), np.asarray(z["keypoints"], np.float64)
+        k = kps.shape[1] if kps.ndim == 3 else 0
+        if f.nodes and len(f.nodes) != k:
+            raise ValueError(f"{f.path}: {k} keypoints, but skeleton {f.skeleton!r} has "
+                             f"{len(f.nodes)} nodes")
+        if f.skeleton in skeletons:
+            raise ValueError(f"{f.path}: skeleton {f.skeleton!r} is named by two keypoint files")
+        nodes = list(f.nodes) or [f"kp{j}" for j in range(k)]
+        skeletons[f.skeleton] = sio.Skeleton(nodes, edges=[list(e) for e in f.edges],
+                                             name=f.skeleton)
+        for aid, kp in zip(ids, kps, strict=True):
+            if aid in rows:
+                raise ValueError(f"{f.path}: row {aid} is also fitted on skeleton "
+                                 f"{rows[aid][0]!r}")
+            rows[int(aid)] = (f.skeleton, kp)
+    return _Bodies(skeletons, rows) if skeletons else None
 
 
 def _video(scene: Path, camera: str) -> sio.Video:
@@ -106,7 +170,7 @@ def one_row_per_identity(annotations: list[dict], row_ids: dict[int, int]
 
 
 def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int],
-                 keypoints: dict[int, np.ndarray] | None) -> sio.Labels:
+                 bodies: _Bodies | None) -> sio.Labels:
     """One sleap-io ``Labels`` of the export (module docstring).
 
     Args:
@@ -114,11 +178,10 @@ def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int
         scene: the scene folder (the videos the labels point at).
         rig: the calibration at native size, metres.
         row_ids: annotation id -> identity (a track each); rows without one are left out.
-        keypoints: annotation id -> its subject's world keypoints (K, 3), or None.
+        bodies: every row's skeleton and world keypoints, or None (a centroid each).
     """
-    n_kp = len(next(iter(keypoints.values()))) if keypoints else 0
-    skeleton = sio.Skeleton([f"kp{j}" for j in range(n_kp)] if n_kp else ["centroid"],
-                            name="subject")
+    skeletons = (bodies.skeletons if bodies
+                 else {"subject": sio.Skeleton(["centroid"], name="subject")})
     cameras = _cameras(coco, rig)
     videos = {c: _video(scene, c) for c in cameras}
     tracks = {i: sio.Track(name=f"id{i}") for i in sorted(set(row_ids.values())) if i >= 0}
@@ -133,14 +196,15 @@ def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int
             lf = frames[key] = sio.LabeledFrame(video=videos[key[0]], frame_idx=key[1])
         track, score = tracks[ident], float(a.get("score", 1.0))
         mask = mask_utils.decode(a["segmentation"]).astype(bool)  # decoded once per row
-        if n_kp and aid in keypoints:
-            uv, z = rig[key[0]].project(keypoints[aid])
+        if bodies and aid in bodies.rows:
+            name, kp = bodies.rows[aid]
+            uv, z = rig[key[0]].project(kp)
             points = np.where((z > 0)[:, None], uv, np.nan)
-        elif not n_kp and (centroid := mask_centroid(mask)) is not None:
-            points = centroid[None]
+        elif not bodies and (centroid := mask_centroid(mask)) is not None:
+            name, points = "subject", centroid[None]
         else:
             continue
-        inst = sio.PredictedInstance.from_numpy(points, skeleton=skeleton, score=score,
+        inst = sio.PredictedInstance.from_numpy(points, skeleton=skeletons[name], score=score,
                                                 point_scores=np.full(len(points), score),
                                                 track=track)
         lf.instances.append(inst)
@@ -151,7 +215,7 @@ def build_labels(coco: dict, scene: Path, rig: CameraRig, row_ids: dict[int, int
                                                             track=track, instance=inst))
     session = _session(rig.select(cameras), videos)
     return sio.Labels(labeled_frames=[frames[k] for k in sorted(frames) if frames[k].instances],
-                      videos=list(videos.values()), skeletons=[skeleton],
+                      videos=list(videos.values()), skeletons=list(skeletons.values()),
                       tracks=list(tracks.values()), sessions=[session] if session else [],
                       provenance={"source": SCORER})
 
@@ -169,23 +233,71 @@ def _used_videos(labels: sio.Labels) -> sio.Labels:
                       provenance=labels.provenance)
 
 
+def _of_skeleton(labels: sio.Labels, skeleton: sio.Skeleton) -> sio.Labels:
+    """The instances of ``labels`` on ``skeleton`` alone (every video kept, in order): the
+    DeepLabCut and NWB writers take one skeleton per call."""
+    frames = [sio.LabeledFrame(video=lf.video, frame_idx=lf.frame_idx,
+                               instances=[i for i in lf.instances if i.skeleton is skeleton])
+              for lf in labels.labeled_frames]
+    return sio.Labels(labeled_frames=[lf for lf in frames if lf.instances],
+                      videos=labels.videos, skeletons=[skeleton], tracks=labels.tracks,
+                      provenance=labels.provenance)
+
+
+def _write_nwb(labels: sio.Labels, path: Path, rate: float) -> None:
+    """The NWB file of ``labels`` (ndx-pose, through sleap-io), every skeleton in it,
+    atomically. Timestamps in seconds for every footage frame (sleap-io's default, one per
+    frame with data, misplaces exports that do not start at frame 0).
+
+    sleap-io's writer gives each track of a video the video's first skeleton, and its
+    append adds a skeleton through a method ndx-pose no longer has; so the file is built
+    here from its parts: every skeleton first, then one skeleton's instances at a time."""
+    last = max(lf.frame_idx for lf in labels.labeled_frames) if labels else 0
+    meta = {"video_timestamps": np.arange(last + 1) / rate, "video_sample_rate": rate}
+    parts = ([_used_videos(labels)] if len(labels.skeletons) == 1 else
+             [_used_videos(_of_skeleton(labels, s)) for s in labels.skeletons])
+    nwb = NWBFile(session_description="Processed SLEAP pose data", identifier=str(uuid.uuid4()),
+                  session_start_time=datetime.datetime.now(datetime.UTC))
+    skeletons = nwb_predictions.create_skeleton_container(labels, nwb)
+    for part in parts:
+        if part.labeled_frames:
+            nwb_predictions.append_nwb_data(part, nwb, dict(meta), skeletons)
+    tmp = path.with_name(f".{path.stem}.tmp.nwb")
+    with NWBHDF5IO(str(tmp), "w") as io:
+        io.write(nwb)
+    os.replace(tmp, path)
+
+
 def _markers(positions: dict[tuple[int, int], tuple[np.ndarray, int]],
-             keypoints: dict[tuple[int, int], np.ndarray] | None
+             keypoints: dict[tuple[int, int], tuple[str, np.ndarray]] | None,
+             skeletons: dict[str, sio.Skeleton] | None = None,
              ) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """Marker names, frames (F,) and points (F, M, 3) (NaN: not seen)."""
-    ids = sorted({i for _, i in positions} | ({i for _, i in keypoints} if keypoints else set()))
-    n_kp = len(next(iter(keypoints.values()))) if keypoints else 0
-    names = [f"id{i}" for i in ids] + [f"id{i}_kp{j}" for i in ids for j in range(n_kp)]
-    all_frames = sorted({f for f, _ in positions} | ({f for f, _ in keypoints}
-                                                      if keypoints else set()))
+    """Marker names, frames (F,) and points (F, M, 3) (NaN: not seen).
+
+    Args:
+        positions: ``(frame, id)`` -> (world position, views): markers ``id<k>``.
+        keypoints: ``(frame, id)`` -> (skeleton, (K, 3) keypoints): markers
+            ``id<k>_<node>``, or ``id<k>_<skeleton>_<node>`` for an identity fitted on two
+            skeletons.
+        skeletons: the skeletons by name (their node names).
+    """
+    keypoints = keypoints or {}
+    ids = sorted({i for _, i in positions} | {i for _, i in keypoints})
+    names = [f"id{i}" for i in ids]
+    blocks = sorted({(i, s) for (_, i), (s, _) in keypoints.items()})  # (identity, skeleton)
+    start: dict[tuple[int, str], int] = {}
+    for i, s in blocks:
+        start[(i, s)] = len(names)
+        prefix = f"id{i}_" if sum(b[0] == i for b in blocks) == 1 else f"id{i}_{s}_"
+        names += [prefix + n for n in skeletons[s].node_names]
+    all_frames = sorted({f for f, _ in positions} | {f for f, _ in keypoints})
     frames = np.arange(all_frames[0], all_frames[-1] + 1) if all_frames else np.zeros(0, int)
     pts = np.full((len(frames), len(names), 3), np.nan)
     col = {i: c for c, i in enumerate(ids)}
     for (f, i), (xyz, _) in positions.items():
         pts[f - frames[0], col[i]] = xyz
-    for (f, i), kp in (keypoints or {}).items():
-        start = len(ids) + col[i] * n_kp
-        pts[f - frames[0], start:start + n_kp] = kp
+    for (f, i), (s, kp) in keypoints.items():
+        pts[f - frames[0], start[(i, s)]:start[(i, s)] + len(kp)] = kp
     return names, frames, pts
 
 
@@ -263,7 +375,7 @@ def write_pose_tool_files(
     out: str | os.PathLike,
     row_ids: dict[int, int] | None = None,
     positions: dict[tuple[int, int], tuple[np.ndarray, int]] | None = None,
-    keypoints: str | os.PathLike | None = None,
+    keypoints: str | os.PathLike | KeypointFile | Sequence[KeypointFile] | None = None,
     formats: tuple[str, ...] = POSE_TOOL_FORMATS,
     fps: float | None = None,
 ) -> dict[str, Any]:
@@ -276,7 +388,8 @@ def write_pose_tool_files(
         out: the folder to write.
         row_ids: annotation id -> identity (default: the rows' ``subject_id``).
         positions: ``(frame, id)`` -> (world position, views), for TRC/C3D.
-        keypoints: a ``keypoints3d.npz`` (``id``, ``keypoints``), or None.
+        keypoints: fitted keypoints: one :class:`KeypointFile` per skeleton (a species),
+            or one ``keypoints3d.npz`` (``id``, ``keypoints``; nodes ``kp0``..), or None.
         formats: which of :data:`POSE_TOOL_FORMATS`.
         fps: frame rate of the 3D files (default: the footage's).
 
@@ -291,10 +404,13 @@ def write_pose_tool_files(
     coco = json.loads((export / "subjects.coco.json").read_text())
     if row_ids is None:
         row_ids = {int(a["id"]): int(a["subject_id"]) for a in coco["annotations"]}
-    kp_rows = None
-    if keypoints is not None:
-        with np.load(keypoints) as z:
-            kp_rows = dict(zip(z["id"].tolist(), z["keypoints"], strict=True))
+    if keypoints is None:
+        keypoints = []
+    elif isinstance(keypoints, (str, os.PathLike)):
+        keypoints = [KeypointFile(Path(keypoints))]
+    elif isinstance(keypoints, KeypointFile):
+        keypoints = [keypoints]
+    bodies = _read_bodies(keypoints)
     rate = _frame_rate(scene, rig.names, fps)
     summary: dict[str, Any] = {"fps": rate}
     row_ids, doubled = one_row_per_identity(coco["annotations"], row_ids)
@@ -308,39 +424,40 @@ def write_pose_tool_files(
         summary.update(instances=0, tracks=0, files=[], skipped="no subjects")
         return summary
     if {"slp", "nwb", "dlc"} & set(formats):
-        labels = build_labels(coco, scene, rig, row_ids, kp_rows)
+        labels = build_labels(coco, scene, rig, row_ids, bodies)
         summary["instances"] = sum(len(lf.instances) for lf in labels.labeled_frames)
         summary["tracks"] = len(labels.tracks)
+        if bodies:
+            summary["skeletons"] = {s.name: sum(i.skeleton is s for lf in labels.labeled_frames
+                                                for i in lf.instances)
+                                    for s in labels.skeletons}
         if "slp" in formats:
             sio.save_slp(labels, str(out / "subjects.slp"))
         # DeepLabCut and NWB name a camera's source by one path: an image folder's
         for camera, video in zip(_cameras(coco, rig), labels.videos, strict=True):
             if isinstance(video.filename, list):
                 video.replace_filename(str(find_source(scene, camera).path), open=False)
-        if "dlc" in formats:
-            (out / "dlc").mkdir(exist_ok=True)
-            for i, camera in enumerate(_cameras(coco, rig)):  # the labels' video order
-                # sleap-io writes no per-point likelihood to DeepLabCut tables (its DLC
-                # writer drops point scores): the table is a labelled-data table, x and y
-                sio.save_csv(labels, str(out / "dlc" / f"{camera}.csv"), format="dlc", video=i,
-                             scorer=SCORER, include_score=False)
+        if "dlc" in formats:  # a table takes one skeleton: one folder each when several
+            several = len(labels.skeletons) > 1
+            for skeleton in labels.skeletons:
+                part = _of_skeleton(labels, skeleton) if several else labels
+                folder = out / "dlc" / skeleton.name if several else out / "dlc"
+                folder.mkdir(parents=True, exist_ok=True)
+                for i, camera in enumerate(_cameras(coco, rig)):  # the labels' video order
+                    # sleap-io writes no per-point likelihood to DeepLabCut tables (its DLC
+                    # writer drops point scores): the table is a labelled-data table, x and y
+                    sio.save_csv(part, str(folder / f"{camera}.csv"), format="dlc", video=i,
+                                 scorer=SCORER, include_score=False)
         if "nwb" in formats:
-            # timestamps in seconds for every footage frame (sleap-io's default, one per
-            # frame with data, misplaces exports that do not start at frame 0)
-            last = max(lf.frame_idx for lf in labels.labeled_frames) if labels else 0
-            nwb_predictions.write_nwb(_used_videos(labels), str(out / "subjects.nwb"),
-                                      pose_estimation_metadata={
-                                          "video_timestamps": np.arange(last + 1) / rate,
-                                          "video_sample_rate": rate})
+            _write_nwb(labels, out / "subjects.nwb", rate)
     if {"trc", "c3d"} & set(formats):
-        kp3d = None
-        if kp_rows:  # one pose per identity and frame
-            kp3d = {}
-            for a in coco["annotations"]:
-                ident = row_ids.get(int(a["id"]), -1)
-                if ident >= 0 and int(a["id"]) in kp_rows:
-                    kp3d[(int(a["frame"]), ident)] = kp_rows[int(a["id"])]
-        names, frames, pts = _markers(positions or {}, kp3d)
+        kp3d = {}  # one pose per identity and frame
+        for a in coco["annotations"] if bodies else []:
+            ident = row_ids.get(int(a["id"]), -1)
+            if ident >= 0 and int(a["id"]) in bodies.rows:
+                kp3d[(int(a["frame"]), ident)] = bodies.rows[int(a["id"])]
+        names, frames, pts = _markers(positions or {}, kp3d,
+                                      bodies.skeletons if bodies else None)
         if "trc" in formats:
             write_trc(out / "trajectories.trc", names, frames, pts, rate)
         if "c3d" in formats:

@@ -8,6 +8,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+import sleap_io as sio
 import torch
 from pycocotools.coco import COCO
 
@@ -631,7 +632,14 @@ def test_a_scene_of_two_species_fits_both_bodies_and_assigns_identities_within_e
     acc = res["keypoints"].summary["species_accuracy"]
     assert acc["scored"] == 0 or 0 <= acc["accuracy"] <= 1
     formats = json.loads((out / "formats" / "stage.json").read_text())["config"]
-    assert formats["keypoints"] is False  # the pose tools' files take one skeleton
+    assert formats["keypoints"] == ["biped", "quadruped"]  # each species on its skeleton
+    labels = sio.load_slp(str(out / "formats" / "subjects.slp"))
+    on = {sk.name: sk.node_names for sk in labels.skeletons}
+    assert on == {s: list(get_species(s).keypoint_names) for s in ("biped", "quadruped")}
+    fitted = {s: set(np.load(kp / s / "keypoints3d.npz")["id"].tolist()) for s in on}
+    assert sum(res["formats"].summary["skeletons"].values()) > 0
+    for s, n in res["formats"].summary["skeletons"].items():  # instances of fitted rows
+        assert n <= len(fitted[s])
 
 
 def test_every_run_writes_a_label_free_quality_report(tiny_run):

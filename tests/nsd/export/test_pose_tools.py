@@ -235,3 +235,107 @@ def test_two_rows_of_one_identity_in_a_camera_frame_keep_the_better_one(gt_expor
     assert summary["instances"] <= len(frames) and "share their identity" in caplog.text
     with NWBHDF5IO(str(tmp_path / "subjects.nwb"), "r") as io:
         assert any(isinstance(o, PoseEstimation) for o in io.read().objects.values())
+
+
+@pytest.fixture(scope="module")
+def two_skeletons(gt_export, tmp_path_factory):
+    """The ground truth's keypoints as two keypoint files: identity 0 on the biped's named
+    skeleton, identity 1 on a 5-node skeleton of no species (a scene of two species),
+    written in every format."""
+    from nsd.export.pose_tools import KeypointFile
+    from nsd.synth.skeleton import BIPED
+
+    coco, root = gt_export["coco"], tmp_path_factory.mktemp("two_skeletons")
+    with np.load(gt_export["scene"] / "gt" / "keypoints3d.npz") as z:
+        truth = {i: z[f"identity_{i}"] for i in (0, 1)}  # (T, K, 3)
+    files, fitted = [], {}
+    for i, (name, k) in enumerate([("biped", BIPED.num_keypoints), ("other", 5)]):
+        rows = [a for a in coco["annotations"] if a["identity_id"] == i]
+        kps = np.stack([truth[i][a["frame"], :k] for a in rows])
+        np.savez(root / f"{name}.npz", id=np.array([a["id"] for a in rows]), keypoints=kps)
+        fitted |= {a["id"]: kp for a, kp in zip(rows, kps, strict=True)}
+        files.append(KeypointFile(root / f"{name}.npz", name, BIPED.keypoint_names,
+                                  BIPED.skeleton) if i == 0 else
+                     KeypointFile(root / f"{name}.npz", name))
+    out = root / "formats"
+    summary = write_pose_tool_files(gt_export["export"], gt_export["scene"], gt_export["rig"],
+                                    out, gt_export["row_ids"], gt_export["positions"], files)
+    return {"out": out, "files": files, "fitted": fitted, "summary": summary, "truth": truth}
+
+
+def test_two_skeletons_each_instance_on_its_own_in_slp_and_nwb(gt_export, two_skeletons):
+    """Each row's keypoints projected into its camera, on its own skeleton, in .slp; NWB
+    holds both skeletons, each track's pose series on its own."""
+    from nsd.synth.skeleton import BIPED
+
+    coco, rig, out = gt_export["coco"], gt_export["rig"], two_skeletons["out"]
+    by_key = {(a["camera"], a["frame"], a["identity_id"]): a for a in coco["annotations"]}
+    labels = sio.load_slp(str(out / "subjects.slp"))
+    assert {s.name: len(s.nodes) for s in labels.skeletons} == {
+        "biped": BIPED.num_keypoints, "other": 5}
+    assert labels.skeletons[0].node_names == list(BIPED.keypoint_names)
+    assert len(labels.skeletons[0].edges) == len(BIPED.skeleton)
+    cams, seen = [c.name for c in rig], set()
+    for lf in labels.labeled_frames:
+        cam = rig[cams[labels.videos.index(lf.video)]]
+        for inst in lf.instances:
+            ident = int(inst.track.name[2:])
+            assert inst.skeleton.name == ("biped", "other")[ident]
+            kp = two_skeletons["fitted"][by_key[(cam.name, lf.frame_idx, ident)]["id"]]
+            uv, z = cam.project(kp)
+            np.testing.assert_allclose(inst.numpy(), np.where((z > 0)[:, None], uv, np.nan),
+                                       atol=1e-4)
+            seen.add(ident)
+    assert seen == {0, 1}
+    counts = two_skeletons["summary"]["skeletons"]
+    assert counts == {"biped": sum(a["identity_id"] == 0 for a in coco["annotations"]),
+                      "other": sum(a["identity_id"] == 1 for a in coco["annotations"])}
+    with NWBHDF5IO(str(out / "subjects.nwb"), "r") as io:
+        series = [o for o in io.read().objects.values() if isinstance(o, PoseEstimation)]
+        assert len(series) == len(rig) * 2  # cameras x tracks
+        for pe in series:  # each track's series on its own skeleton, which it links
+            own = ("biped", "other")[int(pe.name.removeprefix("track=id"))]
+            assert pe.skeleton.name == own
+            assert sorted(pe.pose_estimation_series) == sorted(pe.skeleton.nodes[:])
+            assert len(pe.skeleton.nodes) == (BIPED.num_keypoints if own == "biped" else 5)
+            data = np.asarray(next(iter(pe.pose_estimation_series.values())).data)
+            assert data.shape[1] == 2 and np.isfinite(data).any()
+
+
+def test_two_skeletons_give_a_deeplabcut_table_each_and_named_markers(gt_export, two_skeletons):
+    """DeepLabCut takes one skeleton per table: dlc/<skeleton>/<camera>.csv; TRC and C3D
+    name each identity's markers by its own skeleton's nodes and hold its keypoints."""
+    from nsd.synth.skeleton import BIPED
+
+    out, rig = two_skeletons["out"], gt_export["rig"]
+    for name, parts in (("biped", BIPED.keypoint_names), ("other", ("kp0", "kp4"))):
+        table = pd.read_csv(out / "dlc" / name / "cam1.csv", header=[0, 1, 2, 3], index_col=0)
+        assert set(parts) <= set(table.columns.get_level_values(2))
+    assert not (out / "dlc" / "cam1.csv").exists()
+    names, frames, pts, _ = read_trc(out / "trajectories.trc")
+    assert names == (["id0", "id1"] + [f"id0_{n}" for n in BIPED.keypoint_names]
+                     + [f"id1_kp{j}" for j in range(5)])
+    for i, (first, k) in enumerate([(2, BIPED.num_keypoints), (2 + BIPED.num_keypoints, 5)]):
+        for row, f in enumerate(frames):
+            got = pts[row, first:first + k]
+            if np.isfinite(got).all():
+                np.testing.assert_allclose(got, two_skeletons["truth"][i][f, :k], atol=1e-6)
+        assert np.isfinite(pts[:, first:first + k]).all(-1).any()
+    c3d = ezc3d.c3d(str(out / "trajectories.c3d"))
+    assert c3d["parameters"]["POINT"]["LABELS"]["value"] == names
+    assert len(rig) == 3
+
+
+def test_keypoint_files_that_disagree_are_refused_with_the_file_named(gt_export, two_skeletons,
+                                                                      tmp_path):
+    from nsd.export.pose_tools import KeypointFile
+
+    biped, other = two_skeletons["files"]
+    args = (gt_export["export"], gt_export["scene"], gt_export["rig"], tmp_path)
+    with pytest.raises(ValueError, match=r"other\.npz: 5 keypoints, but skeleton 'x' has 2"):
+        write_pose_tool_files(*args, keypoints=[KeypointFile(other.path, "x", ("a", "b"))])
+    with pytest.raises(ValueError, match=r"biped\.npz: row \d+ is also fitted on skeleton 'b'"):
+        write_pose_tool_files(*args, keypoints=[KeypointFile(biped.path, "b"),
+                                                KeypointFile(biped.path, "c")])
+    with pytest.raises(ValueError, match="named by two keypoint files"):
+        write_pose_tool_files(*args, keypoints=[biped, KeypointFile(other.path, "biped")])
