@@ -64,6 +64,13 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "5 (bipeds, quadrupeds), 8 cameras, seed 12": (
         5, ["num_individuals=5", "species=[biped,quadruped]", "rig.count=8",
             "motion.area_radius=3.0", "seed=12"]),
+    # the two scenes bench_hull.py made after its mixture rules were chosen
+    "4 (bipeds, quadrupeds), 8 cameras, seed 21": (
+        4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
+            "motion.area_radius=2.0", "seed=21"]),
+    "6 (bipeds, quadrupeds), 8 cameras, seed 22": (
+        6, ["num_individuals=6", "species=[biped,quadruped]", "rig.count=8",
+            "motion.area_radius=3.0", "seed=22"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
