@@ -83,8 +83,6 @@ VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, 
     "no depth reasoning": [*BI_NVS, "train.model.depth=false"],
     "no weak priors": [*BI_NVS, *(f"{p}@train.{p}=off"
                                   for p in ("prior_position", "prior_scale", "prior_aspect"))],
-    # identities as before 2026-11-28: two subjects of a frame may share one
-    "identities not distinct": ["netepu.identities.distinct=false"],
     "mask refiner + hull mask prior": [*BI_NVS, "train.model.mask_refiner.widths=[16,32]",
                                        "prior_mask@train.prior_mask=hull",
                                        "train.prior_mask.weight=4"],
@@ -204,15 +202,9 @@ def main() -> None:
                 learned[f"identity_accuracy{part or '_all'}"] = split.get(
                     f"identity_accuracy{part}")
             learned["idf1"] = ident.get("tracking", {}).get("identities", {}).get("idf1")
-            distinct = "distinct, " if "distinct_changed" in ident else ""
             learned["identities"] = (f"{ident.get('method', 'rows')}, "
-                                     f"fill {ident.get('fill', 'tracks')}, {distinct}"
+                                     f"fill {ident.get('fill', 'tracks')}, "
                                      f"{_identities_from(rec)}")
-            # rows of a camera-frame that share their identity with another (the pose tools'
-            # files keep one of them), and subject-frames the distinctness step changed
-            learned["shared_identity_rows"] = rec.get("formats", {}).get("summary", {}).get(
-                "rows_left_out", 0)
-            learned["distinct_changed"] = ident.get("distinct_changed")
             kp = rec.get("keypoints", {}).get("summary", {})
             learned["species_accuracy"] = kp.get("species_accuracy", {}).get("accuracy")
             learned["train_steps"] = rec["train"]["summary"].get("steps")
@@ -246,11 +238,7 @@ def main() -> None:
                "`identities`: how they were assigned (`netepu.identities.method`, `.fill`, and "
                "from what). `species_accuracy`: in scenes of two species, the share of "
                "inverted subject-frames that took the species of the individual they match "
-               "(netepu/pipeline/species_choice.py). `shared_identity_rows`: rows of the "
-               "export whose camera-frame holds another row of their identity (at most one "
-               "of them can be right); `distinct_changed`: subject-frames whose identity the "
-               "distinctness step changed (`netepu.identities.distinct`, "
-               "netepu/reid/identities.py: distinct_in_frames). "
+               "(netepu/pipeline/species_choice.py). "
                "`measured`: this run, or the date and commit of rows carried from an "
                "earlier report (`--carry`: scenes not re-run)."),
     )

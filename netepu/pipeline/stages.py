@@ -27,11 +27,7 @@ from netepu.pipeline.species_choice import (
 )
 from netepu.pipeline.species_models import BUILTIN, SpeciesModels
 from netepu.pipeline.subject_keypoints import invert_export, load_initialiser_checked
-from netepu.reid.identities import (
-    assign_identities,
-    distinct_in_frames,
-    transfer_identities,
-)
+from netepu.reid.identities import assign_identities, transfer_identities
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
@@ -457,10 +453,6 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
             if int(i.k) > 0:
                 log.warning("identities: netepu.identities.k=%d is not used with several "
                             "species: each species takes its own count", int(i.k))
-        if i.distinct:  # one identity per subject in a frame (netepu.reid.identities)
-            identity, changed = distinct_in_frames(identity, table["subject_id"], table["frame"],
-                                                   table["coded"])
-            summary["distinct_changed"] = changed
         table = {c: table[c] for c in keys}
         write_identities(out / "identities.csv",
                          {**{c: table[c].tolist() for c in keys}, "identity": identity.tolist()})
@@ -496,7 +488,7 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
             ) -> tuple[dict, np.ndarray, dict]:
     """The identities (``netepu.identities`` = ``i``, ``k`` of them or 0: the median count) of
     the rows of the embedding table at ``source`` (those of ids ``rows`` only, if given):
-    ``(table, identity, summary)``, the table with ``coded``, its rows with a code."""
+    ``(table, identity, summary)``."""
     keys = ["id", "camera", "frame", "subject_id"]
     by_app = column != "app" and str(i.fill) == "app"
     table = read_embeddings(source, [*keys, column, *(["app"] if by_app else [])])
@@ -508,9 +500,9 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
         "nearest" if by_app else str(i.fill),  # by_app: replaced just below
     )
     summary["fill"] = str(i.fill)
-    table["coded"] = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
     if by_app:  # rows without a code: by their appearance vector, not their track
-        identity = transfer_identities(table, identity, table["coded"], "app")
+        coded = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
+        identity = transfer_identities(table, identity, coded, "app")
         summary["fill"] = "app: nearest identity by appearance vector"
     return table, identity, summary
 
@@ -521,15 +513,13 @@ def _identities_of_species(up: dict[str, StageResult], species: list[str], colum
     (:func:`netepu.pipeline.species_choice.species_of_rows`, from the keypoints stage's
     ``species.csv``), and each species' rows are assigned among themselves from the texture
     stage's ``<species>/`` table (:func:`_assign`, as many identities as the species shows at
-    once), numbered after the species before. Returns the whole table's keys and ``coded``
-    (its rows with a texture code), the identities (-1: a row of no species) and the summary
-    with one entry per species."""
+    once), numbered after the species before. Returns the whole table's keys, the identities
+    (-1: a row of no species) and the summary with one entry per species."""
     keys = ["id", "camera", "frame", "subject_id"]
     choices = read_species_csv(up["keypoints"].folder / "species.csv")
     table = read_embeddings(up["export"].folder, keys)
     of_row = species_of_rows(table["subject_id"], table["frame"], choices)
     identity = np.full(len(of_row), -1, np.int64)
-    table["coded"] = np.zeros(len(of_row), bool)
     row = {int(r): n for n, r in enumerate(table["id"].tolist())}
     summary: dict[str, Any] = {"species": {}}
     offset = 0
@@ -541,7 +531,6 @@ def _identities_of_species(up: dict[str, StageResult], species: list[str], colum
         sub, ident, part = _assign(up["texture"].folder / s, ids_of_s, column, i, 0)
         at = np.array([row[int(r)] for r in sub["id"].tolist()], np.int64)
         identity[at] = np.where(ident >= 0, ident + offset, -1)
-        table["coded"][at] = sub["coded"]
         summary["species"][s] = part | {"rows": len(at), "first_identity": offset}
         offset += int(ident.max()) + 1 if (ident >= 0).any() else 0
         summary |= {k: v for k, v in part.items() if k in ("method", "fill")}

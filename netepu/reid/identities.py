@@ -29,14 +29,6 @@ row's identity is therefore decided from its own texture code (NeTePu's
    ``fill="tracks"``: the most frequent identity of all the track's coded rows, wrong
    on the whole stretch after a swap. -1 when the track has no coded row.
 
-4. **One identity per subject in a frame** (:func:`distinct_in_frames`, ``distinct``):
-   two tracks that met between coded frames can both carry one identity from their
-   nearest coded frames; in every frame where two subjects filled from their tracks share
-   an identity (or take one a coded subject of that frame holds), those subjects are given
-   distinct identities, the most probable joint choice when a track may jump to another
-   individual at any frame at the rate the table shows: a track that held an identity
-   nearer in time is likelier to hold it still.
-
 ``method="subjects"`` (the default) runs step 2 on *subject-frames* instead of rows: the rows
 of one subject in one frame (its cameras, which the export's cross-view association
 joined) are one item whose code is the normalised mean of their unit codes, and the
@@ -66,7 +58,6 @@ __all__ = [
     "assign_identities",
     "constrained_average_linkage",
     "constrained_kmeans",
-    "distinct_in_frames",
     "majority_in_window",
     "nearest_in_time",
     "transfer_identities",
@@ -292,106 +283,6 @@ def nearest_in_time(times: np.ndarray, frames: np.ndarray) -> np.ndarray:
     before = np.clip(after - 1, 0, len(times) - 1)
     take_before = np.abs(frames - times[before]) <= np.abs(times[after] - frames)
     return np.where(take_before, before, after)
-
-
-def distinct_in_frames(identity: np.ndarray, subject_id: np.ndarray, frame: np.ndarray,
-                       coded: np.ndarray) -> tuple[np.ndarray, int]:
-    r"""Distinct identities for the subjects of each frame (module docstring, step 4).
-
-    Rows of a subject-frame with a ``coded`` row keep their identities, and so does every
-    frame whose subjects already hold distinct ones. Elsewhere the uncoded subjects of the
-    frame share the identities the coded ones do not hold (all seen in the table) by a
-    Hungarian assignment of greatest joint probability, where a track is taken to jump to
-    another individual at a constant rate :math:`\lambda` per frame: with the identity
-    ``i`` it held at its last coded frame :math:`d_p` frames before and ``j`` at its next,
-    :math:`d_n` after, it is ``i`` with probability :math:`d_n / (d_p + d_n)` and ``j`` with
-    :math:`d_p / (d_p + d_n)` when they differ (one jump between, anywhere); with one side
-    only, or both alike, it still holds that identity with probability
-    :math:`e^{-\lambda d}` (:math:`d` the frames to its nearer evidence) and any other with the
-    rest, shared. :math:`\lambda` is the rate seen in the table: identity changes between
-    a track's consecutive coded frames per frame spanned (at least half a change over all).
-    Subjects beyond the identities left keep theirs.
-
-    Args:
-        identity: (rows,) int64, -1: none.
-        subject_id, frame: (rows,) the export's track and frame of every row.
-        coded: (rows,) bool, the rows whose identity comes from their own code.
-
-    Returns:
-        ``(identity (rows,) int64, subject-frames changed)``.
-
-    Example:
-        Tracks 5 and 6 hold identities 0 and 1 at frame 0; track 5 holds 1 at frame 2,
-        where track 6 was not coded, and from their nearest coded frames both carry 1 at
-        frame 3. Track 5 held it a frame ago, track 6 three frames ago, so track 6 takes
-        the identity left:
-
-        >>> ident = np.array([0, 1, 1, 1, 1])
-        >>> sid = np.array([5, 6, 5, 5, 6])
-        >>> t = np.array([0, 0, 2, 3, 3])
-        >>> coded = np.array([1, 1, 1, 0, 0], bool)
-        >>> distinct_in_frames(ident, sid, t, coded)
-        (array([0, 1, 1, 1, 0]), 1)
-    """
-    out = np.asarray(identity, np.int64).copy()
-    sid = np.asarray(subject_id, np.int64)
-    frame = np.asarray(frame, np.int64)
-    coded = np.asarray(coded, bool) & (out >= 0)
-    pool = sorted({int(i) for i in out[out >= 0]})
-    if len(pool) < 2 or not coded.any():
-        return out, 0
-    evidence: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # track -> coded frames, identities
-    jumps = spanned = 0
-    for s in np.unique(sid[coded]).tolist():
-        mine = coded & (sid == s)
-        times = np.unique(frame[mine])
-        ids = np.array([_most_frequent(out[mine & (frame == t)]) for t in times])
-        evidence[s] = (times, ids)
-        jumps += int((ids[1:] != ids[:-1]).sum())
-        spanned += int(times[-1] - times[0])
-    rate = max(jumps, 0.5) / max(spanned, int(frame.max() - frame.min()), 1)
-
-    def log_p(s: int, t: int) -> np.ndarray:
-        """log P(track ``s`` is each identity of ``pool`` at frame ``t``)."""
-        times, ids = evidence.get(s, (np.zeros(0, np.int64), np.zeros(0, np.int64)))
-        p = np.full(len(pool), 1e-12)
-        k = np.searchsorted(times, t)
-        sides = [(ids[k - 1], t - times[k - 1])] if k > 0 else []
-        sides += [(ids[k], times[k] - t)] if k < len(times) else []
-        if len(sides) == 2 and sides[0][0] != sides[1][0]:
-            (i, dp), (j, dn) = sides
-            p[pool.index(i)] += dn / (dp + dn)
-            p[pool.index(j)] += dp / (dp + dn)
-        elif sides:
-            i, d = sides[0][0], min(side[1] for side in sides)
-            stay = np.exp(-rate * d)
-            p += (1 - stay) / (len(pool) - 1)
-            p[pool.index(i)] = stay
-        else:
-            p[:] = 1 / len(pool)
-        return np.log(p)
-
-    rows_of: dict[int, dict[int, list[int]]] = defaultdict(lambda: defaultdict(list))
-    for r in np.flatnonzero(out >= 0):
-        rows_of[int(frame[r])][int(sid[r])].append(int(r))
-    changed = 0
-    for t, subjects in rows_of.items():
-        fixed = {s for s, rows in subjects.items() if coded[rows].any()}
-        loose = sorted(set(subjects) - fixed)
-        taken = {int(out[r]) for s in fixed for r in subjects[s]}
-        current = [int(out[subjects[s][0]]) for s in loose]
-        if len(set(current)) == len(current) and not taken & set(current):
-            continue
-        free = [b for b, i in enumerate(pool) if i not in taken]
-        if not free or not loose:
-            continue
-        cost = -np.stack([log_p(s, t)[free] for s in loose])
-        for a, b in zip(*linear_sum_assignment(cost), strict=True):
-            rows = subjects[loose[a]]
-            if int(out[rows[0]]) != pool[free[b]]:
-                out[rows] = pool[free[b]]
-                changed += 1
-    return out, changed
 
 
 def transfer_identities(

@@ -231,7 +231,6 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.identities.method": _r("str", choices=("subjects", "rows", "tracks")),
         "netepu.identities.restarts": POS,
         "netepu.identities.fill": _r("str", choices=("app", "nearest", "tracks")),
-        "netepu.identities.distinct": _r("bool"),
         "grids.size": _r("int", low=16),
         "overlays.size": _r("int", low=16), "overlays.fps": RATE,
         "quality.max_frames": _r("int", low=0), "quality.worst": _r("int", low=0),

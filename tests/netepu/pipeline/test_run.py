@@ -415,37 +415,6 @@ def test_one_coded_frame_with_wrong_codes_does_not_flip_the_rows_around_it():
     assert set(frame[identity != truth].tolist()) == {20}
 
 
-def test_subjects_of_a_frame_filled_from_their_tracks_take_distinct_identities():
-    """Track 1 follows individual a until frame 12 and b after it; track 2 follows b until
-    it is lost at frame 12; track 3 picks up a at frame 13. Codes every 10th frame, but
-    track 1 is not coded at frame 20 (too few views). From its nearest coded frame (10,
-    the earlier on the tie at 20) track 1 carries a through frames 13-20, as track 3 does
-    (coded at 20): two subjects with one identity. The jump model gives track 1 b there (a
-    jump after frame 10 is as likely anywhere before 30; track 3 held a a few frames on),
-    and every row of those frames is right; coded rows are left alone."""
-    from netepu.reid.identities import distinct_in_frames
-
-    spans = {1: [(range(0, 13), 0), (range(13, 41), 1)], 2: [(range(0, 13), 1)],
-             3: [(range(13, 41), 0)]}
-    sid, frame, truth = np.array([(s, t, i) for s, parts in spans.items()
-                                  for ts, i in parts for t in ts]).T
-    coded = (frame % 10 == 0) & ~((sid == 1) & (frame == 20))
-    filled = truth.copy()  # the nearest coded frame's identity (the earlier on a tie)
-    for r in np.flatnonzero(~coded):
-        mine = np.flatnonzero(coded & (sid == sid[r]))
-        filled[r] = truth[mine[np.argmin(np.abs(frame[mine] - frame[r]) * 2
-                                         + (frame[mine] > frame[r]))]]
-    clash = set(frame[filled != truth].tolist())
-    assert clash == set(range(13, 21))  # track 1 carries a there, as track 3 does
-    got, changed = distinct_in_frames(filled, sid, frame, coded)
-    assert np.array_equal(got, truth) and changed == len(clash)
-    assert np.array_equal(got[coded], filled[coded])
-    again, none = distinct_in_frames(got, sid, frame, coded)  # nothing left to change
-    assert np.array_equal(again, got) and none == 0
-    one = np.zeros(len(sid), np.int64)  # one identity: nothing to share
-    assert distinct_in_frames(one, sid, frame, coded)[1] == 0
-
-
 def test_subject_identities_pool_the_cameras_of_a_subject_frame():
     """In camera "c" each subject is half hidden by the other and its code leans to the other
     individual's (0.4 own + 0.6 other): ``rows`` decides that camera's rows alone and swaps
