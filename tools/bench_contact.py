@@ -205,6 +205,10 @@ def main() -> None:
             learned["identities"] = (f"{ident.get('method', 'rows')}, "
                                      f"fill {ident.get('fill', 'tracks')}, "
                                      f"{_identities_from(rec)}")
+            # rows of a camera-frame that share their identity with another (the pose tools'
+            # files keep one of them): at most one of them can be right
+            learned["shared_identity_rows"] = rec.get("formats", {}).get("summary", {}).get(
+                "rows_left_out", 0)
             kp = rec.get("keypoints", {}).get("summary", {})
             learned["species_accuracy"] = kp.get("species_accuracy", {}).get("accuracy")
             learned["train_steps"] = rec["train"]["summary"].get("steps")
@@ -238,7 +242,9 @@ def main() -> None:
                "`identities`: how they were assigned (`netepu.identities.method`, `.fill`, and "
                "from what). `species_accuracy`: in scenes of two species, the share of "
                "inverted subject-frames that took the species of the individual they match "
-               "(netepu/pipeline/species_choice.py). "
+               "(netepu/pipeline/species_choice.py). `shared_identity_rows`: rows of the "
+               "export whose camera-frame holds another row of their identity (at most one "
+               "of them can be right). "
                "`measured`: this run, or the date and commit of rows carried from an "
                "earlier report (`--carry`: scenes not re-run)."),
     )
