@@ -137,3 +137,25 @@ def test_identities_are_assigned_within_each_species(tmp_path):
     assert summary["identities"] == 4
     assert summary["species"]["biped"]["k"] == summary["species"]["quadruped"]["k"] == 2
     assert summary["species"]["quadruped"]["first_identity"] == 2
+
+
+def test_keypoint_files_of_the_formats_stage_take_the_species_skeleton_when_it_fits(tmp_path):
+    """The formats stage names the keypoints by their species' skeleton (names and bones)
+    when the file holds that species' keypoints; keypoints of another count (the pose
+    regressor's, from a user's labels) and models of no known species keep ``kp0``.."""
+    from netepu.pipeline.stages import _keypoint_file
+    from nsd.synth.skeleton import BIPED, QUADRUPED
+
+    for k, folder in ((BIPED.num_keypoints, "a"), (5, "b")):
+        (tmp_path / folder).mkdir()
+        np.savez(tmp_path / folder / "keypoints3d.npz", id=np.arange(2),
+                 keypoints=np.zeros((2, k, 3)))
+    named = _keypoint_file(tmp_path / "a", "biped")
+    assert named.skeleton == "biped" and named.nodes == BIPED.keypoint_names
+    assert named.edges == BIPED.skeleton and named.path == tmp_path / "a" / "keypoints3d.npz"
+    other = _keypoint_file(tmp_path / "b", "biped")  # 5 keypoints are not a biped's
+    assert other.skeleton == "biped" and other.nodes == () and other.edges == ()
+    assert _keypoint_file(tmp_path / "a", "quadruped").nodes == ()  # counts differ
+    assert QUADRUPED.num_keypoints != BIPED.num_keypoints
+    unknown = _keypoint_file(tmp_path / "a", "")  # a checkpoint of the user's own
+    assert unknown.skeleton == "subject" and unknown.nodes == ()
