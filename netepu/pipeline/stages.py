@@ -303,6 +303,8 @@ def keypoints_stage(cfg: DictConfig, models: list[SpeciesModels]) -> Stage:
     regress = k.source == "regressor"
     several = len(models) > 1
     settings = {"source": k.source, **{name: k[name] for name in _INVERSE_KEYS}}
+    if several and not regress:
+        settings["species_steps"] = int(k.species_steps)
     if regress:  # the regressor is trained on the decomposition of the train stage
         settings |= {"label_fraction": k.label_fraction, "regressor_steps": k.regressor_steps}
     else:
@@ -311,14 +313,14 @@ def keypoints_stage(cfg: DictConfig, models: list[SpeciesModels]) -> Stage:
         settings["initialiser"] = [i for _, i in keys] if several else keys[0][1]
         settings["fps"] = cfg.formats.get("fps")  # the travel's time base
 
-    def invert(m: SpeciesModels, export: Path, scene: str, out: Path) -> dict[str, Any]:
+    def invert(m: SpeciesModels, export: Path, scene: str, out: Path, **over) -> dict[str, Any]:
         workers = resolve_workers(k.workers, int(cfg.threads), "cpu")  # inverts on the CPU
         if m.initialiser is None:
             log.info("keypoints: no learned initialiser (%s); cold starts screen the "
                      "template poses", m.why_initialiser)
         return invert_export(
             export, scene, m.geometry, out, workers=workers, initialiser=m.initialiser,
-            fps=settings["fps"], **{name: k[name] for name in _INVERSE_KEYS},
+            fps=settings["fps"], **({name: k[name] for name in _INVERSE_KEYS} | over),
         )
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
@@ -330,7 +332,8 @@ def keypoints_stage(cfg: DictConfig, models: list[SpeciesModels]) -> Stage:
         elif not several:
             summary = invert(models[0], export, scene, out)
         else:
-            return _keypoints_of_species(models, invert, export, scene, out, truth)
+            return _keypoints_of_species(models, invert, export, scene, out, truth,
+                                         int(k.species_steps))
         if truth:
             summary["accuracy"] = keypoint_error(export, scene, out / "keypoints3d.npz")
         return summary
@@ -346,19 +349,32 @@ def keypoints_stage(cfg: DictConfig, models: list[SpeciesModels]) -> Stage:
 
 
 def _keypoints_of_species(models: list[SpeciesModels], invert, export: Path, scene: str,
-                          out: Path, truth: bool) -> dict[str, Any]:
-    """The keypoints stage of a run of several species (:func:`keypoints_stage`)."""
+                          out: Path, truth: bool, species_steps: int) -> dict[str, Any]:
+    """The keypoints stage of a run of several species (:func:`keypoints_stage`): every
+    subject-frame fitted with each body, ``species_steps`` Adam steps (0: the full fit), to
+    choose its species; with short fits, then the full fit of the chosen body alone."""
     fits, per_species = {}, {}
+    short = {"steps": species_steps, "init_steps": species_steps} if species_steps else {}
     for m in models:
-        log.info("keypoints: every subject fitted with the %s model", m.species)
-        per_species[m.species] = invert(m, export, scene, out / m.species / "all")
+        log.info("keypoints: every subject fitted with the %s model%s", m.species,
+                 f" ({species_steps} steps, to choose its species)" if short else "")
+        per_species[m.species] = invert(m, export, scene, out / m.species / "all", **short)
         fits[m.species] = out / m.species / "all" / "keypoints3d.npz"
     choices = choose_species(fits)
     write_species_csv(out / "species.csv", choices)
-    kept = split_fits(fits, choices, {s: out / s / "keypoints3d.npz" for s in fits})
+    if not short:
+        kept = split_fits(fits, choices, {s: out / s / "keypoints3d.npz" for s in fits})
+    else:  # the chosen body's full fit: the one it gets among all subject-frames
+        kept, chosen = {}, {}
+        for m in models:
+            mine = {(c.frame, c.subject_id) for c in choices if c.species == m.species}
+            chosen[m.species] = invert(m, export, scene, out / m.species, only=mine)
+            kept[m.species] = len(mine)
     log.info("keypoints: subject-frames by species %s (%s/<species>/keypoints3d.npz)",
              kept, out)
     summary: dict[str, Any] = {"species": kept, "fitted": per_species}
+    if short:
+        summary["chosen"] = chosen
     if truth:
         matched = subject_truth(export, scene)  # every row's mask decoded and matched once
         summary["species_accuracy"] = species_accuracy(export, scene, choices, matched)

@@ -40,6 +40,7 @@ import logging
 import os
 import time
 from collections import defaultdict
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -152,6 +153,7 @@ def invert_export(
     initialiser: str | os.PathLike | None = None,
     travel_speed: float | str = "auto",
     fps: float | None = None,
+    only: Collection[tuple[int, int]] | None = None,
 ) -> dict[str, Any]:
     """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
 
@@ -188,6 +190,9 @@ def invert_export(
             threads shared among them: :class:`nsd.export.parallel.BatchPool`); with warm
             starts each subject's frames stay in one process. The result does not depend
             on it.
+        only: the ``(frame, subject_id)`` subject-frames to invert (None: all); each one's
+            fit is the one it gets among all (its loss points are seeded by its frame),
+            without warm starts from frames left out.
 
     Returns:
         counts, the mean final silhouette loss, seconds per subject-frame (wall time over
@@ -233,7 +238,7 @@ def invert_export(
     tasks: list[tuple[int, int, list[dict]]] = []  # (frame, subject, its views), in order
     for (t, sid), anns in groups:
         anns = _views_of_one_size(anns, images)
-        if len(anns) < min_views:
+        if len(anns) < min_views or (only is not None and (int(t), int(sid)) not in only):
             continue
         if max_subject_frames and len(tasks) >= max_subject_frames:
             break

@@ -224,6 +224,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.keypoints.initialiser": NULL_TEXT, "netepu.keypoints.init_steps": POS,
         "netepu.keypoints.init_templates": _r("int", low=0, allow=("auto",)),
         "netepu.keypoints.smooth_frames": _r("number", low=0),
+        "netepu.keypoints.species_steps": _r("int", low=0),
         "netepu.keypoints.travel_speed": _r("number", low=0, allow=("auto",)),
         "netepu.keypoints.source": _r("str", choices=("inverse", "regressor")),
         "netepu.keypoints.label_fraction": _r("number", above=0, high=1),

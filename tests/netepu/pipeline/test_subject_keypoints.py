@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from pycocotools import mask as mask_utils
 
 from netepu.pipeline.subject_keypoints import _others, smooth_tracks
@@ -106,6 +107,29 @@ def test_the_keypoints_do_not_depend_on_the_workers(tmp_path):
         assert out[1].keys() == out[2].keys()
         for k in out[1]:
             np.testing.assert_allclose(out[1][k], out[2][k], atol=1e-3, err_msg=k)
+
+
+def test_a_subject_frame_inverted_alone_gets_the_fit_it_gets_among_all(tmp_path):
+    """``only`` (the chosen body's full fit in a run of two species) inverts the subject-frames
+    given, each to the keypoints and loss it gets when every subject-frame is inverted."""
+    from netepu.geometry.model import load_geometry_model
+    from netepu.pipeline.species_models import MODELS
+    from netepu.pipeline.subject_keypoints import invert_export
+
+    model, config = load_geometry_model(MODELS / "biped.pt")
+    scene, export = _hand_made_export(tmp_path, model, config["netepu"])
+    got = {}
+    for name, only in (("all", None), ("some", {(1, 0), (0, 1)}), ("none", set())):
+        invert_export(export, scene, MODELS / "biped.pt", tmp_path / name, frame_step=1,
+                      steps=4, templates=2, only=only)
+        with np.load(tmp_path / name / "keypoints3d.npz") as z:
+            got[name] = {(int(t), int(s)): (kp, loss) for t, s, kp, loss in zip(
+                z["subject_frame"], z["subject_id"], z["subject_keypoints"], z["subject_loss"],
+                strict=True)}
+    assert len(got["all"]) == 4 and set(got["some"]) == {(1, 0), (0, 1)} and not got["none"]
+    for key, (kp, loss) in got["some"].items():
+        np.testing.assert_allclose(kp, got["all"][key][0], atol=1e-5)
+        assert loss == pytest.approx(got["all"][key][1], rel=1e-5)
 
 
 def test_an_initialiser_of_another_body_or_no_initialiser_is_refused(tmp_path):
