@@ -57,20 +57,21 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
         4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
             "motion.area_radius=2.0"]),
     "6 bipeds, 8 cameras": (6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0"]),
-    # scenes of both species made for bench_hull.py (the same nsd-synth overrides and seeds)
-    "3 (2 quadrupeds, 1 biped), 8 cameras, seed 11": (
-        3, ["num_individuals=3", "species=[quadruped,biped]", "rig.count=8",
-            "motion.area_radius=2.5", "seed=11"]),
-    "5 (bipeds, quadrupeds), 8 cameras, seed 12": (
-        5, ["num_individuals=5", "species=[biped,quadruped]", "rig.count=8",
-            "motion.area_radius=3.0", "seed=12"]),
+}
+
+
+def _mixed(n: int, species: str, radius: float, seed: int) -> tuple[int, list[str]]:
+    """A scene of both species of bench_hull.py's list (its nsd-synth overrides and seed)."""
+    return n, [f"num_individuals={n}", f"species=[{species}]", "rig.count=8",
+               f"motion.area_radius={radius}", f"seed={seed}"]
+
+
+SCENES |= {
+    "3 (2 quadrupeds, 1 biped), 8 cameras, seed 11": _mixed(3, "quadruped,biped", 2.5, 11),
+    "5 (bipeds, quadrupeds), 8 cameras, seed 12": _mixed(5, "biped,quadruped", 3.0, 12),
     # the two scenes bench_hull.py made after its mixture rules were chosen
-    "4 (bipeds, quadrupeds), 8 cameras, seed 21": (
-        4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
-            "motion.area_radius=2.0", "seed=21"]),
-    "6 (bipeds, quadrupeds), 8 cameras, seed 22": (
-        6, ["num_individuals=6", "species=[biped,quadruped]", "rig.count=8",
-            "motion.area_radius=3.0", "seed=22"]),
+    "4 (bipeds, quadrupeds), 8 cameras, seed 21": _mixed(4, "biped,quadruped", 2.0, 21),
+    "6 (bipeds, quadrupeds), 8 cameras, seed 22": _mixed(6, "biped,quadruped", 3.0, 22),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)

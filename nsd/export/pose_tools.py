@@ -254,8 +254,7 @@ def _write_nwb(labels: sio.Labels, path: Path, rate: float) -> None:
     here from its parts: every skeleton first, then one skeleton's instances at a time."""
     last = max(lf.frame_idx for lf in labels.labeled_frames) if labels else 0
     meta = {"video_timestamps": np.arange(last + 1) / rate, "video_sample_rate": rate}
-    parts = ([_used_videos(labels)] if len(labels.skeletons) == 1 else
-             [_used_videos(_of_skeleton(labels, s)) for s in labels.skeletons])
+    parts = [_used_videos(_of_skeleton(labels, s)) for s in labels.skeletons]
     nwb = NWBFile(session_description="Processed SLEAP pose data", identifier=str(uuid.uuid4()),
                   session_start_time=datetime.datetime.now(datetime.UTC))
     skeletons = nwb_predictions.create_skeleton_container(labels, nwb)
@@ -269,8 +268,8 @@ def _write_nwb(labels: sio.Labels, path: Path, rate: float) -> None:
 
 
 def _markers(positions: dict[tuple[int, int], tuple[np.ndarray, int]],
-             keypoints: dict[tuple[int, int], tuple[str, np.ndarray]] | None,
-             skeletons: dict[str, sio.Skeleton] | None = None,
+             keypoints: dict[tuple[int, int], tuple[str, np.ndarray]],
+             skeletons: dict[str, sio.Skeleton],
              ) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Marker names, frames (F,) and points (F, M, 3) (NaN: not seen).
 
@@ -281,7 +280,6 @@ def _markers(positions: dict[tuple[int, int], tuple[np.ndarray, int]],
             skeletons.
         skeletons: the skeletons by name (their node names).
     """
-    keypoints = keypoints or {}
     ids = sorted({i for _, i in positions} | {i for _, i in keypoints})
     names = [f"id{i}" for i in ids]
     blocks = sorted({(i, s) for (_, i), (s, _) in keypoints.items()})  # (identity, skeleton)
@@ -375,7 +373,7 @@ def write_pose_tool_files(
     out: str | os.PathLike,
     row_ids: dict[int, int] | None = None,
     positions: dict[tuple[int, int], tuple[np.ndarray, int]] | None = None,
-    keypoints: str | os.PathLike | KeypointFile | Sequence[KeypointFile] | None = None,
+    keypoints: Sequence[KeypointFile] = (),
     formats: tuple[str, ...] = POSE_TOOL_FORMATS,
     fps: float | None = None,
 ) -> dict[str, Any]:
@@ -388,8 +386,8 @@ def write_pose_tool_files(
         out: the folder to write.
         row_ids: annotation id -> identity (default: the rows' ``subject_id``).
         positions: ``(frame, id)`` -> (world position, views), for TRC/C3D.
-        keypoints: fitted keypoints: one :class:`KeypointFile` per skeleton (a species),
-            or one ``keypoints3d.npz`` (``id``, ``keypoints``; nodes ``kp0``..), or None.
+        keypoints: fitted keypoints, one :class:`KeypointFile` per skeleton (a species);
+            none: a centroid per row.
         formats: which of :data:`POSE_TOOL_FORMATS`.
         fps: frame rate of the 3D files (default: the footage's).
 
@@ -404,12 +402,6 @@ def write_pose_tool_files(
     coco = json.loads((export / "subjects.coco.json").read_text())
     if row_ids is None:
         row_ids = {int(a["id"]): int(a["subject_id"]) for a in coco["annotations"]}
-    if keypoints is None:
-        keypoints = []
-    elif isinstance(keypoints, (str, os.PathLike)):
-        keypoints = [KeypointFile(Path(keypoints))]
-    elif isinstance(keypoints, KeypointFile):
-        keypoints = [keypoints]
     bodies = _read_bodies(keypoints)
     rate = _frame_rate(scene, rig.names, fps)
     summary: dict[str, Any] = {"fps": rate}
@@ -457,7 +449,7 @@ def write_pose_tool_files(
             if ident >= 0 and int(a["id"]) in bodies.rows:
                 kp3d[(int(a["frame"]), ident)] = bodies.rows[int(a["id"])]
         names, frames, pts = _markers(positions or {}, kp3d,
-                                      bodies.skeletons if bodies else None)
+                                      bodies.skeletons if bodies else {})
         if "trc" in formats:
             write_trc(out / "trajectories.trc", names, frames, pts, rate)
         if "c3d" in formats:
