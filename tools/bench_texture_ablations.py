@@ -4,15 +4,18 @@ Writes ``docs/benchmarks/netepu_texture_ablations.md`` and ``.json`` and
 ``docs/images/netepu_texture_ablations.jpg``.
 
 NeTePu (table 3 and sec. 5.3) reports colour PSNR 19.35 dB for the full model, 13.63 dB
-without NNOPCS maps and 14.74 dB without per-keypoint texture features. Six texture
+without NNOPCS maps and 14.74 dB without per-keypoint texture features. Nine texture
 models answer whether those gaps appear here and why: the three rows of the paper for
-two colour renderers,
+two colour renderers and two encoder inputs,
 
 * ``ours``: the renderer reads the frozen geometry's keypoint features f and code z
   beside the texture's (``renderer_geometry: true``; the paper's text: "we augment the
   local features for geometry f with f_texture");
 * ``ref``: the renderer reads f_texture and z_texture only, as NeTePu's code does
-  (``NePuTextureRenderer``); without f_texture its keypoints carry their positions only.
+  (``NePuTextureRenderer``); without f_texture its keypoints carry their positions only;
+* ``frame``: our renderer, but the encoder reads the whole view (``crop_margin: null``,
+  128 x 128 for the 256 x 192 view) wherever the body is, as NeTePu's encoder reads the
+  whole frame, instead of a square crop around the visible mask (64 x 64).
 
 Every model is trained on the shipped biped geometry (frozen), with the shipped texture
 recipe otherwise (conf/netepu/texture/default.yaml) and the same 2,083 steps, one
@@ -25,6 +28,7 @@ another camera (texture swap: novel pose and view synthesis)::
     .venv/bin/python tools/bench_texture_ablations.py geometry     # the shipped biped's geometry
     taskset -c 0 .venv/bin/python tools/bench_texture_ablations.py train ours   # ~13 min each
     ... train ours_no_nnopcs / ours_no_local / ref / ref_no_nnopcs / ref_no_local
+    ... train frame / frame_no_nnopcs / frame_no_local   # ~60 min each (the encoder at 128 x 128)
     taskset -c 0 .venv/bin/python tools/bench_texture_ablations.py evaluate ours   # each run
     .venv/bin/python tools/bench_texture_ablations.py report
 """
@@ -51,6 +55,7 @@ STEPS = 2083  # the shipped texture recipe's (tools/train_species_models.py)
 NO_NNOPCS = ["netepu.texture.model.use_nnopcs=false", "netepu.texture.model.use_normals=false"]
 NO_LOCAL = ["netepu.texture.model.local_features=false"]
 REF = ["netepu.texture.model.renderer_geometry=false"]
+FRAME = ["netepu.texture.model.crop_margin=null", "netepu.texture.model.crop_size=128"]
 VARIANTS = {  # name: netepu-train overrides
     "ours": [],
     "ours_no_nnopcs": NO_NNOPCS,
@@ -58,6 +63,9 @@ VARIANTS = {  # name: netepu-train overrides
     "ref": REF,
     "ref_no_nnopcs": REF + NO_NNOPCS,
     "ref_no_local": REF + NO_LOCAL,
+    "frame": FRAME,
+    "frame_no_nnopcs": FRAME + NO_NNOPCS,
+    "frame_no_local": FRAME + NO_LOCAL,
 }
 LABELS = {
     "ours": "ours: renderer reads f, z (+ f_texture, z_texture)",
@@ -66,6 +74,9 @@ LABELS = {
     "ref": "NeTePu's code: renderer reads f_texture, z_texture only",
     "ref_no_nnopcs": "NeTePu's code, no NNOPCS",
     "ref_no_local": "NeTePu's code, no per-keypoint texture features",
+    "frame": "whole frame: ours, the encoder reads the whole view (128 x 128)",
+    "frame_no_nnopcs": "whole frame, no NNOPCS",
+    "frame_no_local": "whole frame, no per-keypoint texture features",
 }
 PAPER = {"full": 19.35, "no_nnopcs": 13.63, "no_local": 14.74}  # NeTePu tables 2 and 3 (dB)
 SETS = ("heldout_poses", "heldout_cameras")
@@ -151,10 +162,26 @@ def _figure(names: list[str], stem: str) -> None:
         cv2.imwrite(str(out), np.concatenate(parts[:-1], 0), [cv2.IMWRITE_JPEG_QUALITY, 92])
 
 
+def _earlier_rows() -> tuple[dict[str, dict], str]:
+    """The runs of the committed report, and when and where they were measured."""
+    path = ROOT / "docs" / "benchmarks" / "netepu_texture_ablations.json"
+    if not path.is_file():
+        return {}, ""
+    old = json.loads(path.read_text())
+    return old["extra"]["runs"], f"{old['date']}, `{old['commit']}`"
+
+
 def report() -> None:
+    """The report from the runs' files; a model without one keeps the committed report's
+    row (its ``measured`` column says when), so models can be added a few at a time."""
     names = [f"{n}{u}" for u in ("", "_unseen") for n in VARIANTS]
-    rows = {n: json.loads((WORK / f"{n}.json").read_text())
-            for n in names if (WORK / f"{n}.json").is_file()}  # fmt: skip
+    earlier, when = _earlier_rows()
+    rows, measured = {}, {}
+    for n in names:
+        if (WORK / f"{n}.json").is_file():
+            rows[n], measured[n] = json.loads((WORK / f"{n}.json").read_text()), "this run"
+        elif n in earlier:
+            rows[n], measured[n] = earlier[n], when
     table = []
     for n, r in rows.items():
         unseen = n.endswith("_unseen")
@@ -166,11 +193,12 @@ def report() -> None:
                     f"{r[f'{s}/psnr_{kind}']:.2f} / {r[f'{s}/psnr_image_{kind}']:.2f}"
                 )
         line |= {"re-id rank-1": round(r["reid_rank1"], 4), "re-id mAP": round(r["reid_map"], 4),
-                 "steps": r["steps"], "train min": round(r["train_minutes"], 1)}  # fmt: skip
+                 "steps": r["steps"], "train min": round(r["train_minutes"], 1),
+                 "measured": measured[n]}  # fmt: skip
         table.append(line)
     gaps = []
     for unseen in ("", "_unseen"):
-        for family in ("ours", "ref"):
+        for family in ("ours", "ref", "frame"):
             for ablation in ("no_nnopcs", "no_local"):
                 g = {"renderer": LABELS[family].split(":")[0], "ablation": ablation,
                      "textures": "unseen" if unseen else "trained on"}  # fmt: skip
@@ -208,8 +236,12 @@ def report() -> None:
         "`train min`: wall minutes of training while two runs and evaluations shared the two "
         "cores (a step count is the budget here, not a speed figure).",
     ]
-    _figure([n for n in rows if not n.endswith("_unseen")], "netepu_texture_ablations")
-    _figure([n for n in rows if n.endswith("_unseen")], "netepu_texture_ablations_unseen")
+    # the grids of this run's models; beside the committed figures when others are kept
+    fresh = [n for n in rows if measured[n] == "this run"]
+    families = sorted({n.split("_")[0] for n in fresh})
+    tag = "" if len(fresh) == len(rows) else "_" + "_".join(families)
+    _figure([n for n in fresh if not n.endswith("_unseen")], f"netepu_texture_ablations{tag}")
+    _figure([n for n in fresh if n.endswith("_unseen")], f"netepu_texture_ablations{tag}_unseen")
     write_report(
         "netepu_texture_ablations",
         "NeTePu's texture ablations in both PSNR protocols",

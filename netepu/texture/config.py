@@ -28,7 +28,7 @@ class TextureConfig(ConfigSection):
     local_features: bool
     renderer_geometry: bool
     crop_size: int
-    crop_margin: float
+    crop_margin: float | None
     widths: list[int]
     blocks_per_stage: int
     dense_hidden: int
@@ -39,9 +39,14 @@ class TextureConfig(ConfigSection):
     def validate(self) -> None:
         """Ranges and combinations (:meth:`from_config` and :meth:`defaults` call it)."""
         c = self
-        if c.crop_size < 16 or c.latent < 1 or c.features < 1 or c.crop_margin < 0:
+        margin_ok = c.crop_margin is None or (
+            isinstance(c.crop_margin, (int, float)) and c.crop_margin >= 0
+        )
+        if c.crop_size < 16 or c.latent < 1 or c.features < 1 or not margin_ok:
             raise ConfigError(
-                "netepu.texture.model: crop_size >= 16, latent and features >= 1, crop_margin >= 0"
+                "netepu.texture.model: crop_size >= 16, latent and features >= 1, crop_margin "
+                f">= 0 or null (the whole frame); got crop_size={c.crop_size!r}, "
+                f"latent={c.latent!r}, features={c.features!r}, crop_margin={c.crop_margin!r}"
             )
         if c.use_normals and not c.use_nnopcs:
             raise ConfigError(

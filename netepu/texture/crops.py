@@ -19,12 +19,14 @@ __all__ = ["crop_grid", "crop_windows", "query_masked", "sample_masked"]
 
 
 # ----------------------------------------------------------------------------- crops
-def crop_windows(mask: Tensor, margin: float) -> Tensor:
-    """Square windows around the masks' boxes.
+def crop_windows(mask: Tensor, margin: float | None) -> Tensor:
+    """Square windows around the masks' boxes, or over the whole frame.
 
     Args:
         mask: (B, H, W) bool.
-        margin: enlargement per side, as a fraction of the box's longer side.
+        margin: enlargement per side, as a fraction of the box's longer side; None: the
+            whole frame, a square of side ``max(H, W)`` centred on the image (NeTePu's
+            encoder reads the whole image), wherever the mask lies.
 
     Returns:
         (B, 3) ``(x0, y0, side)`` in pixels (pixel edges), float64.
@@ -38,6 +40,11 @@ def crop_windows(mask: Tensor, margin: float) -> Tensor:
             f"texture code: empty visible masks at batch items "
             f"{torch.nonzero(empty).flatten().tolist()}"
         )
+    if margin is None:
+        H, W = mask.shape[1:]
+        side = max(H, W)
+        frame = [(W - side) / 2, (H - side) / 2, side]
+        return torch.tensor([frame] * len(mask), dtype=torch.float64, device=mask.device)
     boxes = mask_boxes_xyxy(mask).double()
     return torch.tensor(
         [square_crop_box([b[0], b[1], b[2] - b[0], b[3] - b[1]], margin) for b in boxes.tolist()],

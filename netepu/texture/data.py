@@ -143,7 +143,7 @@ def shade_texture(texture_id: int, nnopcs: Tensor, normal: Tensor) -> Tensor:
     return lambert(get_texture(texture_id)(nnopcs), normal, DEFAULT_LIGHT)
 
 
-def _key(cfg: TextureDataConfig, geo: DataConfig, crop_size: int, margin: float) -> str:
+def _key(cfg: TextureDataConfig, geo: DataConfig, crop_size: int, margin: float | None) -> str:
     d = {k: v for k, v in asdict(cfg).items() if k != "cache_dir"}
     g = {
         k: v
@@ -178,7 +178,7 @@ def _rig(spec: Mapping[str, Any], size: tuple[int, int]):
     return make_rig(spec.pop("kind", "nepumoo"), size, **spec)
 
 
-def _crops(colour: Tensor, mask: Tensor, crop_size: int, margin: float):
+def _crops(colour: Tensor, mask: Tensor, crop_size: int, margin: float | None):
     """Window, inside and crops of full images (n, H, W, C) with masks (n, H, W)."""
     window = crop_windows(mask, margin)
     grid = crop_grid(window, crop_size)
@@ -219,7 +219,7 @@ class _World:
     individual: Any
     textures: np.ndarray  # (T,) pool ids
     crop_size: int
-    margin: float
+    margin: float | None
     rng: np.random.Generator
     progress: Callable[[str], None]
 
@@ -228,7 +228,7 @@ def _build(
     cfg: TextureDataConfig,
     geo: DataConfig,
     crop_size: int,
-    margin: float,
+    margin: float | None,
     progress: Callable[[str], None],
 ) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(cfg.seed)
@@ -367,7 +367,7 @@ def build_texture_data(
     cfg: TextureDataConfig | Mapping[str, Any],
     geometry: DataConfig | Mapping[str, Any],
     crop_size: int,
-    margin: float,
+    margin: float | None,
     progress: Callable[[str], None] | None = None,
 ) -> TextureData:
     """Load the texture data from the cache, rendering it first when missing.

@@ -116,6 +116,34 @@ def test_crop_windows_and_grid_known_values():
         crop_windows(torch.cat([mask, torch.zeros_like(mask)]), 0.1)
 
 
+
+def test_whole_frame_windows_cover_the_image_wherever_the_mask_is():
+    # crop_margin None (NeTePu's encoder input): one square of side max(H, W), centred
+    mask = torch.zeros(2, 20, 30, dtype=torch.bool)
+    mask[0, 5:15, 10:14] = True
+    mask[1, 0:2, 27:30] = True  # a corner: the same window
+    w = crop_windows(mask, None)
+    torch.testing.assert_close(w, torch.tensor([[0.0, -5.0, 30.0]] * 2, dtype=torch.float64))
+    g = crop_grid(w, 30)  # one grid pixel per image pixel: the image's own pixel centres
+    torch.testing.assert_close(g[0, 5:25, :, 0], torch.arange(30.0).double().expand(20, 30))
+    torch.testing.assert_close(g[0, 5:25, 0, 1], torch.arange(20.0).double())
+    img = torch.rand(2, 20, 30, 3, generator=torch.Generator().manual_seed(0))
+    crop, inside = sample_masked(img, mask, g)
+    assert torch.equal(inside[:, 5:25], mask) and not inside[:, :5].any()
+    torch.testing.assert_close(crop[:, 5:25][mask], img[mask])
+    with pytest.raises(ValueError, match="empty visible masks at batch items \\[0\\]"):
+        crop_windows(torch.zeros_like(mask[:1]), None)
+
+
+def test_crop_margin_accepts_null_and_names_a_bad_value():
+    from netepu.texture.config import TextureConfig
+    from nsd.core.errors import ConfigError
+
+    assert TextureConfig.defaults(crop_margin=None).crop_margin is None
+    for bad in (-0.1, "wide"):
+        with pytest.raises(ConfigError, match="crop_margin"):
+            TextureConfig.defaults(crop_margin=bad)
+
 def test_sample_masked_reads_only_mask_pixels():
     g = torch.Generator().manual_seed(1)
     img = torch.rand(2, 12, 10, 3, generator=g)
