@@ -97,15 +97,52 @@ def make_geometry() -> None:
     print(GEOMETRY)
 
 
-def train(name: str) -> None:
+def train(name: str, stability_minutes: float | None = None) -> None:
+    """One model's run in ``WORK/name``; with ``stability_minutes``, the same run with the
+    trainer's evaluation every 100 steps, stopped after that many minutes (0: all steps),
+    in ``WORK/stability_<name>``: how much a model's PSNR moves between evaluations."""
     from netepu.cli.train import run
     from nsd.core.config import compose_app
 
+    extra = ([] if stability_minutes is None else
+             ["trainer.eval_every=100", "trainer.grid_every=100000"])  # fmt: skip
     cfg = compose_app("netepu_train", [
         *VARIANTS[name], "stage=texture", f"init_from={GEOMETRY}", f"trainer.max_steps={STEPS}",
-        "trainer.max_minutes=0", "trainer.progress=false", "threads=1", "device=cpu",
+        f"trainer.max_minutes={stability_minutes or 0}", "trainer.progress=false", "threads=1",
+        "device=cpu", *extra,
     ])  # fmt: skip
-    print(json.dumps(run(cfg, WORK / name)))
+    out = WORK / (name if stability_minutes is None else f"stability_{name}")
+    print(json.dumps(run(cfg, out)))
+
+
+def stability_report() -> None:
+    """The trainer's 8-view PSNR (held-out poses, reconstruction) at every evaluation of
+    the stability runs and of the main runs."""
+    import csv
+    from itertools import pairwise
+
+    key = "eval/heldout_poses/psnr_reconstruction"
+    rows = []
+    for folder in sorted(WORK.glob("*/metrics.csv")):
+        with folder.open() as f:
+            curve = {int(r["step"]): round(float(r[key]), 2) for r in csv.DictReader(f)
+                     if r.get(key)}  # fmt: skip
+        if curve:
+            steps = sorted(curve)
+            moves = [abs(curve[b] - curve[a]) for a, b in pairwise(steps)]
+            rows.append({"run": folder.parent.name, "evaluations": len(steps),
+                         "largest change between evaluations (dB)": max(moves, default=0.0),
+                         "PSNR by step (dB)": " ".join(f"{k}:{v}" for k, v in curve.items())})
+    write_report(
+        "netepu_texture_stability", "How much a texture model's PSNR moves during training",
+        rows,
+        notes=("The trainer's own evaluation (the first 8 held-out-pose views with full maps, "
+               "reconstruction, our protocol) of each run in runs/texture_ablations: "
+               "`stability_<model>` evaluates every 100 steps (`tools/bench_texture_ablations.py "
+               "stability <model> --minutes M`, one thread, stopped after M minutes when M > 0), "
+               "the other runs at steps 1000, 2000 and the last. The benchmark's own figures "
+               "(netepu_texture_ablations.md) are of the last step on all 64 views."),
+    )
 
 
 def evaluate(name: str, unseen: bool) -> None:
@@ -253,18 +290,25 @@ def report() -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("what", choices=["geometry", "train", "evaluate", "report"])
+    p.add_argument("what", choices=["geometry", "train", "evaluate", "report", "stability",
+                                    "stability-report"])
+    p.add_argument("--minutes", type=float, default=0.0,
+                   help="stability: stop the run after this many minutes (0: all steps)")
     p.add_argument("name", nargs="?", choices=sorted(VARIANTS))
     p.add_argument("--unseen", action="store_true",
                    help="evaluate: on generated textures the model never saw")  # fmt: skip
     a = p.parse_args()
     WORK.mkdir(parents=True, exist_ok=True)
-    if a.what in ("train", "evaluate") and a.name is None:
+    if a.what in ("train", "evaluate", "stability") and a.name is None:
         p.error(f"{a.what} needs a model name")
     if a.what == "geometry":
         make_geometry()
     elif a.what == "train":
         train(a.name)
+    elif a.what == "stability":
+        train(a.name, a.minutes)
+    elif a.what == "stability-report":
+        stability_report()
     elif a.what == "evaluate":
         evaluate(a.name, a.unseen)
     else:
