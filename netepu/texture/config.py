@@ -40,7 +40,8 @@ class TextureConfig(ConfigSection):
         """Ranges and combinations (:meth:`from_config` and :meth:`defaults` call it)."""
         c = self
         margin_ok = c.crop_margin is None or (
-            isinstance(c.crop_margin, (int, float)) and c.crop_margin >= 0
+            isinstance(c.crop_margin, (int, float)) and not isinstance(c.crop_margin, bool)
+            and c.crop_margin >= 0
         )
         if c.crop_size < 16 or c.latent < 1 or c.features < 1 or not margin_ok:
             raise ConfigError(

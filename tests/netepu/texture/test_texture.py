@@ -116,7 +116,6 @@ def test_crop_windows_and_grid_known_values():
         crop_windows(torch.cat([mask, torch.zeros_like(mask)]), 0.1)
 
 
-
 def test_whole_frame_windows_cover_the_image_wherever_the_mask_is():
     # crop_margin None (NeTePu's encoder input): one square of side max(H, W), centred
     mask = torch.zeros(2, 20, 30, dtype=torch.bool)
@@ -140,7 +139,7 @@ def test_crop_margin_accepts_null_and_names_a_bad_value():
     from nsd.core.errors import ConfigError
 
     assert TextureConfig.defaults(crop_margin=None).crop_margin is None
-    for bad in (-0.1, "wide"):
+    for bad in (-0.1, "wide", True):
         with pytest.raises(ConfigError, match="crop_margin"):
             TextureConfig.defaults(crop_margin=bad)
 
