@@ -31,6 +31,8 @@ another camera (texture swap: novel pose and view synthesis)::
     ... train frame / frame_no_nnopcs / frame_no_local   # ~60 min each (the encoder at 128 x 128)
     taskset -c 0 .venv/bin/python tools/bench_texture_ablations.py evaluate ours   # each run
     .venv/bin/python tools/bench_texture_ablations.py report
+    taskset -c 0 .venv/bin/python tools/bench_texture_ablations.py stability ours  # eval every 100
+    .venv/bin/python tools/bench_texture_ablations.py stability-report
 """
 
 from __future__ import annotations
@@ -199,13 +201,17 @@ def _figure(names: list[str], stem: str) -> None:
         cv2.imwrite(str(out), np.concatenate(parts[:-1], 0), [cv2.IMWRITE_JPEG_QUALITY, 92])
 
 
-def _earlier_rows() -> tuple[dict[str, dict], str]:
-    """The runs of the committed report, and when and where they were measured."""
+def _earlier_rows() -> tuple[dict[str, dict], dict[str, str]]:
+    """The runs of the committed report, and when and where each was measured (a row
+    that report had kept from an earlier one keeps its own date)."""
     path = ROOT / "docs" / "benchmarks" / "netepu_texture_ablations.json"
     if not path.is_file():
-        return {}, ""
+        return {}, {}
     old = json.loads(path.read_text())
-    return old["extra"]["runs"], f"{old['date']}, `{old['commit']}`"
+    stamp = f"{old['date']}, `{old['commit']}`"
+    kept = old["extra"].get("measured", {})
+    runs = old["extra"]["runs"]
+    return runs, {n: stamp if kept.get(n, "this run") == "this run" else kept[n] for n in runs}
 
 
 def report() -> None:
@@ -218,7 +224,7 @@ def report() -> None:
         if (WORK / f"{n}.json").is_file():
             rows[n], measured[n] = json.loads((WORK / f"{n}.json").read_text()), "this run"
         elif n in earlier:
-            rows[n], measured[n] = earlier[n], when
+            rows[n], measured[n] = earlier[n], when[n]
     table = []
     for n, r in rows.items():
         unseen = n.endswith("_unseen")
@@ -284,7 +290,8 @@ def report() -> None:
         "NeTePu's texture ablations in both PSNR protocols",
         table,
         notes="\n".join(notes),
-        extra={"runs": rows, "gaps": gaps, "paper": PAPER, "variants": VARIANTS},
+        extra={"runs": rows, "measured": measured, "gaps": gaps, "paper": PAPER,
+               "variants": VARIANTS},
     )
 
 
