@@ -281,6 +281,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "data.margin": ALWAYS, "texture.data.cache_dir": NULL_TEXT,
         "texture.optim.lr": RATE, "texture.optim.batch_size": POS,
         "texture.model.crop_size": _r("int", low=8), "texture.model.widths": WIDTHS,
+        "texture.model.crop_margin": _r("number", low=0, null=True),  # null: the whole frame
         "texture.optim.contrast_temperature": RATE,
     },
     "check": {"scene": NULL_TEXT, "cameras": ALWAYS, "units": UNITS, "background": BACKGROUND},

@@ -64,6 +64,8 @@ def test_every_shipped_group_option_passes(group, option):
         ("eval", "max_frames=-3", "max_frames = -3"),
         ("synth", "num_individuals=9", "num_individuals = 9: must be an integer >= 1 and <= 8"),
         ("netepu_train", "netepu.optim.lr=0", "netepu.optim.lr = 0: must be a finite number > 0"),
+        ("netepu_train", "netepu.texture.model.crop_margin=-1",
+         "netepu.texture.model.crop_margin = -1: must be a finite number >= 0"),
     ],
 )
 def test_a_bad_value_is_named_with_its_range(app, override, message):
@@ -74,7 +76,8 @@ def test_a_bad_value_is_named_with_its_range(app, override, message):
 
 @pytest.mark.parametrize(("app", "overrides"), [
     ("run", ["prior_mask@train.prior_mask=hull"]), ("run", ["train.prior_mask.weight=2.0"]),
-    ("train", ["prior_mask=hull"]), ("run", ["netepu.keypoints.point_budget=0"])])
+    ("train", ["prior_mask=hull"]), ("run", ["netepu.keypoints.point_budget=0"]),
+    ("netepu_train", ["netepu.texture.model.crop_margin=null"])])
 def test_a_group_chosen_the_right_way_passes(app, overrides):
     check_config(app, compose_app(app, overrides), overrides)  # no ConfigError
 
