@@ -148,12 +148,14 @@ def _as_exported(export, scene, d) -> tuple[SceneData, InferenceSettings, dict[s
     """The scene data, inference and decomposition settings the export was made with, so
     that an annotation's slot is the window whose latent is regressed. Exports written
     before multi-view inference record no inference: single-image, weights alone; those
-    written before ``hull_contested`` gave the hull the same bonus on every pixel."""
+    written before ``hull_contested`` gave the hull the same bonus on every pixel, and those
+    written before ``colour_model`` had no colour models."""
     manifest = Path(export) / "manifest.json"
     ecfg = json.loads(manifest.read_text()).get("config", {}) if manifest.is_file() else {}
     recorded = dict(ecfg.get("inference", {"views": "single", "colour_sigma": 0.0}))
     if "hull_ownership" in recorded:
         recorded.setdefault("hull_contested", recorded["hull_ownership"])
+    recorded.setdefault("colour_model", 0.0)  # exports from before the colour models
     settings = InferenceSettings.from_config(recorded)
     cams = ecfg.get("cameras") or d.get("cameras")
     data = SceneData(scene, d["image_size"], cams, 0.0, d.get("max_frames", 0),

@@ -202,7 +202,10 @@ RULES: dict[str, dict[str, Rule]] = {
                   "resolution": _r("int", low=8), "min_views": _r("int", low=2, allow=("auto",)),
                   # nats per voxel; inf: never, -inf: always (nsd.cues.clustering.MixtureRules)
                   "mixture_gain": NATS, "mixture_slack": NATS, "mixture_scene_gain": NATS,
-                  "mixture_scene_sample": POS},
+                  "mixture_scene_sample": POS,
+                  # the individuals' colour models (nsd.inference.colour_models); 0: off
+                  "colour_model": _r("number", low=0), "colour_model_bins": _r(
+                      "int", low=2, high=32), "colour_model_margin": _r("number", low=0)},
     "train": {  # conf/train.yaml's own keys
         "device": DEVICE,
         "stage": _r("str", choices=("decomposition", "pose")), "batch_size": POS,

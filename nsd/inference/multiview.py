@@ -49,6 +49,7 @@ from nsd.cues.occupancy import (
     voxel_grid,
 )
 from nsd.cues.proposals import match_proposals
+from nsd.inference.colour_models import ColourModels
 from nsd.inference.single import Decomposition, decompose
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
@@ -81,6 +82,9 @@ class InferenceSettings(ConfigSection):
             learned ownership alone).
         hull_contested: that bonus where the hull cannot settle the owner, on pixels near
             two or more individuals (:func:`nsd.cues.occupancy.contested_pixels`).
+        colour_model, colour_model_bins, colour_model_margin: the individuals' colour
+            models in the mask ownership (:class:`nsd.inference.colour_models.ColourModels`,
+            :attr:`colour_models`; weight 0: off).
         mixture_gain, mixture_slack, mixture_scene_gain, mixture_scene_sample: when the
             hull's 3D mixture replaces its k-means (:class:`nsd.cues.clustering.MixtureRules`,
             :attr:`mixture`).
@@ -98,6 +102,9 @@ class InferenceSettings(ConfigSection):
     colour_sigma: float
     hull_ownership: float
     hull_contested: float
+    colour_model: float
+    colour_model_bins: int
+    colour_model_margin: float
     mixture_gain: float
     mixture_slack: float
     mixture_scene_gain: float
@@ -120,6 +127,12 @@ class InferenceSettings(ConfigSection):
         need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
         need(float(self.hull_ownership) >= 0.0, "hull_ownership", "must be >= 0 (0: off)")
         need(float(self.hull_contested) >= 0.0, "hull_contested", "must be >= 0 (0: off)")
+        need(float(self.colour_model) >= 0.0, "colour_model", "must be >= 0 (0: off)")
+        bins = self.colour_model_bins
+        need(isinstance(bins, int) and not isinstance(bins, bool) and 2 <= bins <= 32,
+             "colour_model_bins",
+             "must be a whole number of levels per colour channel in [2, 32]")
+        need(float(self.colour_model_margin) >= 0.0, "colour_model_margin", "must be >= 0")
         self.mixture  # noqa: B018  (validates the mixture_* keys)
 
     @classmethod
@@ -137,6 +150,14 @@ class InferenceSettings(ConfigSection):
         """The hull's :class:`nsd.cues.clustering.MixtureRules` from the ``mixture_*`` keys."""
         return MixtureRules.from_config(
             {f.name: getattr(self, f.name) for f in dataclasses.fields(MixtureRules)})
+
+    @property
+    def colour_models(self) -> ColourModels | None:
+        """The individuals' colour models of the mask ownership, None where the weight is 0."""
+        if float(self.colour_model) <= 0:
+            return None
+        return ColourModels(float(self.colour_model), int(self.colour_model_bins),
+                            float(self.colour_model_margin))
 
     @property
     def multiview(self) -> bool:
@@ -285,6 +306,7 @@ def decompose_views(
     """
     common = dict(
         colour_sigma=settings.colour_sigma,
+        colour_models=settings.colour_models,
         evidence_threshold=evidence_threshold,
         evidence_softness=evidence_softness,
         **kwargs,
@@ -328,8 +350,11 @@ def decompose_views(
     cat = Detections(
         *(torch.cat([getattr(f, a) for f in fused]) for a in ("boxes", "depths", "presence"))
     )
+    # one colour model per hull individual and instant, shared by its windows in every view
+    groups = torch.cat([torch.where(slot >= 0, i * k + slot, -1) for i, slot in enumerate(slots)])
     dec = decompose(model, images, backgrounds, detections=cat, owner_prior=torch.cat(owners),
                     owner_bonus=torch.cat(bonus),
-                    owner_allowed=torch.cat(allowed) if allowed else None, **common)
+                    owner_allowed=torch.cat(allowed) if allowed else None, groups=groups,
+                    **common)
     dec.slots = torch.cat(slots)
     return dec

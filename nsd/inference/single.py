@@ -21,7 +21,9 @@ so that where two blobby decoded masks overlap, the pixel goes to the subject
 whose rendering looks like it (``colour_sigma`` :math:`\sigma_c`; 0 uses the
 weights alone). Multi-view inference adds, in the log domain, ``owner_bonus`` for the
 subject whose visual-hull individual owns the pixel (:mod:`nsd.inference.multiview`; a
-smaller bonus where the hull cannot settle the owner).
+smaller bonus where the hull cannot settle the owner), and the individuals' colour models,
+learned from the pixels each owns surely, add the likelihood of the pixel's colour
+(:mod:`nsd.inference.colour_models`).
 NSD still decides which subject a pixel belongs to and who
 occludes whom; the median background, which NSD already needs, only sharpens
 the silhouettes. ``refine="none"`` returns the raw masks.
@@ -46,6 +48,7 @@ from torch import Tensor
 
 from nsd.core.device import model_device, move
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
+from nsd.inference.colour_models import ColourModels
 from nsd.model.association import appearance_similarity
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
@@ -133,6 +136,8 @@ def decompose(
     owner_prior: Tensor | None = None,
     owner_bonus: float | Tensor = 0.0,
     owner_allowed: Tensor | None = None,
+    colour_models: ColourModels | None = None,
+    groups: Tensor | None = None,
 ) -> Decomposition:
     """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
 
@@ -153,6 +158,10 @@ def decompose(
             ``owner_bonus`` and it may claim the pixel whatever its composited weight.
         owner_allowed: (B, N, H, W) bool, the windows that may own each pixel (e.g. on a
             pixel the hull cannot settle, those of the individuals near it); None: all.
+        colour_models: the individuals' colour models added to the ownership
+            (:mod:`nsd.inference.colour_models`); None: off.
+        groups: (B, N) long, windows that share one colour model (the same id >= 0, e.g. one
+            hull individual in every view of an instant); None: each window alone.
     """
     was_training = model.training
     model.eval()
@@ -180,8 +189,10 @@ def decompose(
             claim = claim | prior.any(1, keepdim=True)
         if owner_allowed is not None:
             score = score - 1e4 * ~owner_allowed  # the learned order where none is allowed
-        owner = score.max(1, keepdim=True).indices  # argmax (first on ties), 5x faster on CPU
         claim = fg[:, None] & claim
+        if colour_models is not None:
+            score = colour_models.rescore(score, images, claim[:, 0], groups)
+        owner = score.max(1, keepdim=True).indices  # argmax (first on ties), 5x faster on CPU
         masks = (torch.arange(raw.shape[1])[None, :, None, None] == owner) & claim
         masks = masks.to(raw.dtype)
     elif refine == "none":
