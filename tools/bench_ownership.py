@@ -5,6 +5,9 @@
         --colour-sigma 0 0.2 0.4 --report ownership
     .venv/bin/python tools/bench_ownership.py RUN ... --hull-ownership 2 --colour-sigma 0.4 \
         --hull-contested 0 0.5 1 2 --report ownership_contested
+    .venv/bin/python tools/bench_ownership.py RUN ... --hull-ownership 2 --colour-sigma 0.4 \
+        --hull-contested 1 --colour-model 0 1 2 4 --colour-model-bins 8 16 \
+        --report ownership_colour_models
 
 The exported masks give every foreground pixel to the window with the largest ownership
 score (:func:`nsd.inference.single.ownership`): the composited weight, the agreement of the
@@ -12,10 +15,13 @@ window's decoded colour with the pixel (``inference.colour_sigma``; 0: off) and,
 multi-view inference, a bonus for the window whose hull individual owns the pixel
 (``inference.hull_ownership``; 0: the learned ownership alone), which is
 ``inference.hull_contested`` instead on the pixels near two or more hull individuals
-(:func:`nsd.cues.occupancy.contested_pixels`). This script scores every combination on the
+(:func:`nsd.cues.occupancy.contested_pixels`), and the individuals' colour models add the
+likelihood of the pixel's colour (``inference.colour_model``, ``.colour_model_bins``;
+:mod:`nsd.inference.colour_models`). This script scores every combination on the
 same checkpoints, so the defaults can be chosen on several scenes and training modes
 together rather than on one (without ``--hull-contested``: the bonus is the same on every
-pixel).
+pixel; without ``--colour-model``: the colour models off, as before they existed, so that
+earlier ``--work`` folders stay valid).
 
 For each run (a folder of ``nsd-run``: ``train/checkpoint.pt``, and the scene it was
 trained on, from its ``scene/stage.json``) and each combination, ``nsd-eval`` scores the first
@@ -95,6 +101,11 @@ def main() -> None:
     ap.add_argument("--colour-sigma", type=float, nargs="+", default=[0.0, 0.2, 0.4])
     ap.add_argument("--hull-contested", type=float, nargs="*", default=[],
                     help="the bonus on contested pixels (default: --hull-ownership's)")
+    ap.add_argument("--colour-model", type=float, nargs="*", default=[],
+                    help="weights of the colour models (default: 0, off)")
+    ap.add_argument("--colour-model-bins", type=int, nargs="*", default=[],
+                    help="levels per colour channel of the colour models (default: the "
+                         "config's)")
     ap.add_argument("--frames", type=int, default=30, help="held-out frames per run")
     ap.add_argument("--jobs", type=int, default=1, help="nsd-eval processes at a time")
     ap.add_argument("--label", nargs="*", default=[],
@@ -108,7 +119,10 @@ def main() -> None:
         raise SystemExit(f"--label: {len(args.label)} names for {len(args.runs)} runs")
     labels = args.label or [r.name for r in args.runs]
     pairs = list(itertools.product(args.hull_ownership, args.colour_sigma,
-                                   args.hull_contested or [None]))
+                                   args.hull_contested or [None], args.colour_model or [0.0],
+                                   args.colour_model_bins or [None]))
+    # a weight of 0 is one setting whatever the bins
+    pairs = [p for p in pairs if p[3] > 0 or p[4] == (args.colour_model_bins or [None])[0]]
     stages = [_train_stage(run) for run in args.runs]
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-ownership-"))
     jobs = [(i, run, None) for i, run in enumerate(args.runs)]  # the hull-only rows
@@ -119,17 +133,27 @@ def main() -> None:
         if pair is None:
             m = _eval(run, work / f"{i}-hull", args.frames, ["baseline=true"])
             return job, {k: m.get(f"hull_{k}") for k in KEEP if f"hull_{k}" in m}
-        h, c, hc = pair
+        h, c, hc, cm, bins = pair
         hc = h if hc is None else hc
         name = f"{i}-{h}-{c}" if hc == h else f"{i}-{h}-{c}-{hc}"  # earlier --work folders
+        colour = [f"inference.colour_model={cm}"]
+        if cm > 0:
+            name += f"-cm{cm}" + ("" if bins is None else f"-{bins}")
+            colour += [] if bins is None else [f"inference.colour_model_bins={bins}"]
         return job, _eval(run, work / name, args.frames,
                           ["baseline=false", f"inference.hull_ownership={h}",
-                           f"inference.colour_sigma={c}", f"inference.hull_contested={hc}"])
+                           f"inference.colour_sigma={c}", f"inference.hull_contested={hc}",
+                           *colour])
 
-    def contested(pair) -> dict:  # the column exists when the bonus differs on contested pixels
-        if not args.hull_contested:
-            return {}
-        return {"hull_contested": "" if pair is None else pair[2]}
+    def contested(pair) -> dict:  # the columns exist where their setting was varied
+        out = {}
+        if args.hull_contested:
+            out["hull_contested"] = "" if pair is None else pair[2]
+        if args.colour_model:
+            out["colour_model"] = "" if pair is None else pair[3]
+        if args.colour_model_bins:
+            out["colour_model_bins"] = "" if pair is None or not pair[3] else pair[4]
+        return out
 
     with ThreadPoolExecutor(args.jobs) as pool:
         results = dict(pool.map(one, jobs))
@@ -162,7 +186,8 @@ def main() -> None:
              "(`nsd-run` with `train.model.num_windows` = the scene's individuals): "
              + "; ".join(f"`{lab}`: {_training(st)}"
                          for lab, st in zip(labels, stages, strict=True)) + ".")
-    write_report(args.report, "The masks' pixel ownership: the hull's bonus x colour agreement",
+    write_report(args.report, "The masks' pixel ownership: the hull's bonus x colour agreement"
+                 + (" x the individuals' colour models" if args.colour_model else ""),
                  rows, notes)
 
 
