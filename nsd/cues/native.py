@@ -48,6 +48,7 @@ import cv2
 import numpy as np
 import torch
 
+from nsd.cues.colour_cells import colour_cells
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 
 __all__ = ["colour_owners", "native_masks"]
@@ -118,8 +119,8 @@ def colour_owners(view: np.ndarray, prior: np.ndarray, owner: np.ndarray,
         subject has fewer than ``MIN_CORE`` core pixels).
     """
     N = len(prior)
-    q = view.astype(np.int64) * COLOUR_LEVELS // 256
-    code = (q[..., 0] * COLOUR_LEVELS + q[..., 1]) * COLOUR_LEVELS + q[..., 2]
+    code = colour_cells(torch.from_numpy(view).permute(2, 0, 1).float() / 255.0,
+                        COLOUR_LEVELS).numpy()
     bins = COLOUR_LEVELS**3
     pixels = code[claimed]
     score = PRIOR_WEIGHT * np.log(prior[:, claimed] + OWNER_FLOOR)  # (N, K)

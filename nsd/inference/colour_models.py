@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from nsd.cues.colour_cells import colour_cells
+
 __all__ = ["ColourModels", "colour_log_likelihood", "sure_owners"]
 
 
@@ -47,12 +49,6 @@ def sure_owners(score: Tensor, candidates: Tensor, margin: float) -> tuple[Tenso
         return torch.zeros_like(candidates, dtype=torch.long), candidates.clone()
     top = score.topk(2, dim=1)
     return top.indices[:, 0], candidates & (top.values[:, 0] - top.values[:, 1] > margin)
-
-
-def _colour_cells(images: Tensor, bins: int) -> Tensor:
-    """(B, 3, H, W) in [0, 1] -> (B, H, W) long: the RGB cell of every pixel in [0, bins^3)."""
-    q = (images.clamp(0.0, 1.0) * bins).long().clamp_max(bins - 1)
-    return (q[:, 0] * bins + q[:, 1]) * bins + q[:, 2]
 
 
 def colour_log_likelihood(
@@ -79,7 +75,7 @@ def colour_log_likelihood(
     """
     B, _, H, W = images.shape
     N, K = num_windows, bins**3
-    cells = _colour_cells(images, bins)
+    cells = colour_cells(images, bins)
     window = torch.arange(B)[:, None, None] * N + owner  # (B, H, W) flat window index
     counts = torch.bincount((window * K + cells)[sure], minlength=B * N * K)
     counts = counts.reshape(B * N, K).to(images.dtype)
