@@ -17,13 +17,21 @@ those pixels it gives to the window matched (Hungarian on mask IoU, as ``nsd-eva
 pixel's individual:
 
 * ``hull``: the hull's owners alone (:mod:`nsd.evaluation.hull_baseline`);
-* ``learned``: the learned ownership alone (both bonuses 0);
+* ``hull + colour models``: no learning either: the hull's owner where it can settle it, and
+  on contested pixels the individual near the pixel whose colour model (counted on the
+  pixels the hull settles, pooled over the views; :mod:`nsd.inference.colour_models` with the
+  shipped weight and bins) likes the pixel's colour best;
+* ``learned``: the learned ownership alone (both bonuses 0; with the colour models where the
+  shipped defaults have them, as in the next two);
 * ``hull bonus``: the bonus of ``hull_ownership`` on every pixel (``hull_contested`` equal);
+* ``shipped, no colour models``: this commit's inference defaults with
+  ``inference.colour_model=0``;
 * ``shipped``: this commit's inference defaults (on contested pixels, only the windows of
-  the individuals near them may own them).
+  the individuals near them may own them; the individuals' colour models).
 
 ``ideal_mask_miou``: the mask mIoU (``nsd-eval``'s) if every foreground pixel went to its
-true individual, the most any ownership can score with this foreground cut.
+true individual, the most any ownership can score with this foreground cut; ``<way>: mask
+mIoU``: each way's own (``nsd-eval``'s mask mIoU on the same frames).
 
 Writes ``docs/benchmarks/<--report>.{md,json}``.
 """
@@ -53,7 +61,8 @@ from nsd.model.checkpoint import load_decomposition
 from nsd.ops.boxes import mask_iou, match
 from tools.benchlib import write_report
 
-METHODS = ("hull", "learned", "hull bonus", "shipped")
+METHODS = ("hull", "hull + colour models", "learned", "hull bonus",
+           "shipped, no colour models", "shipped")
 
 
 def _owner_of_truth(masks: np.ndarray, visible: np.ndarray) -> np.ndarray:
@@ -80,9 +89,32 @@ def _ideal(truths, fg: torch.Tensor, k: int) -> HullDecomposition:
     return HullDecomposition(masks, masks, torch.zeros(V, k), active.float(), active)
 
 
-def score_run(run: Path, frames: int, bands: list[float]) -> tuple[dict, float]:
-    """Per band and method: [right, pixels] on contested and on other pixels; and the ideal
-    ownership's mask mIoU."""
+def _as_windows(owners: torch.Tensor, depths: torch.Tensor, k: int) -> HullDecomposition:
+    """(V, H, W) owners in [-1, k) as a decomposition of k windows (scored by nsd-eval's code)."""
+    masks = (owners[:, None] == torch.arange(k)[None, :, None, None]).float()
+    active = masks.flatten(2).sum(-1) > 0
+    return HullDecomposition(masks, masks, depths, active.float(), active)
+
+
+def _hull_colour_owners(hull, views: torch.Tensor, fg: torch.Tensor, models) -> torch.Tensor:
+    """The hull's owners, with each contested pixel given to the individual near it whose
+    colour model likes its colour best (the models counted on the uncontested pixels the
+    hull owns, one per individual over all views)."""
+    V, k = hull.candidates.shape[:2]
+    slots = torch.arange(k)[None, :, None, None]
+    owned = hull.owners[:, None] == slots  # (V, k, H, W)
+    settled = (hull.owners >= 0) & ~hull.contested
+    allowed = torch.where(hull.contested[:, None], hull.candidates, owned)
+    score = torch.where(allowed, 0.0, -1e4)  # ties among the candidates of a contested pixel
+    score = models.rescore(score, views, fg & (settled | hull.contested),
+                           torch.arange(k).expand(V, k))
+    best = score.argmax(1)
+    return torch.where(hull.contested & fg & allowed.any(1), best, hull.owners)
+
+
+def score_run(run: Path, frames: int, bands: list[float]) -> tuple[dict, float, dict]:
+    """Per band and method: [right, pixels] on contested and on other pixels; the ideal
+    ownership's mask mIoU; and each method's."""
     scene = json.loads((run / "scene" / "stage.json").read_text())["summary"]["path"]
     trained = load_decomposition(run / "train" / "checkpoint.pt", torch.device("cpu"))
     cfg = trained.config
@@ -95,6 +127,7 @@ def score_run(run: Path, frames: int, bands: list[float]) -> tuple[dict, float]:
     settings = {
         "learned": dataclasses.replace(shipped, hull_ownership=0.0, hull_contested=0.0),
         "hull bonus": dataclasses.replace(shipped, hull_contested=shipped.hull_ownership),
+        "shipped, no colour models": dataclasses.replace(shipped, colour_model=0.0),
         "shipped": shipped,
     }
     grid = shipped.grid(data.rig, data.frame_hw)
@@ -103,6 +136,7 @@ def score_run(run: Path, frames: int, bands: list[float]) -> tuple[dict, float]:
     idx = idx[np.linspace(0, len(idx) - 1, min(frames, len(idx))).round().astype(int)]
     tally = {b: {m: np.zeros((2, 2)) for m in METHODS} for b in bands}
     ideal = Tally()
+    tallies = {m: Tally() for m in METHODS}
     for t in idx:
         views, bgs = data.views(int(t))
         V = views.shape[0]
@@ -111,10 +145,17 @@ def score_run(run: Path, frames: int, bands: list[float]) -> tuple[dict, float]:
         decs = {m: decompose_views(trained.model, views, bgs, V, s, grid)
                 for m, s in settings.items()}
         truths = instant_truth(gt, data, int(t))
-        score_views(_ideal(truths, ev > 0.5, k), truths, 0.5, ideal.counts(touches(truths)))
+        touching = touches(truths)
+        score_views(_ideal(truths, ev > 0.5, k), truths, 0.5, ideal.counts(touching))
+        shipped_hull = multiview_proposals(ev, grid, k, split=split, contest=CONTEST_BAND)
+        decs["hull"] = _as_windows(shipped_hull.owners, shipped_hull.depths, k)
+        decs["hull + colour models"] = _as_windows(
+            _hull_colour_owners(shipped_hull, views, ev > 0.5, shipped.colour_models),
+            shipped_hull.depths, k)
+        for m, dec in decs.items():
+            score_views(dec, truths, 0.5, tallies[m].counts(touching))
         for v, truth in enumerate(truths):
-            hull = hulls[bands[0]].owners[v].numpy()  # the same owners whatever the band
-            owners = {"hull": np.stack([hull == j for j in range(k)])}
+            owners = {}
             for m, dec in decs.items():
                 owners[m] = (dec.masks[v] > 0.5).numpy() & dec.active[v].numpy()[:, None, None]
             pixels = truth.visible.any(0) & (ev[v] > 0.5).numpy()
@@ -124,7 +165,8 @@ def score_run(run: Path, frames: int, bands: list[float]) -> tuple[dict, float]:
                     hard = hulls[b].contested[v].numpy()
                     for c, where in enumerate((pixels & hard, pixels & ~hard)):
                         tally[b][m][c] += (right[where].sum(), where.sum())
-    return tally, float(ideal.metrics()["mask_miou"])
+    return tally, float(ideal.metrics()["mask_miou"]), {
+        m: float(t.metrics()["mask_miou"]) for m, t in tallies.items()}
 
 
 def main() -> None:
@@ -141,7 +183,7 @@ def main() -> None:
     torch.set_num_threads(1)
     rows = []
     for name, run in zip(args.label or [r.name for r in args.runs], args.runs, strict=True):
-        tally, ideal = score_run(run, args.frames, args.band)
+        tally, ideal, miou = score_run(run, args.frames, args.band)
         for b in args.band:
             t = tally[b]
             n_hard, n_easy = t["hull"][0][1], t["hull"][1][1]
@@ -150,6 +192,7 @@ def main() -> None:
             for m in METHODS:
                 row[f"{m}: contested"] = t[m][0][0] / max(t[m][0][1], 1)
                 row[f"{m}: other"] = t[m][1][0] / max(t[m][1][1], 1)
+                row[f"{m}: mask mIoU"] = miou[m]
             rows.append(row)
             print(row, flush=True)
     shipped = InferenceSettings.defaults()
@@ -160,7 +203,9 @@ def main() -> None:
              f"`hull bonus`: `hull_ownership` = `hull_contested` = "
              f"{shipped.hull_ownership:g}; `shipped`: `hull_ownership` "
              f"{shipped.hull_ownership:g}, `hull_contested` {shipped.hull_contested:g} "
-             f"(band {CONTEST_BAND:g}); colour agreement {shipped.colour_sigma:g} throughout.")
+             f"(band {CONTEST_BAND:g}); colour agreement {shipped.colour_sigma:g} throughout; "
+             f"colour models: weight {shipped.colour_model:g}, {shipped.colour_model_bins} "
+             f"levels per channel, margin {shipped.colour_model_margin:g}.")
     write_report(args.report, "Where the hull cannot settle: contested pixels, hull or learned",
                  rows, notes)
 
