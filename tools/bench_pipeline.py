@@ -38,6 +38,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("overrides", nargs="*", help="nsd-run overrides (default: none)")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--keep", type=Path, default=None,
+                    help="a new folder to run in and keep (default: a temporary one, removed)")
     ap.add_argument("--report", default="pipeline",
                     help="report name (a run with overrides beside the default's report)")
     args = ap.parse_args()
@@ -52,7 +54,9 @@ def main() -> None:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     torch.set_num_threads(args.threads)
-    root = Path(tempfile.mkdtemp(prefix="nsd-bench-pipeline-"))
+    if args.keep is not None and args.keep.exists():
+        raise SystemExit(f"--keep: {args.keep} exists; give a new folder")
+    root = args.keep or Path(tempfile.mkdtemp(prefix="nsd-bench-pipeline-"))
     try:
         cfg = load_run_config(
             f"out={root / 'run'}",
@@ -68,7 +72,8 @@ def main() -> None:
         resume = time.perf_counter() - t1
         assert all(r.skipped for r in again.values())
     finally:
-        shutil.rmtree(root, ignore_errors=True)
+        if args.keep is None:
+            shutil.rmtree(root, ignore_errors=True)
     rows = []
     for name, r in results.items():
         status = "skipped: " + str(r.summary["disabled"]) if "disabled" in r.summary else "ran"
