@@ -177,7 +177,9 @@ def main() -> None:
         for seed, variant in [(s, v) for s in args.seeds for v in args.variants]:
             slug = "" if variant == "default" else "-" + variant.replace(" ", "_")
             out = root / f"run{i}-{seed}{slug}"
-            if args.checkpoints:
+            if args.rescore and not (out / "pipeline.json").exists():
+                continue  # --rescore: the seeds and variants that were run
+            if args.checkpoints and not args.rescore:
                 ckpt = args.checkpoints / out.name / "train" / "checkpoint.pt"
                 if not ckpt.is_file():
                     raise SystemExit(f"--checkpoints: no {ckpt}")
@@ -190,8 +192,8 @@ def main() -> None:
                      f"train.model.num_windows={n}", *trained, *VARIANTS[variant],
                      "evaluate.max_frames=30", "grids.frames=0", "overlays.enabled=false"],
                     check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            if args.train_only or (args.rescore and not (out / "pipeline.json").exists()):
-                continue  # --rescore: the seeds and variants that were run
+            if args.train_only:
+                continue
             rec = json.loads((out / "pipeline.json").read_text())
             m = rec["evaluate"]["summary"]["metrics"]
             ident = rec["identities"]["summary"]
