@@ -114,3 +114,22 @@ def test_settings_give_the_models_or_none():
     on = InferenceSettings.defaults(colour_model=2.0, colour_model_bins=4,
                                     colour_model_margin=1.0).colour_models
     assert on == ColourModels(2.0, 4, 1.0)
+
+
+def test_greyscale_footage_separates_by_grey_level():
+    """Greyscale cameras (equal channels, e.g. the mouse rigs' 1280 x 1024 footage) use
+    only the grey cells; a dark and a light individual are still told apart: on a strip
+    where window 1 leads by too little to be sure, a dark pixel goes to the dark window 0
+    and a light one stays with the light window 1."""
+    dark, light = (0.2, 0.2, 0.2), (0.8, 0.8, 0.8)
+    score = torch.zeros(1, 2, 1, 10)
+    score[0, 1, 0, :4] = -5.0  # window 0 owns the first four pixels surely
+    score[0, 0, 0, 4:8] = -5.0  # window 1 the next four
+    score[0, 1, 0, 8:] = 0.1  # the strip: window 1 ahead, not surely
+    fg = torch.ones(1, 1, 10, dtype=torch.bool)
+    models = ColourModels(weight=2.0, bins=16, margin=2.0)
+    for strip, owner in ((dark, 0), (light, 1)):
+        img = _image([dark] * 4 + [light] * 4 + [strip] * 2)
+        assert models.rescore(score, img, fg).argmax(1)[0, 0].tolist() == (
+            [0] * 4 + [1] * 4 + [owner] * 2)
+    assert score.argmax(1)[0, 0, 8:].tolist() == [1, 1]  # without the models: window 1
