@@ -8,7 +8,9 @@ image_size=[1280,1024]`` and ``nsd-run``) is exported three times over the same 
 training-size masks upsampled bilinearly and thresholded, the baseline), and with
 ``native_refine=true`` (``nsd/cues/native.py``), once with the training-size masks' owner
 alone (``native_colour=false``) and once with the subjects' colours moving the boundaries
-between them (the default). Each export is scored against the scene's ground-truth visible
+between them (the default); and once more as the default but with the training-size masks
+drawn without the individuals' colour models (``inference.colour_model=0``,
+:mod:`nsd.inference.colour_models`). Each export is scored against the scene's ground-truth visible
 masks at native resolution: every ground-truth instance with at least 16 visible pixels is
 matched one-to-one (Hungarian on mask IoU) to the export's masks of its camera-frame;
 ``miou`` is the mean IoU over ground-truth instances (unmatched: 0), ``boundary_f`` the
@@ -52,16 +54,19 @@ def main() -> None:
     frames = f"{{start: {start}, stop: null, step: {args.step}}}"
     root = Path(tempfile.mkdtemp(prefix="bench-native-"))
     rows = []
-    runs = (("upsampled (baseline)", "false", "false"),
-            ("native refine, spatial owner", "true", "false"),
-            ("native refine, colour owner (default)", "true", "true"))
-    for label, refine, colour in runs:
-        out = root / f"{refine}-{colour}"
+    runs = (("upsampled (baseline)", "false", "false", []),
+            ("native refine, spatial owner", "true", "false", []),
+            ("native refine, colour owner, no colour models at the training size", "true",
+             "true", ["inference.colour_model=0"]),
+            ("native refine, colour owner (default)", "true", "true", []))
+    for label, refine, colour, extra in runs:
+        out = root / f"{refine}-{colour}-{len(extra)}"
         t0 = time.perf_counter()
         subprocess.run([str(Path(sys.executable).parent / "nsd-export"),
                         f"checkpoint={args.checkpoint}", f"scene={scene}", f"out={out}",
                         f"frames={frames}", f"native_refine={refine}", f"native_colour={colour}",
-                        "views.tensorboard=false", "views.tsne=false", "progress=false"],
+                        "views.tensorboard=false", "views.tsne=false", "progress=false",
+                        *extra],
                        check=True, capture_output=True)
         seconds = time.perf_counter() - t0
         manifest = json.loads((out / "manifest.json").read_text())
