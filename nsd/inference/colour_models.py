@@ -81,10 +81,9 @@ def colour_log_likelihood(
     counts = counts.reshape(B * N, K).to(images.dtype)
     if groups is not None:
         g = groups.reshape(-1)
-        own = torch.arange(B * N) + int(g.max().clamp_min(0)) + 1  # a window alone
-        ids = torch.where(g >= 0, g, own)
-        _, ids = ids.unique(return_inverse=True)
-        pooled = counts.new_zeros(int(ids.max()) + 1, K).index_add_(0, ids, counts)
+        shared = int(g.max().clamp_min(-1)) + 1  # ids of the shared histograms
+        ids = torch.where(g >= 0, g, shared + torch.arange(B * N))  # -1: a window alone
+        pooled = counts.new_zeros(shared + B * N, K).index_add_(0, ids, counts)
         counts = pooled[ids]
     log_p = ((counts + 0.5) / (counts.sum(-1, keepdim=True) + 0.5 * K)).log()
     log_p = log_p.reshape(B, N, K)
