@@ -3,6 +3,8 @@
     git worktree add /tmp/hull-before 7d6630d    # the commit before (optional)
     .venv/bin/python tools/bench_hull.py --before /tmp/hull-before    # ~25 min on 2 cores
     .venv/bin/python tools/bench_hull.py --report hull_mixture    # ~25 min, alone
+    .venv/bin/python tools/bench_hull.py --root /tmp/hull-scenes --report hull_blobs \
+        --rules now "now, seeds by components (no blobs)" "now, every blob a seed"
 
 The visual hull of the background residuals (:mod:`nsd.cues.occupancy`) places NSD's
 windows, gives their depths and links the views at inference, and makes the training
@@ -27,8 +29,11 @@ Gaussians start the next's), or without the gate per scene (``mixture_scene_gain
 each frame's mixture used where it gains ``mixture_gain``, whatever the scene's median
 gain); these are the ``inference.mixture_*`` keys (:class:`nsd.cues.clustering.MixtureRules`);
 or with the mixture's restarts run at every frame of a track (``RESTART_TOLERANCE=-inf``),
-not only where the track's start is less likely than the partition's.
-``--rules`` keeps only the named rows. Synthetic scenes of 2-6 individuals, 4-8 cameras,
+not only where the track's start is less likely than the partition's, or the k-means seeded
+by components alone (``BLOB_GAP=0``: no blob seeds first) or by every blob, ghosts too
+(``BLOB_SHARE=0``).
+``--rules`` keeps only the named rows; ``--root`` keeps the scenes (generated there once,
+read again by later runs). Synthetic scenes of 2-6 individuals, 4-8 cameras,
 apart and in contact (``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128,
 48^3 voxels, the shipped background estimate (``data.background``, as training and
 ``nsd-eval``); metrics as ``nsd-eval`` (nsd/evaluation/decomposition.py).
@@ -144,13 +149,16 @@ def main() -> None:
     ap.add_argument("--report", default="hull", help="docs/benchmarks/<report>.{md,json}")
     ap.add_argument("--rules", nargs="+", default=None,
                     help="only these rows (the rule names below; default: all)")
+    ap.add_argument("--root", type=Path, default=None,
+                    help="the folder of the scenes (default: a new temporary folder); "
+                         "scenes already in it are not generated again")
     ap.add_argument("--before", type=Path, default=None,
                     help="a checkout of an older commit: its hull-only row per scene")
     args = ap.parse_args()
     torch.set_num_threads(2)
-    root = Path(tempfile.mkdtemp(prefix="bench-hull-"))
+    root = args.root or Path(tempfile.mkdtemp(prefix="bench-hull-"))
     home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering,
-            "RESTART_TOLERANCE": clustering}
+            "RESTART_TOLERANCE": clustering, "BLOB_GAP": clustering, "BLOB_SHARE": clustering}
     shipped = clustering.MixtureRules.defaults()
     defaults = {key: getattr(module, key) for key, module in home.items()}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
@@ -158,7 +166,7 @@ def main() -> None:
     for i, name in enumerate(args.scenes):
         k, synth = SCENES[name]
         scene = default_scene() if synth is None else root / f"scene{i}"
-        if synth is not None:
+        if synth is not None and not (scene / "calibration.toml").exists():
             subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", *synth], check=True,
                            capture_output=True)
         data = SceneData(scene, (128, 128), background=background)
@@ -180,7 +188,9 @@ def main() -> None:
                     ("now, the mixture always", "auto", {"mixture_gain": -np.inf}),
                     ("now, each frame alone (no track)", "auto", {"mixture_slack": -np.inf}),
                     ("now, no gate per scene", "auto", {"mixture_scene_gain": -np.inf}),
-                    ("now, restarts every frame", "auto", {"RESTART_TOLERANCE": -np.inf})]
+                    ("now, restarts every frame", "auto", {"RESTART_TOLERANCE": -np.inf}),
+                    ("now, seeds by components (no blobs)", "auto", {"BLOB_GAP": 0}),
+                    ("now, every blob a seed", "auto", {"BLOB_SHARE": 0.0})]
         for rule, views, changed in variants:
             if args.rules is not None and rule not in args.rules:
                 continue
@@ -204,18 +214,22 @@ def main() -> None:
                "`before`: the commit before the change, its own code; `now`: a voxel kept "
                "when a majority of the cameras see it (`min_views`), a pixel owned by the "
                "front-most individual with a voxel within 0.6 voxel sides, the individuals "
-               "by a k-means of the plane's columns seeded by components 4 typical radii "
-               "apart, replaced by a 3D Gaussian mixture of the voxels where it explains "
-               f"them better by {shipped.mixture_gain} nats per voxel, the previous "
-               "scored frame's Gaussians one more start of it, kept unless another is "
-               f"better by {shipped.mixture_slack}, tried only in scenes where its median "
-               f"gain at {shipped.mixture_scene_sample} instants spread over the scored "
-               f"frames reaches {shipped.mixture_scene_gain} (the `inference.mixture_*` keys) "
+               "by a k-means of the plane's columns seeded first by the heaviest component "
+               f"of each blob (components joined across gaps of {2 * clustering.BLOB_GAP} "
+               f"columns) scoring {clustering.BLOB_SHARE} of the mean per individual, then "
+               "by components 4 typical radii apart, replaced by a 3D Gaussian mixture of "
+               f"the voxels where it explains them better by {shipped.mixture_gain} nats "
+               "per voxel, the previous scored frame's Gaussians one more start of it, "
+               f"kept unless another is better by {shipped.mixture_slack}, tried only in "
+               f"scenes where its median gain at {shipped.mixture_scene_sample} instants "
+               f"spread over the scored frames reaches {shipped.mixture_scene_gain} (the "
+               "`inference.mixture_*` keys) "
                "(nsd/cues/occupancy.py, nsd/cues/clustering.py), its 10 restarts run "
                "only where the carried start is less likely than the partition's by "
                f"more than {clustering.RESTART_TOLERANCE}; the other rows put one "
                "rule back, take the mixture never or always, each frame alone, no gate "
-               "per scene, or the restarts at every frame. Touching "
+               "per scene, the restarts at every frame, or seeds by components alone or by "
+               "every blob. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "

@@ -6,8 +6,9 @@ occupied when its projection shows foreground evidence (see
 :func:`nsd.cues.evidence.foreground_evidence`, > 0.5) in every view that sees it, and
 at least ``min_views`` views see it (by default a majority of the cameras,
 :func:`hull_min_views`). The occupied voxels are counted per
-column on the horizontal plane; the ``k`` heaviest connected components of that
-map seed a k-means of the columns into ``k`` individuals (visual-hull *ghosts*,
+column on the horizontal plane; the heaviest connected components of that map
+(first one per group of nearby components) seed a k-means of the columns into
+``k`` individuals (visual-hull *ghosts*,
 the regions every camera sees as foreground without anything being there, are
 lighter and dropped; pieces of one individual join it; a component holding
 several touching individuals is cut; where bodies of unequal size touch, a Gaussian
