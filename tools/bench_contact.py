@@ -72,6 +72,9 @@ SCENES |= {
     # the two scenes bench_hull.py made after its mixture rules were chosen
     "4 (bipeds, quadrupeds), 8 cameras, seed 21": _mixed(4, "biped,quadruped", 2.0, 21),
     "6 (bipeds, quadrupeds), 8 cameras, seed 22": _mixed(6, "biped,quadruped", 3.0, 22),
+    # textures 1 and 11 are a look-alike pair of the pool (nsd/synth/texture.py)
+    "3 bipeds, two of them look-alikes, 4 cameras": (
+        3, ["num_individuals=3", "texture_ids=[1,11,7]"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)

@@ -110,6 +110,82 @@ def test_equal_bodies_keep_the_k_means_labels():
         float(x[forced == j].mean()) for j in range(3))
 
 
+def _carved(centre, semi: tuple[float, float], height: int, cell: float,
+            gaps: tuple[float, ...]) -> torch.Tensor:
+    """A long, low body (:func:`_ellipse_columns`) carved into pieces: the columns within
+    half a cell of each ``gaps`` x offset from its centre removed."""
+    pts = _ellipse_columns(centre, semi, height, cell)
+    cut = torch.zeros(len(pts), dtype=torch.bool)
+    for g in gaps:
+        cut |= (pts[:, 0] - centre[0] - g).abs() < cell / 2
+    return pts[~cut]
+
+
+def _labels_per_body(labels: torch.Tensor, bodies: list[torch.Tensor]) -> list[set[int]]:
+    """The set of labels each body's voxels (consecutive in ``labels``) carry."""
+    out, i = [], 0
+    for b in bodies:
+        out.append(set(labels[i : i + len(b)].tolist()))
+        i += len(b)
+    return out
+
+
+def test_a_small_body_apart_keeps_its_label_where_pieces_of_big_ones_outweigh_it(monkeypatch):
+    """Two long, low bodies, each carved into four pieces by one-column gaps, and two
+    small upright bodies 0.7 apart beyond them (bipeds beside cattle whose hull fell apart):
+    with k = 4 every body is one individual of its own. Seeded by components alone
+    (``BLOB_GAP = 0``, the rule before), the heavier pieces take the seeds: the big bodies
+    are cut and the two small ones share a label."""
+    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
+    bodies = [_carved((0.0, cy), (1.0, 0.3), 8, cell, (-0.5, 0.0, 0.5)) for cy in (0.0, -1.2)]
+    bodies += [_columns([(x, 1.6)], 0.1, 10, cell) for x in (-0.35, 0.35)]
+    pts = torch.cat(bodies)
+    for gain in (np.inf, None):  # the k-means alone, and with the mixture's rule
+        per_body = _labels_per_body(cluster_individuals(pts, up, cell, 4, mixture_gain=gain),
+                                    bodies)
+        assert all(len(b) == 1 for b in per_body)
+        assert set.union(*per_body) == {0, 1, 2, 3}
+    monkeypatch.setattr(clustering, "BLOB_GAP", 0)
+    before = _labels_per_body(cluster_individuals(pts, up, cell, 4, mixture_gain=np.inf),
+                              bodies)
+    assert before[2] == before[3]  # the two small bodies merged
+    assert len(before[0]) > 1  # and a big one cut
+
+
+def test_a_ghost_blob_takes_no_seed_from_a_huddle(monkeypatch):
+    """A huddle of three (one component) and, far from it, one column of two voxels (a
+    ghost of the hull, 0.03 % of the score): the huddle is cut into three and the ghost
+    dropped. Were every blob a seed (``BLOB_SHARE = 0``), the ghost would take a slot and
+    the huddle be cut in two only."""
+    cell, up = 0.1, torch.tensor([0.0, 0.0, 1.0])
+    huddle = _columns([(-0.4, 0.0), (0.0, 0.0), (0.4, 0.0)], 0.25, 16, cell)
+    ghost = torch.tensor([[2.0, 2.0, 0.05], [2.0, 2.0, 0.15]])
+    pts = torch.cat([huddle, ghost])
+    labels = cluster_individuals(pts, up, cell, 3)
+    assert set(labels[: len(huddle)].tolist()) == {0, 1, 2}
+    assert set(labels[len(huddle) :].tolist()) == {-1}
+    monkeypatch.setattr(clustering, "BLOB_SHARE", 0.0)
+    every = cluster_individuals(pts, up, cell, 3)
+    assert len(set(every[: len(huddle)].tolist())) == 2
+    assert set(every[len(huddle) :].tolist()) == {int(every[-1])} and int(every[-1]) >= 0
+
+
+def test_blob_seeds_known_values():
+    """Five components in three blobs (column weights below): blob 0 (components 0, 1)
+    scores 10, blob 1 (component 2) 6, blob 2 (components 3, 4) 0.5; the mean per individual
+    with k = 3 is 16.5 / 3 = 5.5, so the floor at 0.07 is 0.385: blobs 0 and 1 seed with
+    their heaviest components (0 and 2), blob 2 too (0.5 >= 0.385) with component 4. With
+    k = 2 the floor is 0.58: blob 2 is a ghost and neither of its components may seed."""
+    w = np.array([4.0, 3.0, 3.0, 6.0, 0.2, 0.3])
+    comp = np.array([0, 0, 1, 2, 3, 4])
+    blob = np.array([0, 0, 0, 1, 2, 2])
+    order = np.argsort(-np.bincount(comp, weights=w))  # components by score: 0, 2, 1, 4, 3
+    seeds, live = clustering._blob_seeds(w, comp, 5, blob, order, 3)
+    assert seeds == [0, 2, 4] and live.all()
+    seeds, live = clustering._blob_seeds(w, comp, 5, blob, order, 2)
+    assert seeds == [0, 2] and live.tolist() == [True, True, True, False, False]
+
+
 def test_partition_loglik_matches_a_slow_reference():
     """The partition's mixture log-likelihood against the Gaussian density written out
     point by point."""
