@@ -78,6 +78,13 @@ def _owners(masks: np.ndarray) -> np.ndarray:
     return np.where(masks.any(0), masks.argmax(0), -1)
 
 
+def _windows(masks: torch.Tensor, depths: torch.Tensor) -> HullDecomposition:
+    """Masks (V, k, H, W) and depths (V, k) as a decomposition (scored by nsd-eval's code);
+    a window is active where its mask is not empty."""
+    active = masks.flatten(2).sum(-1) > 0
+    return HullDecomposition(masks, masks, depths, active.float(), active)
+
+
 def _ideal(truths, fg: torch.Tensor, k: int) -> HullDecomposition:
     """Every foreground pixel (fg (V, H, W)) given to its true individual, as windows."""
     V, (H, W) = len(truths), fg.shape[-2:]
@@ -85,15 +92,12 @@ def _ideal(truths, fg: torch.Tensor, k: int) -> HullDecomposition:
     for v, truth in enumerate(truths):
         n = min(k, len(truth.visible))
         masks[v, :n] = torch.as_tensor(truth.visible[:n]) & fg[v]
-    active = masks.flatten(2).sum(-1) > 0
-    return HullDecomposition(masks, masks, torch.zeros(V, k), active.float(), active)
+    return _windows(masks, torch.zeros(V, k))
 
 
 def _as_windows(owners: torch.Tensor, depths: torch.Tensor, k: int) -> HullDecomposition:
-    """(V, H, W) owners in [-1, k) as a decomposition of k windows (scored by nsd-eval's code)."""
-    masks = (owners[:, None] == torch.arange(k)[None, :, None, None]).float()
-    active = masks.flatten(2).sum(-1) > 0
-    return HullDecomposition(masks, masks, depths, active.float(), active)
+    """(V, H, W) owners in [-1, k) as a decomposition of k windows."""
+    return _windows((owners[:, None] == torch.arange(k)[None, :, None, None]).float(), depths)
 
 
 def _hull_colour_owners(hull, views: torch.Tensor, fg: torch.Tensor, models) -> torch.Tensor:

@@ -72,6 +72,16 @@ from nsd.synth.scene import default_scene  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 BIN = Path(sys.executable).parent
+
+
+def _huddle(n: int, species: str, radius: float, seed: int,
+            *rig: str) -> tuple[int, list[str]]:
+    """A huddle of ``n`` individuals of ``species`` (comma-separated) within ``radius``
+    metres, its nsd-synth seed, 8 cameras unless ``rig`` overrides say otherwise."""
+    return n, [f"num_individuals={n}", f"species=[{species}]", *(rig or ["rig.count=8"]),
+               f"motion.area_radius={radius}", "motion.interaction=huddle", f"seed={seed}"]
+
+
 SCENES = {  # name -> (individuals, nsd-synth overrides)
     "default scene (2 bipeds, 4 cameras)": (2, None),
     "2 bipeds huddling, 4 cameras": (
@@ -111,21 +121,12 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
         6, ["num_individuals=6", "rig.count=8", "motion.area_radius=2.0",
             "motion.interaction=huddle", "seed=1"]),
     # made after the blob seeds were chosen on the seed-21 group: their blind check
-    "4 (bipeds, quadrupeds) huddling, 8 cameras, seed 31": (
-        4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
-            "motion.area_radius=2.0", "motion.interaction=huddle", "seed=31"]),
-    "4 (bipeds, quadrupeds) huddling, 8 cameras, seed 32": (
-        4, ["num_individuals=4", "species=[biped,quadruped]", "rig.count=8",
-            "motion.area_radius=2.0", "motion.interaction=huddle", "seed=32"]),
-    "5 (bipeds, quadrupeds) huddling, 8 cameras, seed 33": (
-        5, ["num_individuals=5", "species=[biped,quadruped]", "rig.count=8",
-            "motion.area_radius=3.0", "motion.interaction=huddle", "seed=33"]),
-    "4 quadrupeds huddling, 8 cameras, seed 34": (
-        4, ["num_individuals=4", "species=[quadruped]", "rig.count=8",
-            "motion.area_radius=2.5", "motion.interaction=huddle", "seed=34"]),
-    "3 (2 quadrupeds, 1 biped) huddling, 6-camera ring, seed 35": (
-        3, ["num_individuals=3", "species=[quadruped,biped]", "rig.kind=ring", "rig.count=6",
-            "motion.area_radius=2.0", "motion.interaction=huddle", "seed=35"]),
+    "4 (bipeds, quadrupeds) huddling, 8 cameras, seed 31": _huddle(4, "biped,quadruped", 2.0, 31),
+    "4 (bipeds, quadrupeds) huddling, 8 cameras, seed 32": _huddle(4, "biped,quadruped", 2.0, 32),
+    "5 (bipeds, quadrupeds) huddling, 8 cameras, seed 33": _huddle(5, "biped,quadruped", 3.0, 33),
+    "4 quadrupeds huddling, 8 cameras, seed 34": _huddle(4, "quadruped", 2.5, 34),
+    "3 (2 quadrupeds, 1 biped) huddling, 6-camera ring, seed 35": _huddle(
+        3, "quadruped,biped", 2.0, 35, "rig.kind=ring", "rig.count=6"),
 }
 METRICS = ("detection_rate", "mask_miou", "depth_order_accuracy", "association_accuracy",
            "merge_rate", "detection_rate_touching", "mask_miou_touching", "touching_share")
