@@ -75,6 +75,8 @@ SCENES |= {
     # textures 1 and 11 are a look-alike pair of the pool (nsd/synth/texture.py)
     "3 bipeds, two of them look-alikes, 4 cameras": (
         3, ["num_individuals=3", "texture_ids=[1,11,7]"]),
+    # one texture for all three: only where they stand tells them apart (mice of one strain)
+    "3 bipeds of one texture, 4 cameras": (3, ["num_individuals=3", "texture_ids=[1,1,1]"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
@@ -208,7 +210,9 @@ def main() -> None:
                 learned[f"identity_accuracy{part or '_all'}"] = split.get(
                     f"identity_accuracy{part}")
             learned["idf1"] = ident.get("tracking", {}).get("identities", {}).get("idf1")
-            learned["identities"] = (f"{ident.get('method', 'rows')}, "
+            chosen = (f"auto: {ident['method']} (code separation {ident['separation']:.2f})"
+                      if ident.get("chosen_by") == "auto" else ident.get("method", "rows"))
+            learned["identities"] = (f"{chosen}, "
                                      f"fill {ident.get('fill', 'tracks')}, "
                                      f"{_identities_from(rec)}")
             # rows of a camera-frame that share their identity with another (the pose tools'

@@ -35,6 +35,12 @@ joined) are one item whose code is the normalised mean of their unit codes, and 
 subjects of one frame take distinct identities; every row takes its subject-frame's. A
 camera in which the subject is half hidden then no longer decides its row alone.
 ``method="tracks"`` stops after step 1: every row takes its track's cluster.
+``method="auto"`` (the default) chooses between the two by how well the codes tell the
+individuals apart (:func:`code_separation`): ``subjects`` where the two closest subjects of
+a frame lie at least ``SEPARATION_MIN`` times farther apart than a subject's codes move
+from one coded frame to the next, ``tracks`` otherwise (individuals that look alike to the
+codes, such as mice of one strain: only where they go tells them apart, and a code-based
+assignment would be a coin toss in every frame).
 ``k`` is the number of individuals the export shows at once (the median over
 frames of the distinct subjects per frame) unless given. With one subject
 (k = 1) no association is needed and every row is identity 0.
@@ -55,15 +61,23 @@ from nsd.ops.vectors import unit_vectors
 __all__ = [
     "FILL_METHODS",
     "IDENTITY_METHODS",
+    "SEPARATION_MIN",
     "assign_identities",
+    "code_separation",
     "constrained_average_linkage",
     "constrained_kmeans",
     "majority_in_window",
     "nearest_in_time",
+    "subject_frames",
     "transfer_identities",
 ]
 
-IDENTITY_METHODS = ("subjects", "rows", "tracks")
+IDENTITY_METHODS = ("auto", "subjects", "rows", "tracks")
+# method="auto": the codes tell individuals apart when code_separation is at least this.
+# Measured on the contact scenes' 15-minute runs (docs/benchmarks/contact_identical.md):
+# 4.7-47 with distinct textures (6.5-6.7 for the pool's look-alike pair), 0.75-0.82 with one
+# texture for all three individuals.
+SEPARATION_MIN = 2.0
 FILL_METHODS = ("nearest", "tracks")  # rows without a code; "app" is transfer_identities
 
 
@@ -143,7 +157,7 @@ def assign_identities(
     table: dict[str, np.ndarray],
     column: str = "texture",
     k: int = 0,
-    method: str = "subjects",
+    method: str = "auto",
     restarts: int = 10,
     fill: str = "nearest",
 ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -155,7 +169,8 @@ def assign_identities(
         column: the texture-code column.
         k: identities (0: the median number of subjects per frame).
         method: ``subjects`` (each subject-frame by its rows' pooled code), ``rows`` (each
-            coded row by its own code) or ``tracks`` (each row its track's cluster); see
+            coded row by its own code), ``tracks`` (each row its track's cluster) or ``auto``
+            (``subjects`` where the codes tell the individuals apart, else ``tracks``); see
             the module.
         restarts: ``subjects``, ``rows``: k-means runs from ``k`` random rows (seeded) besides the
             one from the track clusters; the run of least cost is kept.
@@ -164,6 +179,8 @@ def assign_identities(
 
     Returns:
         ``(identity (rows,) int64, summary)``; -1 for rows of tracks without a valid code.
+        With ``auto``, ``summary["method"]`` is the method chosen and
+        ``summary["separation"]`` the :func:`code_separation` it was chosen by.
 
     Raises:
         ValueError: an unknown ``method`` or ``fill``.
@@ -193,6 +210,11 @@ def assign_identities(
         identity[coded] = 0
         return identity, summary | {"identities": 1, "association": "skipped: one subject"}
     unit = unit_vectors(codes[valid], eps=1e-12)
+    items, item, pooled = subject_frames(unit, frame[valid], sid[valid])
+    if method == "auto":
+        separation = code_separation(pooled, items[:, 0], items[:, 1])
+        method = "subjects" if separation >= SEPARATION_MIN else "tracks"
+        summary |= {"method": method, "chosen_by": "auto", "separation": separation}
     of_track, n_clusters = _cluster_tracks(unit, sid[valid], tracks, per_frame, k)
     if method == "tracks":
         identity[coded] = [of_track[int(s)] for s in sid[coded]]
@@ -201,13 +223,7 @@ def assign_identities(
             "association": f"tracks clustered by {column}",
         }
     if method == "subjects":  # one item per subject and frame, distinct within a frame
-        key = np.stack([frame[valid], sid[valid]], 1)
-        items, item = np.unique(key, axis=0, return_inverse=True)
-        item = item.reshape(-1)
-        pooled = np.zeros((len(items), unit.shape[1]))
-        np.add.at(pooled, item, unit)
-        labels = _cluster_rows(unit_vectors(pooled, eps=1e-12),
-                               np.array([of_track[int(t)] for t in items[:, 1]]),
+        labels = _cluster_rows(pooled, np.array([of_track[int(t)] for t in items[:, 1]]),
                                items[:, 0], k, restarts)
         identity[valid] = labels[item]
     else:
@@ -229,6 +245,56 @@ def assign_identities(
         "identities": len(set(identity[valid].tolist())),
         "association": f"{method} clustered by {column}",
     }
+
+
+def subject_frames(unit: np.ndarray, frame: np.ndarray, subject: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The subject-frames of R coded rows (unit codes (R, D), ``frame`` and ``subject``
+    (R,)): ``(items (S, 2) [frame, subject], item (R,) each row's subject-frame, pooled
+    (S, D) the normalised mean unit code of each subject-frame's rows)``."""
+    items, item = np.unique(np.stack([frame, subject], 1), axis=0, return_inverse=True)
+    item = item.reshape(-1)
+    pooled = np.zeros((len(items), unit.shape[1]))
+    np.add.at(pooled, item, unit)
+    return items, item, unit_vectors(pooled, eps=1e-12)
+
+
+def code_separation(codes: np.ndarray, frame: np.ndarray, track: np.ndarray) -> float:
+    """How well texture codes tell individuals apart: the median over frames of the cosine
+    distance between the two closest subjects of a frame, over the median cosine distance
+    between one track's codes at consecutive coded frames (what a code moves with pose and
+    view). About 1 or less: the codes do not tell the individuals apart.
+
+    Args:
+        codes: (S, D) unit codes of S subject-frames.
+        frame, track: (S,) each subject-frame's frame and track id.
+
+    Returns:
+        the ratio; ``inf`` where there is nothing to compare (no frame of two subjects, or
+        no track coded twice), 0 where the closest subjects' codes are equal.
+
+    Example:
+        >>> a, b = np.eye(2)
+        >>> codes = np.stack([a, b, 0.8 * a + 0.6 * b, b])  # frames 0 and 1, tracks 1 and 2
+        >>> round(code_separation(codes, np.array([0, 0, 1, 1]), np.array([1, 2, 1, 2])), 6)
+        7.0
+    """
+    closest = []
+    for f in np.unique(frame):
+        u = codes[frame == f]
+        if len(u) > 1:
+            d = 1 - u @ u.T
+            closest.append(float(d[np.triu_indices(len(u), 1)].min()))
+    moved = []
+    for t in np.unique(track):
+        u = codes[track == t][np.argsort(frame[track == t], kind="stable")]
+        moved += (1 - (u[1:] * u[:-1]).sum(1)).tolist()
+    if not closest or not moved:
+        return float("inf")
+    between, within = float(np.median(closest)), float(np.median(moved))
+    if between <= 1e-9:  # cosine distances this small are rounding: equal codes
+        return 0.0
+    return between / within if within > 1e-9 else float("inf")
 
 
 def _most_frequent(ids: np.ndarray) -> int:

@@ -232,7 +232,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.keypoints.source": _r("str", choices=("inverse", "regressor")),
         "netepu.keypoints.label_fraction": _r("number", above=0, high=1),
         "netepu.keypoints.regressor_steps": POS, "netepu.keypoints.labels": NULL_TEXT,
-        "netepu.identities.method": _r("str", choices=("subjects", "rows", "tracks")),
+        "netepu.identities.method": _r("str", choices=("auto", "subjects", "rows", "tracks")),
         "netepu.identities.restarts": POS,
         "netepu.identities.fill": _r("str", choices=("app", "nearest", "tracks")),
         "grids.size": _r("int", low=16),

@@ -333,6 +333,80 @@ def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(
     assert set(identity.tolist()) == {0} and summary["association"] == "skipped: one subject"
 
 
+def test_auto_identities_follow_the_codes_unless_they_cannot_tell_individuals_apart():
+    """Two tracks that swap individuals at frame 10. With distinct codes ``auto`` takes
+    ``subjects`` and every row follows its code; with one code for both individuals (noise
+    alone: the closest subjects of a frame are as far apart as a track's consecutive codes)
+    it takes ``tracks``, each track one identity, instead of a coin toss per frame."""
+    from netepu.reid.identities import SEPARATION_MIN, assign_identities
+
+    rng = np.random.default_rng(7)
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    spec = [(1, range(10), a), (1, range(10, 20), b), (2, range(10), b), (2, range(10, 20), a)]
+    table = _track_table(spec, rng, cameras=("a", "b"))
+    truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
+    identity, summary = assign_identities(table, method="auto")
+    assert summary["method"] == "subjects" and summary["chosen_by"] == "auto"
+    assert summary["separation"] > 10 * SEPARATION_MIN
+    assert (identity == truth).all() or (identity == 1 - truth).all()
+    table["texture"] = a + 0.05 * rng.normal(size=table["texture"].shape)
+    identity, summary = assign_identities(table, method="auto")
+    assert summary["method"] == "tracks" and summary["separation"] < SEPARATION_MIN
+    of = {s: set(identity[table["subject_id"] == s].tolist()) for s in (1, 2)}
+    assert of[1] != of[2] and len(of[1]) == len(of[2]) == 1
+    by_subjects, _ = assign_identities(table, method="subjects")  # forced: no track stays whole
+    assert max(len(set(by_subjects[table["subject_id"] == s].tolist())) for s in (1, 2)) == 2
+
+
+def test_code_separation_known_values_and_edge_cases():
+    from netepu.reid.identities import code_separation
+
+    a, b, c = np.eye(3)
+    # frame 0: tracks 1, 2, 3 with codes a, b, (a + b) / sqrt 2: closest pair 1 - 1/sqrt 2
+    # frame 1: the same tracks, each code unchanged but track 1's turned to (3a + 4b) / 5
+    codes = np.stack([a, b, (a + b) / np.sqrt(2), 0.6 * a + 0.8 * b, b, (a + b) / np.sqrt(2)])
+    frame, track = np.array([0, 0, 0, 1, 1, 1]), np.array([1, 2, 3, 1, 2, 3])
+    closest_0 = 1 - 1 / np.sqrt(2)
+    closest_1 = min(1 - 0.8, 1 - (0.6 + 0.8) / np.sqrt(2), 1 - 1 / np.sqrt(2))
+    moved = np.median([1 - 0.6, 0.0, 0.0])  # only track 1 moved: the median is 0
+    assert moved == 0 and code_separation(codes, frame, track) == np.inf
+    codes[5] = (a + b + 0.2 * c) / np.linalg.norm(a + b + 0.2 * c)  # track 3 moves a little
+    moved = np.median([1 - 0.6, 0.0, 1 - codes[2] @ codes[5]])
+    expect = np.median([closest_0, min(1 - 0.8, 1 - codes[3] @ codes[5], 1 - codes[4] @ codes[5])])
+    assert closest_1 > 0 and code_separation(codes, frame, track) == pytest.approx(expect / moved)
+    assert code_separation(np.stack([a, a, a, a]), frame[:4] * 0 + np.array([0, 0, 1, 1]),
+                           np.array([1, 2, 1, 2])) == 0.0  # equal codes: nothing told apart
+    assert code_separation(codes[:3], frame[:3], track[:3]) == np.inf  # no track coded twice
+
+
+def test_identities_stage_warns_when_the_codes_cannot_tell_individuals_apart(tmp_path, caplog):
+    import logging
+
+    from omegaconf import OmegaConf
+
+    from netepu.pipeline.stages import _assign
+    from nsd.io.embeddings import EmbeddingWriter
+
+    rng = np.random.default_rng(8)
+    table = _track_table([(1, range(12), np.eye(8)[0]), (2, range(12), np.eye(8)[0])], rng,
+                         cameras=("cam0", "cam1"))
+    w = EmbeddingWriter(tmp_path / "embeddings")
+    w.write({"id": table["id"], "camera": table["camera"].astype(object),
+             "frame": table["frame"], "subject_id": table["subject_id"],
+             "texture_reid": table["texture"].astype(np.float32)})
+    w.close()
+    i = OmegaConf.create({"fill": "nearest", "method": "auto", "restarts": 10, "k": 0})
+    with caplog.at_level(logging.WARNING):
+        _, identity, summary = _assign(tmp_path, None, "texture_reid", i, 0)
+    assert summary["method"] == "tracks"
+    assert "do not tell the individuals apart" in caplog.text and str(tmp_path) in caplog.text
+    assert len(set(identity[table["subject_id"] == 1].tolist())) == 1
+    caplog.clear()
+    i.method = "subjects"  # asked for: no warning, no choice made
+    _, _, summary = _assign(tmp_path, None, "texture_reid", i, 0)
+    assert summary["method"] == "subjects" and "separation" not in summary and not caplog.text
+
+
 def test_row_identities_follow_the_codes_when_tracks_swap_individuals():
     """Two tracks swap individuals at frame 10 (a crossing): each track is one identity under
     ``tracks``, which is then wrong for half the rows; ``rows`` follows every row's code."""
@@ -409,7 +483,9 @@ def test_one_coded_frame_with_wrong_codes_does_not_flip_the_rows_around_it():
     frame = table["frame"]
     table["texture"][frame == 20] = table["texture"][frame == 20][:, [1, 0, 2, 3, 4, 5, 6, 7]]
     table["texture_valid"] = frame % 10 == 0
-    identity, _ = assign_identities(table, fill="nearest")
+    # four coded frames, one of them swapped: two of a track's three moves are a swap, so
+    # method=auto would take the tracks here; the fill under the codes' identities is tested
+    identity, _ = assign_identities(table, method="subjects", fill="nearest")
     if (identity[frame == 0] != truth[frame == 0]).any():
         truth = 1 - truth
     assert set(frame[identity != truth].tolist()) == {20}
