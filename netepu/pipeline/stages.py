@@ -66,6 +66,7 @@ __all__ = [
     "grids_stage",
     "identities_stage",
     "keypoints_stage",
+    "look_alike",
     "quality_stage",
     "scene_stage",
     "texture_stage",
@@ -532,6 +533,24 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
     return table, identity, summary
 
 
+def look_alike(summary: dict[str, Any]) -> dict[str, float]:
+    """The tables of an identities stage's ``summary`` whose identities ``auto`` took from
+    the tracks because the codes do not tell the individuals apart: table ("" the run's
+    one table, else the species) -> code separation.
+
+    Example:
+        >>> look_alike({"method": "tracks", "chosen_by": "auto", "separation": 0.8})
+        {'': 0.8}
+        >>> look_alike({"species": {"biped": {"method": "subjects", "chosen_by": "auto",
+        ...     "separation": 9.0}, "quadruped": {"method": "tracks", "chosen_by": "auto",
+        ...     "separation": 1.1}}})
+        {'quadruped': 1.1}
+    """
+    tables = summary.get("species") or {"": summary}
+    return {name: float(t["separation"]) for name, t in tables.items()
+            if t.get("chosen_by") == "auto" and t.get("method") == "tracks"}
+
+
 def _identities_of_species(up: dict[str, StageResult], species: list[str], column: str,
                            i: DictConfig) -> tuple[dict, np.ndarray, dict]:
     """Identities of a run of several species: every row takes a species
@@ -621,6 +640,14 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
         report = quality_report(export, scene, (int(w), int(h)), ids,
                                 str(cfg.train.data.background), str(cfg.train.data.units),
                                 int(q.max_frames))
+        alike = look_alike(up["identities"].summary) if have_identities else {}
+        if alike:  # the identity figures cannot see swaps of individuals the codes confuse
+            report.warnings.append(
+                "identities follow the tracks: the texture codes do not tell the individuals "
+                "apart (code separation " + ", ".join(
+                    f"{name + ' ' if name else ''}{sep:.2f}" for name, sep in alike.items())
+                + f" < {SEPARATION_MIN:g}); tracks that swap individuals in contact keep the "
+                "swap, and identity_switches and view_agreement cannot show it")
         for warning in report.warnings:
             log.warning("quality: %s", warning)
         worst = report.worst(int(q.worst))
