@@ -14,7 +14,9 @@ that species count, as in the identities stage), reads the stored texture codes 
 * identity accuracy (all instants / touching instants, against the scene's ground truth,
   :func:`nsd.evaluation.identity.identity_accuracy_by_contact`) of the same rows under
   ``subjects`` (the codes decide, per subject-frame) and ``tracks`` (each row its track's
-  cluster), so that the choice can be checked against what each method would have given.
+  cluster), so that the choice can be checked against what each method would have given;
+* ``app_separation``: the same figure from NSD's appearance vectors of the same rows (every
+  frame has them; ``auto`` does not choose by them).
 
 ``--runs`` and ``--scenes`` pair up in order. Writes
 ``docs/benchmarks/<--report>.{md,json}`` (default ``code_separation``).
@@ -46,10 +48,10 @@ KEYS = ["id", "camera", "frame", "subject_id"]
 COLUMN = "texture_reid"
 
 
-def _separation(table: dict) -> float:
-    """``code_separation`` of a texture table's coded subject-frames (codes pooled over the
-    cameras, as ``assign_identities`` pools them)."""
-    codes = np.asarray(table[COLUMN], np.float64)
+def _separation(table: dict, column: str = COLUMN) -> float:
+    """``code_separation`` of a table's coded subject-frames (codes pooled over the cameras,
+    as ``assign_identities`` pools them)."""
+    codes = np.asarray(table[column], np.float64)
     ok = ~np.isnan(codes).any(1)
     items, _, pooled = subject_frames(unit_vectors(codes[ok], eps=1e-12),
                                       np.asarray(table["frame"])[ok],
@@ -89,6 +91,11 @@ def main() -> None:
                     identity[keep], (128, 128))
                 row[f"identity_{method}"] = acc.get("identity_accuracy")
                 row[f"identity_{method}_touching"] = acc.get("identity_accuracy_touching")
+            export = read_embeddings(run / "export", [*KEYS, "app"])
+            if folder != tex:
+                export = {k: np.asarray(v)[np.isin(export["id"], table["id"])]
+                          for k, v in export.items()}
+            row["app_separation"] = _separation(export, "app")
             rows.append(row)
             print(row, flush=True)
     write_report(
@@ -101,7 +108,10 @@ def main() -> None:
                f"(`subjects` from {SEPARATION_MIN:g} up). `identity_subjects`, "
                "`identity_tracks`: identity accuracy of the run's rows under each method, "
                "all instants and touching instants (nsd/evaluation/identity.py), from the "
-               "stored codes (the export and codes of the run, nothing re-run)."),
+               "stored codes (the export and codes of the run, nothing re-run). "
+               "`app_separation`: the same figure from NSD's appearance vectors of the same "
+               "rows, which exist on every frame (what identities use without a texture "
+               "model; `auto` takes `subjects` there, whatever the figure)."),
     )
 
 

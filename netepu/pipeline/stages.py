@@ -512,8 +512,15 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
     if rows is not None:
         keep = np.isin(np.asarray(table["id"], np.int64), sorted(rows))
         table = {c: v[keep] for c, v in table.items()}
+    method = str(i.method)
+    if method == "auto" and column == "app":
+        # NSD's appearance vectors exist on every frame, where a track's vector hardly moves
+        # from one to the next, so code_separation does not measure the same thing there
+        # (2.8-3.1 for a huddle of one texture, 3.0-3.4 for distinct ones:
+        # docs/benchmarks/code_separation.md)
+        method = "subjects"
     identity, summary = assign_identities(  # rows without a code hold NaN
-        table, column, k, str(i.method), int(i.restarts),
+        table, column, k, method, int(i.restarts),
         "nearest" if by_app else str(i.fill),  # by_app: replaced just below
     )
     summary["fill"] = str(i.fill)

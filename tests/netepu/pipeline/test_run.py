@@ -393,7 +393,8 @@ def test_identities_stage_warns_when_the_codes_cannot_tell_individuals_apart(tmp
     w = EmbeddingWriter(tmp_path / "embeddings")
     w.write({"id": table["id"], "camera": table["camera"].astype(object),
              "frame": table["frame"], "subject_id": table["subject_id"],
-             "texture_reid": table["texture"].astype(np.float32)})
+             "texture_reid": table["texture"].astype(np.float32),
+             "app": table["texture"].astype(np.float32)})
     w.close()
     i = OmegaConf.create({"fill": "nearest", "method": "auto", "restarts": 10, "k": 0})
     with caplog.at_level(logging.WARNING):
@@ -404,6 +405,9 @@ def test_identities_stage_warns_when_the_codes_cannot_tell_individuals_apart(tmp
     caplog.clear()
     i.method = "subjects"  # asked for: no warning, no choice made
     _, _, summary = _assign(tmp_path, None, "texture_reid", i, 0)
+    assert summary["method"] == "subjects" and "separation" not in summary and not caplog.text
+    i.method = "auto"  # NSD's appearance vectors (no texture model): the subjects, as before
+    _, _, summary = _assign(tmp_path, None, "app", i, 0)
     assert summary["method"] == "subjects" and "separation" not in summary and not caplog.text
 
 
