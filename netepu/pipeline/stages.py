@@ -514,10 +514,9 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
         table = {c: v[keep] for c, v in table.items()}
     method = str(i.method)
     if method == "auto" and column == "app":
-        # NSD's appearance vectors exist on every frame, where a track's vector hardly moves
-        # from one to the next, so code_separation does not measure the same thing there
-        # (2.8-3.1 for a huddle of one texture, 3.0-3.4 for distinct ones:
-        # docs/benchmarks/code_separation.md)
+        # NSD's appearance vectors tell individuals apart too little for code_separation to
+        # choose by (0.76-0.79 for a huddle of one texture, 0.83-1.64 for distinct ones:
+        # docs/benchmarks/code_separation.md); the pooled subject-frames, as before
         method = "subjects"
     identity, summary = assign_identities(  # rows without a code hold NaN
         table, column, k, method, int(i.restarts),

@@ -61,6 +61,7 @@ from nsd.ops.vectors import unit_vectors
 __all__ = [
     "FILL_METHODS",
     "IDENTITY_METHODS",
+    "SEPARATION_GAP",
     "SEPARATION_MIN",
     "assign_identities",
     "code_separation",
@@ -78,6 +79,9 @@ IDENTITY_METHODS = ("auto", "subjects", "rows", "tracks")
 # 4.7-47 with distinct textures (6.5-6.7 for the pool's look-alike pair), 0.75-0.82 with one
 # texture for all three individuals.
 SEPARATION_MIN = 2.0
+# ... comparing a track's codes this many frames apart (the keypoints stage's default
+# frame_step): codes of every frame would move little from one to the next whoever they are.
+SEPARATION_GAP = 25
 FILL_METHODS = ("nearest", "tracks")  # rows without a code; "app" is transfer_identities
 
 
@@ -259,24 +263,29 @@ def subject_frames(unit: np.ndarray, frame: np.ndarray, subject: np.ndarray
     return items, item, unit_vectors(pooled, eps=1e-12)
 
 
-def code_separation(codes: np.ndarray, frame: np.ndarray, track: np.ndarray) -> float:
+def code_separation(codes: np.ndarray, frame: np.ndarray, track: np.ndarray,
+                    gap: int = SEPARATION_GAP) -> float:
     """How well texture codes tell individuals apart: the median over frames of the cosine
     distance between the two closest subjects of a frame, over the median cosine distance
-    between one track's codes at consecutive coded frames (what a code moves with pose and
-    view). About 1 or less: the codes do not tell the individuals apart.
+    between one track's code at a frame and at its first coded frame ``gap`` or more frames
+    later (what a code moves with pose and view; coded frames every ``frame_step`` = 25
+    frames, the keypoints stage's default, make these the consecutive ones). About 1 or
+    less: the codes do not tell the individuals apart.
 
     Args:
         codes: (S, D) unit codes of S subject-frames.
         frame, track: (S,) each subject-frame's frame and track id.
+        gap: frames between the two codes of a track that are compared.
 
     Returns:
         the ratio; ``inf`` where there is nothing to compare (no frame of two subjects, or
-        no track coded twice), 0 where the closest subjects' codes are equal.
+        no track coded twice ``gap`` frames apart), 0 where the closest subjects' codes are
+        equal.
 
     Example:
         >>> a, b = np.eye(2)
-        >>> codes = np.stack([a, b, 0.8 * a + 0.6 * b, b])  # frames 0 and 1, tracks 1 and 2
-        >>> round(code_separation(codes, np.array([0, 0, 1, 1]), np.array([1, 2, 1, 2])), 6)
+        >>> codes = np.stack([a, b, 0.8 * a + 0.6 * b, b])  # frames 0 and 25, tracks 1 and 2
+        >>> round(code_separation(codes, np.array([0, 0, 25, 25]), np.array([1, 2, 1, 2])), 6)
         7.0
     """
     closest = []
@@ -287,8 +296,11 @@ def code_separation(codes: np.ndarray, frame: np.ndarray, track: np.ndarray) -> 
             closest.append(float(d[np.triu_indices(len(u), 1)].min()))
     moved = []
     for t in np.unique(track):
-        u = codes[track == t][np.argsort(frame[track == t], kind="stable")]
-        moved += (1 - (u[1:] * u[:-1]).sum(1)).tolist()
+        order = np.argsort(frame[track == t], kind="stable")
+        f, u = frame[track == t][order], codes[track == t][order]
+        later = np.searchsorted(f, f + gap)  # each code's first partner gap frames on
+        ok = later < len(f)
+        moved += (1 - (u[ok] * u[later[ok]]).sum(1)).tolist()
     if not closest or not moved:
         return float("inf")
     between, within = float(np.median(closest)), float(np.median(moved))

@@ -342,7 +342,8 @@ def test_auto_identities_follow_the_codes_unless_they_cannot_tell_individuals_ap
 
     rng = np.random.default_rng(7)
     a, b = np.eye(8)[0], np.eye(8)[1]
-    spec = [(1, range(10), a), (1, range(10, 20), b), (2, range(10), b), (2, range(10, 20), a)]
+    early, late = range(0, 200, 20), range(200, 400, 20)  # coded every 20 frames
+    spec = [(1, early, a), (1, late, b), (2, early, b), (2, late, a)]
     table = _track_table(spec, rng, cameras=("a", "b"))
     truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
     identity, summary = assign_identities(table, method="auto")
@@ -359,8 +360,11 @@ def test_auto_identities_follow_the_codes_unless_they_cannot_tell_individuals_ap
 
 
 def test_code_separation_known_values_and_edge_cases():
-    from netepu.reid.identities import code_separation
+    from functools import partial
 
+    from netepu.reid import identities
+
+    code_separation = partial(identities.code_separation, gap=1)  # frames 0 and 1 compared
     a, b, c = np.eye(3)
     # frame 0: tracks 1, 2, 3 with codes a, b, (a + b) / sqrt 2: closest pair 1 - 1/sqrt 2
     # frame 1: the same tracks, each code unchanged but track 1's turned to (3a + 4b) / 5
@@ -379,6 +383,23 @@ def test_code_separation_known_values_and_edge_cases():
     assert code_separation(codes[:3], frame[:3], track[:3]) == np.inf  # no track coded twice
 
 
+def test_code_separation_compares_a_tracks_codes_gap_frames_apart():
+    """Two subjects of one look on every frame, 0.3 rad apart; each code turns 0.01 rad per
+    frame. Neighbouring frames would make them look 900 times apart (1 - cos 0.3 against
+    1 - cos 0.01); 25 frames apart, the codes move 0.25 rad and the figure is ~1.4."""
+    from netepu.reid.identities import SEPARATION_GAP, SEPARATION_MIN, code_separation
+
+    t = np.arange(100)
+    angle = np.concatenate([0.01 * t, 0.01 * t + 0.3])
+    codes = np.stack([np.cos(angle), np.sin(angle)], 1)
+    frame, track = np.concatenate([t, t]), np.repeat([1, 2], len(t))
+    expect = (1 - np.cos(0.3)) / (1 - np.cos(0.01 * SEPARATION_GAP))
+    assert code_separation(codes, frame, track) == pytest.approx(expect)
+    assert expect < SEPARATION_MIN
+    assert code_separation(codes, frame, track, gap=1) == pytest.approx(
+        (1 - np.cos(0.3)) / (1 - np.cos(0.01)))
+
+
 def test_identities_stage_warns_when_the_codes_cannot_tell_individuals_apart(tmp_path, caplog):
     import logging
 
@@ -388,7 +409,8 @@ def test_identities_stage_warns_when_the_codes_cannot_tell_individuals_apart(tmp
     from nsd.io.embeddings import EmbeddingWriter
 
     rng = np.random.default_rng(8)
-    table = _track_table([(1, range(12), np.eye(8)[0]), (2, range(12), np.eye(8)[0])], rng,
+    every_20th = range(0, 240, 20)
+    table = _track_table([(1, every_20th, np.eye(8)[0]), (2, every_20th, np.eye(8)[0])], rng,
                          cameras=("cam0", "cam1"))
     w = EmbeddingWriter(tmp_path / "embeddings")
     w.write({"id": table["id"], "camera": table["camera"].astype(object),
@@ -460,12 +482,13 @@ def test_uncoded_rows_take_their_tracks_identity_at_the_nearest_coded_frame():
     table["texture_valid"] = table["frame"] % 10 == 0
     truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
     frame = table["frame"]
-    near, summary = assign_identities(table, fill="nearest")
+    # (four coded frames across a swap: too few for method=auto to judge the codes by)
+    near, summary = assign_identities(table, method="subjects", fill="nearest")
     assert summary["identities"] == 2
     if (near[frame == 0] != truth[frame == 0]).any():
         truth = 1 - truth
     assert set(frame[near != truth].tolist()) == {14, 15}
-    by_tracks, _ = assign_identities(table, fill="tracks")
+    by_tracks, _ = assign_identities(table, method="subjects", fill="tracks")
     uncoded = ~table["texture_valid"]
     for s in (1, 2):
         assert len(set(by_tracks[uncoded & (table["subject_id"] == s)].tolist())) == 1
