@@ -8,7 +8,7 @@ two species has one table of codes per species, of which the rows the keypoints 
 that species count, as in the identities stage), reads the stored texture codes and gives:
 
 * ``separation``: :func:`netepu.reid.identities.code_separation` (the two closest subjects
-  of a frame against what one subject's code moves between coded frames), the figure by
+  of a frame against what one subject's code moves over 25 frames), the figure by
   which ``netepu.identities.method=auto`` chooses (``SEPARATION_MIN``);
 * ``chosen``: the method ``auto`` takes there;
 * identity accuracy (all instants / touching instants, against the scene's ground truth,
@@ -103,7 +103,7 @@ def main() -> None:
         notes=("One row per run and species (the texture stage's table of codes). "
                "`separation`: the median over frames of the cosine distance between the two "
                "closest subjects of a frame, over the median cosine distance between one "
-               "track's codes at consecutive coded frames (netepu.reid.identities."
+               "track's codes 25 frames apart (netepu.reid.identities."
                f"code_separation); `chosen`: what `netepu.identities.method=auto` takes "
                f"(`subjects` from {SEPARATION_MIN:g} up). `identity_subjects`, "
                "`identity_tracks`: identity accuracy of the run's rows under each method, "

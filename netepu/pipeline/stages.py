@@ -27,7 +27,12 @@ from netepu.pipeline.species_choice import (
 )
 from netepu.pipeline.species_models import BUILTIN, SpeciesModels
 from netepu.pipeline.subject_keypoints import invert_export, load_initialiser_checked
-from netepu.reid.identities import SEPARATION_MIN, assign_identities, transfer_identities
+from netepu.reid.identities import (
+    SEPARATION_GAP,
+    SEPARATION_MIN,
+    assign_identities,
+    transfer_identities,
+)
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
@@ -527,11 +532,11 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
         log.warning(
             "identities: the texture codes of %s do not tell the individuals apart (the two "
             "closest subjects of a frame lie %.2f times as far apart as one subject's codes "
-            "move between coded frames; %g or more is needed): every row takes its track's "
+            "move over %d frames; %g or more is needed): every row takes its track's "
             "identity, and tracks can swap individuals where they touch. Individuals that "
             "look alike (one strain, one colour) are told apart only by where they go; "
             "netepu.identities.method=subjects forces the codes", source,
-            summary["separation"], SEPARATION_MIN)
+            summary["separation"], SEPARATION_GAP, SEPARATION_MIN)
     if by_app:  # rows without a code: by their appearance vector, not their track
         coded = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
         identity = transfer_identities(table, identity, coded, "app")

@@ -38,7 +38,7 @@ camera in which the subject is half hidden then no longer decides its row alone.
 ``method="auto"`` (the default) chooses between the two by how well the codes tell the
 individuals apart (:func:`code_separation`): ``subjects`` where the two closest subjects of
 a frame lie at least ``SEPARATION_MIN`` times farther apart than a subject's codes move
-from one coded frame to the next, ``tracks`` otherwise (individuals that look alike to the
+over ``SEPARATION_GAP`` frames, ``tracks`` otherwise (individuals that look alike to the
 codes, such as mice of one strain: only where they go tells them apart, and a code-based
 assignment would be a coin toss in every frame).
 ``k`` is the number of individuals the export shows at once (the median over
@@ -75,7 +75,7 @@ __all__ = [
 
 IDENTITY_METHODS = ("auto", "subjects", "rows", "tracks")
 # method="auto": the codes tell individuals apart when code_separation is at least this.
-# Measured on the contact scenes' 15-minute runs (docs/benchmarks/contact_identical.md):
+# Measured on the contact scenes' 15-minute runs (docs/benchmarks/code_separation.md):
 # 4.7-47 with distinct textures (6.5-6.7 for the pool's look-alike pair), 0.75-0.82 with one
 # texture for all three individuals.
 SEPARATION_MIN = 2.0
