@@ -482,7 +482,8 @@ def test_uncoded_rows_take_their_tracks_identity_at_the_nearest_coded_frame():
     table["texture_valid"] = table["frame"] % 10 == 0
     truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
     frame = table["frame"]
-    # (four coded frames across a swap: too few for method=auto to judge the codes by)
+    # (four coded frames, one pair 25 apart per track, across the swap: too few for
+    # method=auto to judge the codes by)
     near, summary = assign_identities(table, method="subjects", fill="nearest")
     assert summary["identities"] == 2
     if (near[frame == 0] != truth[frame == 0]).any():
@@ -510,8 +511,8 @@ def test_one_coded_frame_with_wrong_codes_does_not_flip_the_rows_around_it():
     frame = table["frame"]
     table["texture"][frame == 20] = table["texture"][frame == 20][:, [1, 0, 2, 3, 4, 5, 6, 7]]
     table["texture_valid"] = frame % 10 == 0
-    # four coded frames, one of them swapped: two of a track's three moves are a swap, so
-    # method=auto would take the tracks here; the fill under the codes' identities is tested
+    # the fill under the codes' identities is what is tested (method=auto judges the codes
+    # by pairs of coded frames 25 apart, of which four coded frames give one per track)
     identity, _ = assign_identities(table, method="subjects", fill="nearest")
     if (identity[frame == 0] != truth[frame == 0]).any():
         truth = 1 - truth
