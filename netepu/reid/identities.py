@@ -10,8 +10,9 @@ row's identity is therefore decided from its own texture code (NeTePu's
 1. **Tracks** (:func:`constrained_average_linkage`): each track is described
    by the mean of its rows' unit codes, and tracks are grouped into ``k``
    clusters by average-linkage agglomerative clustering on the cosine
-   distance that never joins two tracks seen in the same frame (so more than
-   ``k`` clusters remain when the tracks do not allow fewer).
+   distance that never joins two tracks seen together in more than
+   ``HANDOVER_FRAMES`` frames (so more than ``k`` clusters remain when the
+   tracks do not allow fewer).
 2. **Rows** (:func:`constrained_kmeans`, ``method="rows"``): a
    spherical k-means over the coded rows in which the rows of one camera-frame
    take distinct identities (a Hungarian assignment per camera-frame on the
@@ -60,6 +61,7 @@ from nsd.ops.vectors import unit_vectors
 
 __all__ = [
     "FILL_METHODS",
+    "HANDOVER_FRAMES",
     "IDENTITY_METHODS",
     "SEPARATION_GAP",
     "SEPARATION_MIN",
@@ -83,6 +85,12 @@ SEPARATION_MIN = 2.0
 # frame_step): codes of every frame would move little from one to the next whoever they are.
 SEPARATION_GAP = 25
 FILL_METHODS = ("nearest", "tracks")  # rows without a code; "app" is transfer_identities
+# Two tracks seen together in at most this many frames may still be one individual: the
+# tracker may open a track for an individual a few frames before it closes the old one (a
+# handover). Measured on the contact runs (docs/pipeline.md "Individuals that look alike"):
+# with 0, three 15-minute runs kept a fourth identity for three individuals; 3, 5 and 10
+# gave the same identities.
+HANDOVER_FRAMES = 5
 
 
 def constrained_average_linkage(dist: np.ndarray, apart: np.ndarray, k: int) -> np.ndarray:
@@ -408,14 +416,16 @@ def _cluster_tracks(
     unit: np.ndarray, row_sid: np.ndarray, tracks: list[int], per_frame: dict, k: int
 ) -> tuple[dict[int, int], int]:
     """Step 1: tracks grouped into ``k`` clusters by their mean unit code, never joining
-    two tracks seen in one frame; returns track -> cluster and the number of clusters."""
+    two tracks seen together in more than ``HANDOVER_FRAMES`` frames; returns track ->
+    cluster and the number of clusters."""
     desc = np.stack([unit_vectors(unit[row_sid == s].mean(0), eps=1e-12) for s in tracks])
     dist = np.clip(1 - desc @ desc.T, 0, 2)
     index = {s: i for i, s in enumerate(tracks)}
-    apart = np.zeros(dist.shape, bool)
+    together = np.zeros(dist.shape, np.int64)  # frames in which both tracks are seen
     for members in per_frame.values():
         m = [index[s] for s in members if s in index]
-        apart[np.ix_(m, m)] = True
+        together[np.ix_(m, m)] += 1
+    apart = together > HANDOVER_FRAMES
     np.fill_diagonal(apart, False)
     track_label = constrained_average_linkage(dist, apart, k)
     return {s: int(track_label[i]) for s, i in index.items()}, len(set(track_label.tolist()))

@@ -315,8 +315,9 @@ def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(
 
     rng = np.random.default_rng(0)
     a, b = np.eye(8)[0], np.eye(8)[1]
-    # tracks 1 and 2 are individual A before and after a break, 3 is B, 4 is B after a break
-    spec = [(1, range(10), a), (2, range(12, 20), a), (3, range(15), b), (4, range(16, 20), b)]
+    # tracks 1 and 2 are individual A before and after a break, 3 is B, 4 is B after a break;
+    # tracks of different individuals are seen together in more than HANDOVER_FRAMES frames
+    spec = [(1, range(20), a), (2, range(24, 40), a), (3, range(30), b), (4, range(32, 40), b)]
     table = _track_table(spec, rng, cameras=("a", "b"))
     identity, summary = assign_identities(table, k=0, method=method)
     assert summary["k"] == 2 and summary["identities"] == 2
@@ -325,12 +326,30 @@ def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(
     # one texture for everyone: individuals seen together still get different identities
     table["texture"] = np.tile(a, (len(identity), 1))
     identity, _ = assign_identities(table, method=method)
-    for t in range(20):
+    for t in range(40):
         for cam in ("a", "b"):
             here = identity[(table["frame"] == t) & (table["camera"] == cam)]
             assert len(set(here.tolist())) == len(here)
     identity, summary = assign_identities(table, k=1, method=method)
     assert set(identity.tolist()) == {0} and summary["association"] == "skipped: one subject"
+
+
+def test_a_track_handed_over_a_few_frames_early_joins_its_individual(monkeypatch):
+    """Individual A is track 1 until frame 20 and track 2 from frame 17 (the tracker opened
+    the new track 4 frames before closing the old); B is track 3 throughout. Seen together
+    in 4 frames, tracks 1 and 2 still join: two identities. Never joining tracks seen
+    together at all (HANDOVER_FRAMES = 0) leaves three."""
+    from netepu.reid import identities
+
+    rng = np.random.default_rng(9)
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    table = _track_table([(1, range(21), a), (2, range(17, 40), a), (3, range(40), b)], rng)
+    identity, summary = identities.assign_identities(table, method="tracks")
+    assert summary["identities"] == 2
+    assert set(identity[table["subject_id"] == 1]) == set(identity[table["subject_id"] == 2])
+    monkeypatch.setattr(identities, "HANDOVER_FRAMES", 0)
+    _, summary = identities.assign_identities(table, method="tracks")
+    assert summary["identities"] == 3
 
 
 def test_auto_identities_follow_the_codes_unless_they_cannot_tell_individuals_apart():
