@@ -88,7 +88,7 @@ FILL_METHODS = ("nearest", "tracks")  # rows without a code; "app" is transfer_i
 # Two tracks seen together in at most this many frames may still be one individual: the
 # tracker may open a track for an individual a few frames before it closes the old one (a
 # handover). Measured on the contact runs (docs/pipeline.md "Individuals that look alike"):
-# with 0, three 15-minute runs kept a fourth identity for three individuals; 3, 5 and 10
+# with 0, four 15-minute runs kept a fourth identity for three individuals; 3, 5 and 10
 # gave the same identities.
 HANDOVER_FRAMES = 5
 
