@@ -36,6 +36,7 @@ from netepu.pipeline.species_choice import read_species_csv, species_of_rows
 from netepu.reid.identities import (
     SEPARATION_MIN,
     assign_identities,
+    auto_method,
     code_separation,
     subject_frames,
 )
@@ -82,7 +83,7 @@ def main() -> None:
             sep = _separation(table)
             row = {"run": run.name, "scene": scene.name,
                    "species": folder.name if folder != tex else "", "separation": sep,
-                   "chosen": "subjects" if sep >= SEPARATION_MIN else "tracks"}
+                   "chosen": auto_method(sep)}
             for method in ("subjects", "tracks"):
                 identity, _ = assign_identities(table, COLUMN, 0, method)
                 keep = identity >= 0

@@ -66,6 +66,7 @@ __all__ = [
     "SEPARATION_GAP",
     "SEPARATION_MIN",
     "assign_identities",
+    "auto_method",
     "code_separation",
     "constrained_average_linkage",
     "constrained_kmeans",
@@ -222,10 +223,11 @@ def assign_identities(
         identity[coded] = 0
         return identity, summary | {"identities": 1, "association": "skipped: one subject"}
     unit = unit_vectors(codes[valid], eps=1e-12)
-    items, item, pooled = subject_frames(unit, frame[valid], sid[valid])
+    if method in ("auto", "subjects"):
+        items, item, pooled = subject_frames(unit, frame[valid], sid[valid])
     if method == "auto":
         separation = code_separation(pooled, items[:, 0], items[:, 1])
-        method = "subjects" if separation >= SEPARATION_MIN else "tracks"
+        method = auto_method(separation)
         summary |= {"method": method, "chosen_by": "auto", "separation": separation}
     of_track, n_clusters = _cluster_tracks(unit, sid[valid], tracks, per_frame, k)
     if method == "tracks":
@@ -269,6 +271,12 @@ def subject_frames(unit: np.ndarray, frame: np.ndarray, subject: np.ndarray
     pooled = np.zeros((len(items), unit.shape[1]))
     np.add.at(pooled, item, unit)
     return items, item, unit_vectors(pooled, eps=1e-12)
+
+
+def auto_method(separation: float) -> str:
+    """The method ``auto`` takes for codes of this :func:`code_separation`: ``subjects`` from
+    ``SEPARATION_MIN`` up, else ``tracks``."""
+    return "subjects" if separation >= SEPARATION_MIN else "tracks"
 
 
 def code_separation(codes: np.ndarray, frame: np.ndarray, track: np.ndarray,
