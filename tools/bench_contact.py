@@ -77,6 +77,11 @@ SCENES |= {
         3, ["num_individuals=3", "texture_ids=[1,11,7]"]),
     # one texture for all three: only where they stand tells them apart (mice of one strain)
     "3 bipeds of one texture, 4 cameras": (3, ["num_individuals=3", "texture_ids=[1,1,1]"]),
+    # made after method=motion was chosen on the one above: another texture, another seed
+    "4 bipeds of one texture, 4 cameras, seed 2": (
+        4, ["num_individuals=4", "texture_ids=[7,7,7,7]", "seed=2"]),
+    "3 bipeds of one texture, 4 cameras, seed 3": (
+        3, ["num_individuals=3", "texture_ids=[11,11,11]", "seed=3"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)

@@ -33,6 +33,7 @@ from netepu.reid.identities import (
     assign_identities,
     transfer_identities,
 )
+from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
@@ -51,6 +52,7 @@ from nsd.export.pose_tools import KeypointFile, write_pose_tool_files
 from nsd.export.positions import read_positions, triangulate_positions, write_positions
 from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
+from nsd.inference.tracking import position_scale
 from nsd.io.background_report import write_background_report
 from nsd.io.embeddings import read_embeddings
 from nsd.io.ground_truth import GroundTruth
@@ -467,11 +469,13 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
         if not have_texture:
             log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
         keys = ["id", "camera", "frame", "subject_id"]
+        rig = read_calibration(up["scene"].summary["path"], cfg.train.data.units)
+        motion = _motion(up["export"].folder, rig, column, i, cfg.train.inference.resolution)
         if not several:
             source = up["texture"].folder if have_texture else up["export"].folder
-            table, identity, summary = _assign(source, None, column, i, int(i.k))
+            table, identity, summary = _assign(source, None, column, i, int(i.k), motion)
         else:
-            table, identity, summary = _identities_of_species(up, species, column, i)
+            table, identity, summary = _identities_of_species(up, species, column, i, motion)
             if int(i.k) > 0:
                 log.warning("identities: netepu.identities.k=%d is not used with several "
                             "species: each species takes its own count", int(i.k))
@@ -479,7 +483,6 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
         write_identities(out / "identities.csv",
                          {**{c: table[c].tolist() for c in keys}, "identity": identity.tolist()})
         by_row = dict(zip(table["id"].tolist(), identity.tolist(), strict=True))
-        rig = read_calibration(up["scene"].summary["path"], cfg.train.data.units)
         positions = triangulate_positions(up["export"].folder, rig, by_row)
         write_positions(out / "positions.csv", positions)
         write_identity_tracks(up["export"].folder, by_row, out / "tracks", positions)
@@ -506,11 +509,26 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
     )
 
 
-def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: int
-            ) -> tuple[dict, np.ndarray, dict]:
+def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution: int
+            ) -> tuple[dict, float] | None:
+    """What ``method=motion`` needs where it may be used (``netepu.identities.method`` motion,
+    or auto on texture codes): the export's subject-frames' world positions
+    ((frame, subject_id) -> (3,)) and ``netepu.identities.jump`` in world units
+    (``auto``: the tracker's ``position_scale`` rule on the hull's grid of ``resolution``);
+    else None."""
+    method = str(i.method)
+    if method != "motion" and (method != "auto" or column == "app"):
+        return None
+    positions = {key: p for key, (p, _) in triangulate_positions(export, rig).items()}
+    return positions, position_scale(i.jump, rig, int(resolution))
+
+
+def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: int,
+            motion: tuple[dict, float] | None = None) -> tuple[dict, np.ndarray, dict]:
     """The identities (``netepu.identities`` = ``i``, ``k`` of them or 0: the median count) of
-    the rows of the embedding table at ``source`` (those of ids ``rows`` only, if given):
-    ``(table, identity, summary)``."""
+    the rows of the embedding table at ``source`` (those of ids ``rows`` only, if given), with
+    ``motion`` (:func:`_motion`) where ``motion`` may be taken: ``(table, identity,
+    summary)``."""
     keys = ["id", "camera", "frame", "subject_id"]
     by_app = column != "app" and str(i.fill) == "app"
     table = read_embeddings(source, [*keys, column, *(["app"] if by_app else [])])
@@ -523,21 +541,25 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
         # choose by (0.76-0.79 for a huddle of one texture, 0.83-1.64 for distinct ones:
         # docs/benchmarks/code_separation.md); the pooled subject-frames, as before
         method = "subjects"
+    positions, jump = motion if motion is not None else (None, 0.0)
     identity, summary = assign_identities(  # rows without a code hold NaN
         table, column, k, method, int(i.restarts),
         "nearest" if by_app else str(i.fill),  # by_app: replaced just below
+        positions, jump,
     )
     summary["fill"] = str(i.fill)
-    if summary.get("chosen_by") == "auto" and summary["method"] == "tracks":
+    if summary.get("chosen_by") == "auto" and summary["method"] in ("motion", "tracks"):
         log.warning(
             "identities: the texture codes of %s do not tell the individuals apart (the two "
             "closest subjects of a frame lie %.2f times as far apart as one subject's codes "
-            "move over %d frames; %g or more is needed): every row takes its track's "
-            "identity, and tracks can swap individuals where they touch. Individuals that "
-            "look alike (one strain, one colour) are told apart only by where they go; "
-            "netepu.identities.method=subjects forces the codes", source,
-            summary["separation"], SEPARATION_GAP, SEPARATION_MIN)
-    if by_app:  # rows without a code: by their appearance vector, not their track
+            "move over %d frames; %g or more is needed): the identities come from where the "
+            "subjects go (%s), which fails where individuals that look alike stay merged "
+            "for long; netepu.identities.method=subjects forces the codes", source,
+            summary["separation"], SEPARATION_GAP, SEPARATION_MIN,
+            "tracks cut where they jump, stitched by position" if summary["method"] ==
+            "motion" else "each row its track's; no positions: tracks can swap individuals "
+            "where they touch")
+    if by_app and summary["method"] != "motion":  # rows without a code: by their app vector
         coded = ~np.isnan(np.asarray(table[column], np.float64)).any(1)
         identity = transfer_identities(table, identity, coded, "app")
         summary["fill"] = "app: nearest identity by appearance vector"
@@ -546,11 +568,12 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
 
 def look_alike(summary: dict[str, Any]) -> dict[str, float]:
     """The tables of an identities stage's ``summary`` whose identities ``auto`` took from
-    the tracks because the codes do not tell the individuals apart: table ("" the run's
-    one table, else the species) -> code separation.
+    where the subjects go (``motion``, or ``tracks`` without positions) because the codes do
+    not tell the individuals apart: table ("" the run's one table, else the species) -> code
+    separation.
 
     Example:
-        >>> look_alike({"method": "tracks", "chosen_by": "auto", "separation": 0.8})
+        >>> look_alike({"method": "motion", "chosen_by": "auto", "separation": 0.8})
         {'': 0.8}
         >>> look_alike({"species": {"biped": {"method": "subjects", "chosen_by": "auto",
         ...     "separation": 9.0}, "quadruped": {"method": "tracks", "chosen_by": "auto",
@@ -559,11 +582,12 @@ def look_alike(summary: dict[str, Any]) -> dict[str, float]:
     """
     tables = summary.get("species") or {"": summary}
     return {name: float(t["separation"]) for name, t in tables.items()
-            if t.get("chosen_by") == "auto" and t.get("method") == "tracks"}
+            if t.get("chosen_by") == "auto" and t.get("method") in ("motion", "tracks")}
 
 
 def _identities_of_species(up: dict[str, StageResult], species: list[str], column: str,
-                           i: DictConfig) -> tuple[dict, np.ndarray, dict]:
+                           i: DictConfig, motion: tuple[dict, float] | None = None
+                           ) -> tuple[dict, np.ndarray, dict]:
     """Identities of a run of several species: every row takes a species
     (:func:`netepu.pipeline.species_choice.species_of_rows`, from the keypoints stage's
     ``species.csv``), and each species' rows are assigned among themselves from the texture
@@ -583,7 +607,7 @@ def _identities_of_species(up: dict[str, StageResult], species: list[str], colum
         if not ids_of_s:
             summary["species"][s] = {"rows": 0}
             continue
-        sub, ident, part = _assign(up["texture"].folder / s, ids_of_s, column, i, 0)
+        sub, ident, part = _assign(up["texture"].folder / s, ids_of_s, column, i, 0, motion)
         at = np.array([row[int(r)] for r in sub["id"].tolist()], np.int64)
         identity[at] = np.where(ident >= 0, ident + offset, -1)
         summary["species"][s] = part | {"rows": len(at), "first_identity": offset}
@@ -654,11 +678,12 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
         alike = look_alike(up["identities"].summary) if have_identities else {}
         if alike:  # the identity figures cannot see swaps of individuals the codes confuse
             report.warnings.append(
-                "identities follow the tracks: the texture codes do not tell the individuals "
-                "apart (code separation " + ", ".join(
+                "identities come from where the subjects go: the texture codes do not tell the "
+                "individuals apart (code separation " + ", ".join(
                     f"{name + ' ' if name else ''}{sep:.2f}" for name, sep in alike.items())
-                + f" < {SEPARATION_MIN:g}); tracks that swap individuals in contact keep the "
-                "swap, and identity_switches and view_agreement cannot show it")
+                + f" < {SEPARATION_MIN:g}); individuals that look alike and stay merged for "
+                "long can leave with each other's identities, and identity_switches and "
+                "view_agreement cannot show it")
         for warning in report.warnings:
             log.warning("quality: %s", warning)
         worst = report.worst(int(q.worst))

@@ -36,12 +36,16 @@ joined) are one item whose code is the normalised mean of their unit codes, and 
 subjects of one frame take distinct identities; every row takes its subject-frame's. A
 camera in which the subject is half hidden then no longer decides its row alone.
 ``method="tracks"`` stops after step 1: every row takes its track's cluster.
-``method="auto"`` (the default) chooses between the two by how well the codes tell the
-individuals apart (:func:`code_separation`): ``subjects`` where the two closest subjects of
-a frame lie at least ``SEPARATION_MIN`` times farther apart than a subject's codes move
-over ``SEPARATION_GAP`` frames, ``tracks`` otherwise (individuals that look alike to the
-codes, such as mice of one strain: only where they go tells them apart, and a code-based
-assignment would be a coin toss in every frame).
+``method="motion"`` uses no code: every subject-frame takes the trajectory it lies on, the
+export's tracks cut where their world positions jump and stitched by position
+(:mod:`nsd.inference.stitching`; rows of a subject-frame without a position, seen by one
+camera, take their track's identity at its nearest frame with one).
+``method="auto"`` (the default) chooses by how well the codes tell the individuals apart
+(:func:`code_separation`): ``subjects`` where the two closest subjects of a frame lie at
+least ``SEPARATION_MIN`` times farther apart than a subject's codes move over
+``SEPARATION_GAP`` frames, ``motion`` otherwise (``tracks`` without positions): individuals
+that look alike to the codes, such as mice of one strain, are told apart only by where they
+go, and a code-based assignment would be a coin toss in every frame.
 ``k`` is the number of individuals the export shows at once (the median over
 frames of the distinct subjects per frame) unless given. With one subject
 (k = 1) no association is needed and every row is identity 0.
@@ -52,11 +56,13 @@ Their accuracy against ground truth: :mod:`nsd.evaluation.identity`.
 from __future__ import annotations
 
 from collections import Counter, defaultdict
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from nsd.inference.stitching import motion_identities
 from nsd.ops.vectors import unit_vectors
 
 __all__ = [
@@ -76,7 +82,7 @@ __all__ = [
     "transfer_identities",
 ]
 
-IDENTITY_METHODS = ("auto", "subjects", "rows", "tracks")
+IDENTITY_METHODS = ("auto", "subjects", "rows", "tracks", "motion")
 # method="auto": the codes tell individuals apart when code_separation is at least this.
 # Measured on the contact scenes' 15-minute runs (docs/benchmarks/code_separation.md):
 # 4.7-47 with distinct textures (6.5-6.7 for the pool's look-alike pair), 0.75-0.82 with one
@@ -173,6 +179,8 @@ def assign_identities(
     method: str = "auto",
     restarts: int = 10,
     fill: str = "nearest",
+    positions: Mapping[tuple[int, int], np.ndarray] | None = None,
+    jump: float = 0.0,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Identity of every row of an export's embedding table.
 
@@ -182,13 +190,18 @@ def assign_identities(
         column: the texture-code column.
         k: identities (0: the median number of subjects per frame).
         method: ``subjects`` (each subject-frame by its rows' pooled code), ``rows`` (each
-            coded row by its own code), ``tracks`` (each row its track's cluster) or ``auto``
-            (``subjects`` where the codes tell the individuals apart, else ``tracks``); see
-            the module.
+            coded row by its own code), ``tracks`` (each row its track's cluster), ``motion``
+            (each subject-frame its trajectory, by position) or ``auto`` (``subjects`` where
+            the codes tell the individuals apart, else ``motion``, or ``tracks`` without
+            ``positions``); see the module.
         restarts: ``subjects``, ``rows``: k-means runs from ``k`` random rows (seeded) besides the
             one from the track clusters; the run of least cost is kept.
         fill: ``subjects``, ``rows``: how rows without a code get an identity from the coded rows of
             their track, one of :data:`FILL_METHODS` (see the module).
+        positions: ``motion``: (frame, subject_id) -> world position (3,) of the
+            subject-frames seen by two or more cameras.
+        jump: ``motion``: longest step of a track between two frames (world units) before it
+            is cut (:func:`nsd.inference.stitching.cut_tracklets`).
 
     Returns:
         ``(identity (rows,) int64, summary)``; -1 for rows of tracks without a valid code.
@@ -196,12 +209,16 @@ def assign_identities(
         ``summary["separation"]`` the :func:`code_separation` it was chosen by.
 
     Raises:
-        ValueError: an unknown ``method`` or ``fill``.
+        ValueError: an unknown ``method`` or ``fill``; ``motion`` without ``positions`` or
+            ``jump``.
     """
     if method not in IDENTITY_METHODS:
         raise ValueError(f"identities: method must be one of {IDENTITY_METHODS}, got {method!r}")
     if fill not in FILL_METHODS:
         raise ValueError(f"identities: fill must be one of {FILL_METHODS}, got {fill!r}")
+    if method == "motion" and (positions is None or not jump > 0):
+        raise ValueError("identities: method motion needs the subjects' world positions and a "
+                         f"jump > 0 (got jump={jump})")
     sid = np.asarray(table["subject_id"], np.int64)
     frame = np.asarray(table["frame"], np.int64)
     codes = np.asarray(table[column], np.float64)
@@ -216,6 +233,9 @@ def assign_identities(
     tracks = sorted({int(s) for s in sid[valid]})
     identity = np.full(len(sid), -1, np.int64)
     summary: dict[str, Any] = {"tracks": len(tracks), "k": k, "method": method}
+    if method == "motion":
+        identity, part = _by_motion(sid, frame, k, positions, jump)
+        return identity, summary | part
     if not tracks:
         return identity, summary | {"identities": 0, "association": "no texture codes"}
     coded = np.isin(sid, tracks)
@@ -227,8 +247,11 @@ def assign_identities(
         items, item, pooled = subject_frames(unit, frame[valid], sid[valid])
     if method == "auto":
         separation = code_separation(pooled, items[:, 0], items[:, 1])
-        method = auto_method(separation)
+        method = auto_method(separation, positions is not None and jump > 0)
         summary |= {"method": method, "chosen_by": "auto", "separation": separation}
+        if method == "motion":
+            identity, part = _by_motion(sid, frame, k, positions, jump)
+            return identity, summary | part
     of_track, n_clusters = _cluster_tracks(unit, sid[valid], tracks, per_frame, k)
     if method == "tracks":
         identity[coded] = [of_track[int(s)] for s in sid[coded]]
@@ -273,10 +296,39 @@ def subject_frames(unit: np.ndarray, frame: np.ndarray, subject: np.ndarray
     return items, item, unit_vectors(pooled, eps=1e-12)
 
 
-def auto_method(separation: float) -> str:
+def auto_method(separation: float, motion: bool = True) -> str:
     """The method ``auto`` takes for codes of this :func:`code_separation`: ``subjects`` from
-    ``SEPARATION_MIN`` up, else ``tracks``."""
-    return "subjects" if separation >= SEPARATION_MIN else "tracks"
+    ``SEPARATION_MIN`` up, else ``motion`` (``tracks`` where there are no positions, not
+    ``motion``)."""
+    if separation >= SEPARATION_MIN:
+        return "subjects"
+    return "motion" if motion else "tracks"
+
+
+def _by_motion(sid: np.ndarray, frame: np.ndarray, k: int,
+               positions: Mapping[tuple[int, int], np.ndarray], jump: float
+               ) -> tuple[np.ndarray, dict[str, Any]]:
+    """``method="motion"``: (rows,) identities of rows of ``sid``, ``frame`` (rows,) and the
+    summary's part: each subject-frame its trajectory
+    (:func:`nsd.inference.stitching.motion_identities`), rows of a subject-frame without a
+    position their track's identity at its nearest frame with one (-1: none)."""
+    keys = set(zip(frame.tolist(), sid.tolist(), strict=True))
+    label, pieces = motion_identities(
+        {key: p for key, p in positions.items() if key in keys}, k, jump,
+        handover=HANDOVER_FRAMES) if k > 1 else ({key: 0 for key in keys if key in positions}, 0)
+    identity = np.array([label.get(key, -1) for key in zip(frame.tolist(), sid.tolist(),
+                                                             strict=True)], np.int64)
+    for s in np.unique(sid[identity < 0]):
+        rows = sid == s
+        known = rows & (identity >= 0)
+        if known.any():
+            gap = rows & (identity < 0)
+            order = np.argsort(frame[known], kind="stable")
+            times, ids = frame[known][order], identity[known][order]
+            identity[gap] = ids[nearest_in_time(times, frame[gap])]
+    return identity, {"identities": len(set(identity[identity >= 0].tolist())),
+                      "association": f"motion: {pieces} tracklets stitched by position",
+                      "tracklets": pieces}
 
 
 def code_separation(codes: np.ndarray, frame: np.ndarray, track: np.ndarray,

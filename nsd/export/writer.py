@@ -26,7 +26,6 @@ from torch import Tensor
 
 from nsd.core.memory import trim_heap
 from nsd.cues.clustering import ClusterTrack
-from nsd.cues.occupancy import working_volume
 from nsd.export.inputs import ExportInputs, ImageEntries, to_model_size
 from nsd.export.positions import point_from_views
 from nsd.inference.association_scores import association_scores
@@ -37,7 +36,7 @@ from nsd.inference.multiview import (
     model_scene_track,
 )
 from nsd.inference.single import associate_views
-from nsd.inference.tracking import SubjectObservation, SubjectTracker
+from nsd.inference.tracking import SubjectObservation, SubjectTracker, position_scale
 from nsd.io.coco import CocoStreamWriter
 from nsd.io.coco_results import SUBJECT_CATEGORY, decomposition_to_coco
 from nsd.io.crops import CropWriter, subject_crop
@@ -92,7 +91,8 @@ class SubjectWriter:
         t = cfg.tracking
         self.tracker = SubjectTracker(
             float(t.appearance_weight), float(t.min_similarity), int(t.max_gap),
-            float(t.position_weight), self._position_scale(t.position_scale),
+            float(t.position_weight),
+            position_scale(t.position_scale, inp.footage.rig, int(self.inference.resolution)),
         )
         self.grid = (
             self.inference.grid(inp.footage.rig, inp.trained.frame_hw)
@@ -267,15 +267,6 @@ class SubjectWriter:
                 r["association_id"] = int(assoc[v, r["slot"]])
             per_view.append(res)
         return per_view
-
-    def _position_scale(self, setting) -> float:
-        """``tracking.position_scale``: a distance in metres, or ``auto`` (two sides of a
-        voxel of the hull's grid: a fraction of the working volume, whatever the scene's
-        size)."""
-        if setting == "auto":
-            _, half, _ = working_volume(self.inp.footage.rig)
-            return 2 * (2 * half / int(self.inference.resolution))
-        return float(setting)
 
     def _observations(self, per_view: list[list[dict]],
                       apps: list[list[np.ndarray]]) -> dict[int, SubjectObservation]:

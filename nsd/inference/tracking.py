@@ -33,10 +33,23 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from nsd.cameras.calibration import CameraRig
+from nsd.cues.occupancy import working_volume
 from nsd.ops.boxes import box_iou_xywh
 from nsd.ops.vectors import unit_vectors
 
-__all__ = ["SubjectObservation", "SubjectTracker", "track_similarity"]
+__all__ = ["SubjectObservation", "SubjectTracker", "position_scale", "track_similarity"]
+
+
+def position_scale(setting: float | str, rig: CameraRig, resolution: int) -> float:
+    """A distance between world positions that matters to tracking (the export's
+    ``tracking.position_scale``, the identities' ``jump``): ``setting`` in metres as given, or
+    ``auto``: two sides of a voxel of the hull's grid of ``resolution`` voxels per side (a
+    fraction of the working volume, whatever the scene's size)."""
+    if setting == "auto":
+        _, half, _ = working_volume(rig)
+        return 2 * (2 * half / int(resolution))
+    return float(setting)
 
 
 @dataclass
