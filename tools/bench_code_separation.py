@@ -13,8 +13,10 @@ that species count, as in the identities stage), reads the stored texture codes 
 * ``chosen``: the method ``auto`` takes there;
 * identity accuracy (all instants / touching instants, against the scene's ground truth,
   :func:`nsd.evaluation.identity.identity_accuracy_by_contact`) of the same rows under
-  ``subjects`` (the codes decide, per subject-frame) and ``tracks`` (each row its track's
-  cluster), so that the choice can be checked against what each method would have given;
+  ``subjects`` (the codes decide, per subject-frame), ``tracks`` (each row its track's
+  cluster) and ``motion`` (no codes: the trajectories of the subjects' world positions,
+  triangulated from the export's masks, with ``jump`` auto), so that the choice can be
+  checked against what each method would have given;
 * ``app_separation``: the same figure from NSD's appearance vectors of the same rows (every
   frame has them; ``auto`` does not choose by them).
 
@@ -40,7 +42,11 @@ from netepu.reid.identities import (
     code_separation,
     subject_frames,
 )
+from nsd.cameras.calibration_io import read_calibration
 from nsd.evaluation.identity import identity_accuracy_by_contact
+from nsd.export.positions import triangulate_positions
+from nsd.inference.multiview import InferenceSettings
+from nsd.inference.tracking import position_scale
 from nsd.io.embeddings import read_embeddings
 from nsd.ops.vectors import unit_vectors
 from tools.benchlib import write_report
@@ -72,6 +78,9 @@ def main() -> None:
     rows = []
     for run, scene in zip(args.runs, args.scenes, strict=True):
         tex = run / "texture"
+        rig = read_calibration(scene)
+        positions = {key: p for key, (p, _) in triangulate_positions(run / "export", rig).items()}
+        jump = position_scale("auto", rig, InferenceSettings.defaults().resolution)
         tables = sorted(d for d in tex.iterdir() if (d / "embeddings.parquet").is_file()) or [tex]
         for folder in tables:
             table = read_embeddings(folder, [*KEYS, COLUMN])
@@ -84,8 +93,9 @@ def main() -> None:
             row = {"run": run.name, "scene": scene.name,
                    "species": folder.name if folder != tex else "", "separation": sep,
                    "chosen": auto_method(sep)}
-            for method in ("subjects", "tracks"):
-                identity, _ = assign_identities(table, COLUMN, 0, method)
+            for method in ("subjects", "tracks", "motion"):
+                identity, _ = assign_identities(table, COLUMN, 0, method, positions=positions,
+                                                jump=jump)
                 keep = identity >= 0
                 acc = identity_accuracy_by_contact(
                     run / "export", scene, {k: np.asarray(v)[keep] for k, v in table.items()},
@@ -106,10 +116,12 @@ def main() -> None:
                "closest subjects of a frame, over the median cosine distance between one "
                "track's codes 25 frames apart (netepu.reid.identities."
                f"code_separation); `chosen`: what `netepu.identities.method=auto` takes "
-               f"(`subjects` from {SEPARATION_MIN:g} up). `identity_subjects`, "
-               "`identity_tracks`: identity accuracy of the run's rows under each method, "
-               "all instants and touching instants (nsd/evaluation/identity.py), from the "
-               "stored codes (the export and codes of the run, nothing re-run). "
+               f"(`subjects` from {SEPARATION_MIN:g} up, else `motion`). `identity_subjects`, "
+               "`identity_tracks`, `identity_motion`: identity accuracy of the run's rows "
+               "under each method, all instants and touching instants "
+               "(nsd/evaluation/identity.py), from the stored codes and export of the run "
+               "(`motion`: the subject-frames' positions triangulated from the export's "
+               "masks, `jump` auto; nothing re-run). "
                "`app_separation`: the same figure from NSD's appearance vectors of the same "
                "rows, which exist on every frame (what identities use without a texture "
                "model; `auto` takes `subjects` there, whatever the figure)."),

@@ -378,6 +378,42 @@ def test_auto_identities_follow_the_codes_unless_they_cannot_tell_individuals_ap
     assert max(len(set(by_subjects[table["subject_id"] == s].tolist())) for s in (1, 2)) == 2
 
 
+def test_motion_identities_follow_where_look_alikes_go_when_their_tracks_swap():
+    """Two individuals of one look at x = 0 and x = 1; their tracks swap at frame 100 (one
+    frame, frame 100, mixes them: both subjects at x = 0.5). ``tracks`` keeps the swap
+    (half the rows wrong), ``motion`` stitches the tracks back by position, and ``auto``
+    takes it when it has the positions (``tracks`` without). A subject-frame without a
+    position (seen by one camera) takes its track's identity at the nearest frame with one."""
+    from netepu.reid.identities import SEPARATION_MIN, assign_identities
+
+    rng = np.random.default_rng(5)
+    a = np.eye(8)[0]
+    frames = range(0, 200, 4)
+    table = _track_table([(1, frames, a), (2, frames, a)], rng, cameras=("a", "b"))
+    f, s = table["frame"], table["subject_id"]
+    x = np.array([1.0, 0.0, 0.0])
+    where = {(t, k): (0.5 if t == 100 else (k - 1 if t < 100 else 2 - k)) * x
+             for t in frames for k in (1, 2)}
+    positions = {key: p for key, p in where.items() if key != (8, 1)}  # one view only
+    truth = np.array([round(where[(t, k)][0]) for t, k in zip(f.tolist(), s.tolist(), strict=True)])
+    scored = f != 100
+    by_tracks, _ = assign_identities(table, method="tracks")
+    assert max((by_tracks == truth)[scored].mean(), (by_tracks != truth)[scored].mean()) < 0.6
+    identity, summary = assign_identities(table, method="motion", positions=positions, jump=0.2)
+    assert summary["identities"] == 2 and summary["tracklets"] == 6
+    assert (identity == truth)[scored].all() or (identity != truth)[scored].all()
+    assert len(set(identity[f == 100].tolist())) == 2  # the mixed frame: distinct identities
+    identity, summary = assign_identities(table, method="auto", positions=positions, jump=0.2)
+    assert summary["method"] == "motion" and summary["separation"] < SEPARATION_MIN
+    assert (identity == truth)[scored].all() or (identity != truth)[scored].all()
+    _, summary = assign_identities(table, method="auto")
+    assert summary["method"] == "tracks"
+    with pytest.raises(ValueError, match="motion needs"):
+        assign_identities(table, method="motion")
+    with pytest.raises(ValueError, match="motion needs"):
+        assign_identities(table, method="motion", positions=positions, jump=0.0)
+
+
 def test_code_separation_known_values_and_edge_cases():
     from functools import partial
 
@@ -450,6 +486,14 @@ def test_identities_stage_warns_when_the_codes_cannot_tell_individuals_apart(tmp
     i.method = "auto"  # NSD's appearance vectors (no texture model): the subjects, as before
     _, _, summary = _assign(tmp_path, None, "app", i, 0)
     assert summary["method"] == "subjects" and "separation" not in summary and not caplog.text
+    i.method = "auto"  # with the subjects' positions: from where they go, and said so
+    x = np.array([1.0, 0.0, 0.0])
+    motion = ({(t, k): (k - 1) * x for t in every_20th for k in (1, 2)}, 0.2)
+    with caplog.at_level(logging.WARNING):
+        _, identity, summary = _assign(tmp_path, None, "texture_reid", i, 0, motion)
+    assert summary["method"] == "motion" and "where the subjects go" in caplog.text
+    assert identity[table["subject_id"] == 1].tolist() == [0] * len(every_20th) * 2
+    assert identity[table["subject_id"] == 2].tolist() == [1] * len(every_20th) * 2
 
 
 def test_row_identities_follow_the_codes_when_tracks_swap_individuals():
@@ -802,3 +846,14 @@ def test_worker_counts_take_a_number_or_auto_on_the_command_line(prog, app, key)
     for bad in ("0", "many"):
         with pytest.raises(SystemExit):
             check_command_line(prog, app, [f"{key}={bad}"])
+
+
+def test_motion_jump_takes_metres_or_auto_on_the_command_line(capsys):
+    from nsd.core.app import check_command_line
+
+    for good in ("0.3", "2", "auto"):
+        check_command_line("nsd-run", "run", [f"netepu.identities.jump={good}"])
+    for bad in ("0", "-1", "far"):
+        with pytest.raises(SystemExit):
+            check_command_line("nsd-run", "run", [f"netepu.identities.jump={bad}"])
+        assert "netepu.identities.jump" in capsys.readouterr().err
