@@ -515,11 +515,21 @@ def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution
     or auto on texture codes): the export's subject-frames' world positions
     ((frame, subject_id) -> (3,)) and ``netepu.identities.jump`` in world units
     (``auto``: the tracker's ``position_scale`` rule on the hull's grid of ``resolution``);
-    else None."""
+    else, or where no subject has a position (auto then takes ``tracks``), None.
+
+    Raises:
+        ConfigError: ``method=motion`` and no subject seen by two cameras.
+    """
     method = str(i.method)
     if method != "motion" and (method != "auto" or column == "app"):
         return None
     positions = {key: p for key, (p, _) in triangulate_positions(export, rig).items()}
+    if not positions:  # one camera, or no subject seen by two
+        if method == "motion":
+            raise ConfigError(f"netepu.identities.method=motion needs subjects seen by two or "
+                              f"more cameras (world positions); the export {export} has none: "
+                              "use method=tracks or auto")
+        return None
     return positions, position_scale(i.jump, rig, int(resolution))
 
 

@@ -216,7 +216,7 @@ def assign_identities(
         raise ValueError(f"identities: method must be one of {IDENTITY_METHODS}, got {method!r}")
     if fill not in FILL_METHODS:
         raise ValueError(f"identities: fill must be one of {FILL_METHODS}, got {fill!r}")
-    if method == "motion" and (positions is None or not jump > 0):
+    if method == "motion" and (not positions or not jump > 0):
         raise ValueError("identities: method motion needs the subjects' world positions and a "
                          f"jump > 0 (got jump={jump})")
     sid = np.asarray(table["subject_id"], np.int64)
@@ -247,7 +247,7 @@ def assign_identities(
         items, item, pooled = subject_frames(unit, frame[valid], sid[valid])
     if method == "auto":
         separation = code_separation(pooled, items[:, 0], items[:, 1])
-        method = auto_method(separation, positions is not None and jump > 0)
+        method = auto_method(separation, bool(positions) and jump > 0)
         summary |= {"method": method, "chosen_by": "auto", "separation": separation}
         if method == "motion":
             identity, part = _by_motion(sid, frame, k, positions, jump)
@@ -311,7 +311,8 @@ def _by_motion(sid: np.ndarray, frame: np.ndarray, k: int,
     """``method="motion"``: (rows,) identities of rows of ``sid``, ``frame`` (rows,) and the
     summary's part: each subject-frame its trajectory
     (:func:`nsd.inference.stitching.motion_identities`), rows of a subject-frame without a
-    position their track's identity at its nearest frame with one (-1: none)."""
+    position their track's identity at its nearest frame with one (-1: none, counted in
+    ``rows_without_position``)."""
     keys = set(zip(frame.tolist(), sid.tolist(), strict=True))
     label, pieces = motion_identities(
         {key: p for key, p in positions.items() if key in keys}, k, jump,
@@ -328,7 +329,7 @@ def _by_motion(sid: np.ndarray, frame: np.ndarray, k: int,
             identity[gap] = ids[nearest_in_time(times, frame[gap])]
     return identity, {"identities": len(set(identity[identity >= 0].tolist())),
                       "association": f"motion: {pieces} tracklets stitched by position",
-                      "tracklets": pieces}
+                      "tracklets": pieces, "rows_without_position": int((identity < 0).sum())}
 
 
 def code_separation(codes: np.ndarray, frame: np.ndarray, track: np.ndarray,

@@ -401,13 +401,15 @@ def test_motion_identities_follow_where_look_alikes_go_when_their_tracks_swap():
     assert max((by_tracks == truth)[scored].mean(), (by_tracks != truth)[scored].mean()) < 0.6
     identity, summary = assign_identities(table, method="motion", positions=positions, jump=0.2)
     assert summary["identities"] == 2 and summary["tracklets"] == 6
+    assert summary["rows_without_position"] == 0  # frame 8 of track 1: from frames 4 and 12
     assert (identity == truth)[scored].all() or (identity != truth)[scored].all()
     assert len(set(identity[f == 100].tolist())) == 2  # the mixed frame: distinct identities
     identity, summary = assign_identities(table, method="auto", positions=positions, jump=0.2)
     assert summary["method"] == "motion" and summary["separation"] < SEPARATION_MIN
     assert (identity == truth)[scored].all() or (identity != truth)[scored].all()
-    _, summary = assign_identities(table, method="auto")
-    assert summary["method"] == "tracks"
+    for none in (None, {}):  # no positions (one camera): auto takes the tracks
+        _, summary = assign_identities(table, method="auto", positions=none, jump=0.2)
+        assert summary["method"] == "tracks"
     with pytest.raises(ValueError, match="motion needs"):
         assign_identities(table, method="motion")
     with pytest.raises(ValueError, match="motion needs"):
@@ -857,3 +859,34 @@ def test_motion_jump_takes_metres_or_auto_on_the_command_line(capsys):
         with pytest.raises(SystemExit):
             check_command_line("nsd-run", "run", [f"netepu.identities.jump={bad}"])
         assert "netepu.identities.jump" in capsys.readouterr().err
+
+
+def test_motion_without_positions_is_a_clear_error_and_auto_falls_back(random_cameras, tmp_path):
+    """An export whose subjects are each seen by one camera has no world position:
+    ``method=motion`` is refused naming the export and what to use; ``auto`` gets nothing to
+    move by (None: it takes the tracks)."""
+    import json
+
+    from omegaconf import OmegaConf
+    from pycocotools import mask as mask_utils
+
+    from netepu.pipeline.stages import _motion
+    from nsd.cameras.calibration import CameraRig
+    from nsd.core.errors import ConfigError
+
+    rig = CameraRig(random_cameras)
+    m = np.zeros((rig[0].size[1], rig[0].size[0]), np.uint8, order="F")
+    m[10:15, 10:15] = 1
+    rle = mask_utils.encode(m)
+    rle["counts"] = rle["counts"].decode()
+    anns = [{"id": n + 1, "image_id": n + 1, "camera": rig[n].name, "frame": n,
+             "subject_id": 1, "segmentation": rle, "bbox": [10, 10, 5, 5]} for n in range(3)]
+    images = [{"id": a["image_id"], "camera": a["camera"], "frame": a["frame"]} for a in anns]
+    (tmp_path / "subjects.coco.json").write_text(json.dumps({"images": images,
+                                                             "annotations": anns}))
+    i = OmegaConf.create({"method": "motion", "jump": "auto"})
+    with pytest.raises(ConfigError, match=r"method=motion needs subjects seen by two"):
+        _motion(tmp_path, rig, "texture_reid", i, 48)
+    i.method = "auto"
+    assert _motion(tmp_path, rig, "texture_reid", i, 48) is None
+    assert _motion(tmp_path, rig, "app", i, 48) is None  # auto on NSD's vectors: subjects
