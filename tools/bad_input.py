@@ -231,6 +231,7 @@ def _cases(base: Path, nodense: Path) -> list[Case]:
              "background"),
         Case("grids.frames -1", run, [*sc, "grids.frames=-1"], "grids.frames"),
         Case("identities.method unknown", run, [*sc, "netepu.identities.method=foo"], "method"),
+        Case("identities.jump 0", run, [*sc, "netepu.identities.jump=0"], "jump"),
         Case("netepu.species unknown", run, [*sc, "netepu.species=cow"], "species"),
         Case("quality.max_frames -1", run, [*sc, "quality.max_frames=-1"], "max_frames"),
         Case("unknown key", run, [*sc, "train.nonsense=1"], "nonsense"),
