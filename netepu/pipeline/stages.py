@@ -7,9 +7,11 @@ its folder; :mod:`netepu.pipeline.run` chains them and decides which ones a run 
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -510,12 +512,12 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
 
 
 def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution: int
-            ) -> tuple[dict, float] | None:
+            ) -> tuple[Callable[[], dict], float] | None:
     """What ``method=motion`` needs where it may be used (``netepu.identities.method`` motion,
-    or auto on texture codes): the export's subject-frames' world positions
-    ((frame, subject_id) -> (3,)) and ``netepu.identities.jump`` in world units
-    (``auto``: the tracker's ``position_scale`` rule on the hull's grid of ``resolution``);
-    else, or where no subject has a position (auto then takes ``tracks``), None.
+    or auto on texture codes), else None: a function giving the export's subject-frames'
+    world positions ((frame, subject_id) -> (3,); every mask decoded, once, and only if
+    asked) and ``netepu.identities.jump`` in world units (``auto``: the tracker's
+    ``position_scale`` rule on the hull's grid of ``resolution``).
 
     Raises:
         ConfigError: ``method=motion`` and no subject seen by two cameras.
@@ -523,18 +525,21 @@ def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution
     method = str(i.method)
     if method != "motion" and (method != "auto" or column == "app"):
         return None
-    positions = {key: p for key, (p, _) in triangulate_positions(export, rig).items()}
-    if not positions:  # one camera, or no subject seen by two
-        if method == "motion":
-            raise ConfigError(f"netepu.identities.method=motion needs subjects seen by two or "
-                              f"more cameras (world positions); the export {export} has none: "
-                              "use method=tracks or auto")
-        return None
+
+    @functools.cache
+    def positions() -> dict:
+        return {key: p for key, (p, _) in triangulate_positions(export, rig).items()}
+
+    if method == "motion" and not positions():  # asked for: checked before it is used
+        raise ConfigError(f"netepu.identities.method=motion needs subjects seen by two or "
+                          f"more cameras (world positions); the export {export} has none: "
+                          "use method=tracks or auto")
     return positions, position_scale(i.jump, rig, int(resolution))
 
 
 def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: int,
-            motion: tuple[dict, float] | None = None) -> tuple[dict, np.ndarray, dict]:
+            motion: tuple[Callable[[], dict], float] | None = None
+            ) -> tuple[dict, np.ndarray, dict]:
     """The identities (``netepu.identities`` = ``i``, ``k`` of them or 0: the median count) of
     the rows of the embedding table at ``source`` (those of ids ``rows`` only, if given), with
     ``motion`` (:func:`_motion`) where ``motion`` may be taken: ``(table, identity,
@@ -596,7 +601,8 @@ def look_alike(summary: dict[str, Any]) -> dict[str, float]:
 
 
 def _identities_of_species(up: dict[str, StageResult], species: list[str], column: str,
-                           i: DictConfig, motion: tuple[dict, float] | None = None
+                           i: DictConfig,
+                           motion: tuple[Callable[[], dict], float] | None = None
                            ) -> tuple[dict, np.ndarray, dict]:
     """Identities of a run of several species: every row takes a species
     (:func:`netepu.pipeline.species_choice.species_of_rows`, from the keypoints stage's

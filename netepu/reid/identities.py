@@ -56,7 +56,7 @@ Their accuracy against ground truth: :mod:`nsd.evaluation.identity`.
 from __future__ import annotations
 
 from collections import Counter, defaultdict
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -83,6 +83,7 @@ __all__ = [
 ]
 
 IDENTITY_METHODS = ("auto", "subjects", "rows", "tracks", "motion")
+Positions = Mapping[tuple[int, int], np.ndarray]  # (frame, subject_id) -> world position (3,)
 # method="auto": the codes tell individuals apart when code_separation is at least this.
 # Measured on the contact scenes' 15-minute runs (docs/benchmarks/code_separation.md):
 # 4.7-47 with distinct textures (6.5-6.7 for the pool's look-alike pair), 0.75-0.82 with one
@@ -179,7 +180,7 @@ def assign_identities(
     method: str = "auto",
     restarts: int = 10,
     fill: str = "nearest",
-    positions: Mapping[tuple[int, int], np.ndarray] | None = None,
+    positions: Positions | Callable[[], Positions] | None = None,
     jump: float = 0.0,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Identity of every row of an export's embedding table.
@@ -199,7 +200,8 @@ def assign_identities(
         fill: ``subjects``, ``rows``: how rows without a code get an identity from the coded rows of
             their track, one of :data:`FILL_METHODS` (see the module).
         positions: ``motion``: (frame, subject_id) -> world position (3,) of the
-            subject-frames seen by two or more cameras.
+            subject-frames seen by two or more cameras, or a function that gives them
+            (called only where ``motion`` is taken: they cost a decode of every mask).
         jump: ``motion``: longest step of a track between two frames (world units) before it
             is cut (:func:`nsd.inference.stitching.cut_tracklets`).
 
@@ -216,9 +218,11 @@ def assign_identities(
         raise ValueError(f"identities: method must be one of {IDENTITY_METHODS}, got {method!r}")
     if fill not in FILL_METHODS:
         raise ValueError(f"identities: fill must be one of {FILL_METHODS}, got {fill!r}")
-    if method == "motion" and (not positions or not jump > 0):
-        raise ValueError("identities: method motion needs the subjects' world positions and a "
-                         f"jump > 0 (got jump={jump})")
+    if method == "motion":
+        positions = positions() if callable(positions) else positions
+        if not positions or not jump > 0:
+            raise ValueError("identities: method motion needs the subjects' world positions "
+                             f"and a jump > 0 (got jump={jump})")
     sid = np.asarray(table["subject_id"], np.int64)
     frame = np.asarray(table["frame"], np.int64)
     codes = np.asarray(table[column], np.float64)
@@ -247,7 +251,10 @@ def assign_identities(
         items, item, pooled = subject_frames(unit, frame[valid], sid[valid])
     if method == "auto":
         separation = code_separation(pooled, items[:, 0], items[:, 1])
-        method = auto_method(separation, bool(positions) and jump > 0)
+        method = auto_method(separation, positions is not None and jump > 0)
+        if method == "motion":
+            positions = positions() if callable(positions) else positions
+            method = "motion" if positions else "tracks"  # nobody seen by two cameras
         summary |= {"method": method, "chosen_by": "auto", "separation": separation}
         if method == "motion":
             identity, part = _by_motion(sid, frame, k, positions, jump)
@@ -305,8 +312,7 @@ def auto_method(separation: float, motion: bool = True) -> str:
     return "motion" if motion else "tracks"
 
 
-def _by_motion(sid: np.ndarray, frame: np.ndarray, k: int,
-               positions: Mapping[tuple[int, int], np.ndarray], jump: float
+def _by_motion(sid: np.ndarray, frame: np.ndarray, k: int, positions: Positions, jump: float
                ) -> tuple[np.ndarray, dict[str, Any]]:
     """``method="motion"``: (rows,) identities of rows of ``sid``, ``frame`` (rows,) and the
     summary's part: each subject-frame its trajectory

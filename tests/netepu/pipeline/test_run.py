@@ -368,6 +368,12 @@ def test_auto_identities_follow_the_codes_unless_they_cannot_tell_individuals_ap
     identity, summary = assign_identities(table, method="auto")
     assert summary["method"] == "subjects" and summary["chosen_by"] == "auto"
     assert summary["separation"] > 10 * SEPARATION_MIN
+
+    def never():  # what motion would need: asked for only where motion is taken
+        raise AssertionError("positions decoded although the codes decide")
+
+    _, summary = assign_identities(table, method="auto", positions=never, jump=0.2)
+    assert summary["method"] == "subjects"
     assert (identity == truth).all() or (identity == 1 - truth).all()
     table["texture"] = a + 0.05 * rng.normal(size=table["texture"].shape)
     identity, summary = assign_identities(table, method="auto")
@@ -404,10 +410,11 @@ def test_motion_identities_follow_where_look_alikes_go_when_their_tracks_swap():
     assert summary["rows_without_position"] == 0  # frame 8 of track 1: from frames 4 and 12
     assert (identity == truth)[scored].all() or (identity != truth)[scored].all()
     assert len(set(identity[f == 100].tolist())) == 2  # the mixed frame: distinct identities
-    identity, summary = assign_identities(table, method="auto", positions=positions, jump=0.2)
+    identity, summary = assign_identities(table, method="auto", positions=lambda: positions,
+                                          jump=0.2)
     assert summary["method"] == "motion" and summary["separation"] < SEPARATION_MIN
     assert (identity == truth)[scored].all() or (identity != truth)[scored].all()
-    for none in (None, {}):  # no positions (one camera): auto takes the tracks
+    for none in (None, {}, dict):  # no positions (nobody seen by two cameras): the tracks
         _, summary = assign_identities(table, method="auto", positions=none, jump=0.2)
         assert summary["method"] == "tracks"
     with pytest.raises(ValueError, match="motion needs"):
@@ -864,7 +871,7 @@ def test_motion_jump_takes_metres_or_auto_on_the_command_line(capsys):
 def test_motion_without_positions_is_a_clear_error_and_auto_falls_back(random_cameras, tmp_path):
     """An export whose subjects are each seen by one camera has no world position:
     ``method=motion`` is refused naming the export and what to use; ``auto`` gets nothing to
-    move by (None: it takes the tracks)."""
+    move by (and then takes the tracks: the test above)."""
     import json
 
     from omegaconf import OmegaConf
@@ -887,6 +894,7 @@ def test_motion_without_positions_is_a_clear_error_and_auto_falls_back(random_ca
     i = OmegaConf.create({"method": "motion", "jump": "auto"})
     with pytest.raises(ConfigError, match=r"method=motion needs subjects seen by two"):
         _motion(tmp_path, rig, "texture_reid", i, 48)
-    i.method = "auto"
-    assert _motion(tmp_path, rig, "texture_reid", i, 48) is None
+    i.method = "auto"  # asked only if the codes fail; nothing to move by, so the tracks
+    positions, jump = _motion(tmp_path, rig, "texture_reid", i, 48)
+    assert positions() == {} and jump > 0
     assert _motion(tmp_path, rig, "app", i, 48) is None  # auto on NSD's vectors: subjects
