@@ -82,6 +82,12 @@ SCENES |= {
         4, ["num_individuals=4", "texture_ids=[7,7,7,7]", "seed=2"]),
     "3 bipeds of one texture, 4 cameras, seed 3": (
         3, ["num_individuals=3", "texture_ids=[11,11,11]", "seed=3"]),
+    # quadrupeds that look alike (cattle of one breed; a pair, as mice are most often filmed)
+    "2 quadrupeds of one texture, 4 cameras, seed 4": (
+        2, ["num_individuals=2", "species=[quadruped]", "texture_ids=[6,6]", "seed=4"]),
+    "3 quadrupeds of one texture, 6 cameras, seed 5": (
+        3, ["num_individuals=3", "species=[quadruped]", "texture_ids=[6,6,6]", "rig.count=6",
+            "motion.area_radius=2.0", "seed=5"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
