@@ -85,8 +85,8 @@ SCENES |= {
     # quadrupeds that look alike (cattle of one breed; a pair, as mice are most often filmed)
     "2 quadrupeds of one texture, 4 cameras, seed 4": (
         2, ["num_individuals=2", "species=[quadruped]", "texture_ids=[6,6]", "seed=4"]),
-    "3 quadrupeds of one texture, 6 cameras, seed 5": (
-        3, ["num_individuals=3", "species=[quadruped]", "texture_ids=[6,6,6]", "rig.count=6",
+    "3 quadrupeds of one texture, 4 cameras, seed 5": (
+        3, ["num_individuals=3", "species=[quadruped]", "texture_ids=[6,6,6]",
             "motion.area_radius=2.0", "seed=5"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
