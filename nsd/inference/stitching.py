@@ -167,7 +167,7 @@ def _place_short(keys: list[Key], pos: dict[Key, np.ndarray], label: dict[Key, i
             label.update({key: min(m, k - 1) for m, key in enumerate(ks)})
             continue
         js = sorted(times)
-        at = {j: traj[j][int(times[j][np.argmin(np.abs(times[j] - f))])] for j in js}
+        at = {j: traj[j][_nearest(times[j], f)] for j in js}
         cost = np.array([[np.linalg.norm(at[j] - pos[key]) for j in js] for key in ks])
         free = [c for c, j in enumerate(js) if j not in taken[f]]
         rows, cols = linear_sum_assignment(cost[:, free]) if free else ([], [])
@@ -175,6 +175,20 @@ def _place_short(keys: list[Key], pos: dict[Key, np.ndarray], label: dict[Key, i
             label[ks[r]] = js[free[c]]
         for r in set(range(len(ks))) - set(np.asarray(rows).tolist()):
             label[ks[r]] = js[int(np.argmin(cost[r]))]
+
+
+def _nearest(times: np.ndarray, frame: int) -> int:
+    """The one of the sorted ``times`` (T,) nearest to ``frame`` (the earlier on a tie), in
+    O(log T): a long recording holds tens of thousands of frames per trajectory.
+
+    Example:
+        >>> [_nearest(np.array([0, 10, 20]), f) for f in (-5, 5, 6, 30)]
+        [0, 0, 10, 20]
+    """
+    after = min(int(np.searchsorted(times, frame)), len(times) - 1)
+    before = max(after - 1, 0)
+    near = before if abs(frame - times[before]) <= abs(times[after] - frame) else after
+    return int(times[near])
 
 
 def motion_identities(
