@@ -206,7 +206,8 @@ def assign_identities(
             is cut (:func:`nsd.inference.stitching.cut_tracklets`).
 
     Returns:
-        ``(identity (rows,) int64, summary)``; -1 for rows of tracks without a valid code.
+        ``(identity (rows,) int64, summary)``; -1 for rows of tracks without a valid code
+        (``motion``: without a position).
         With ``auto``, ``summary["method"]`` is the method chosen and
         ``summary["separation"]`` the :func:`code_separation` it was chosen by.
 
