@@ -553,7 +553,7 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
     method = str(i.method)
     if method == "auto" and column == "app":
         # NSD's appearance vectors tell individuals apart too little for code_separation to
-        # choose by (0.76-0.79 for a huddle of one texture, 0.83-1.64 for distinct ones:
+        # choose by (0.65-1.12 for groups of one texture, 0.83-1.64 for distinct ones:
         # docs/benchmarks/code_separation.md); the pooled subject-frames, as before
         method = "subjects"
     positions, jump = motion if motion is not None else (None, 0.0)
