@@ -87,7 +87,8 @@ Positions = Mapping[tuple[int, int], np.ndarray]  # (frame, subject_id) -> world
 # method="auto": the codes tell individuals apart when code_separation is at least this.
 # Measured on the contact scenes' 15-minute runs (docs/benchmarks/code_separation.md):
 # 4.7-47 with distinct textures (6.5-6.7 for the pool's look-alike pair), 0.75-0.82 with one
-# texture for all three individuals.
+# texture for all three individuals of the huddle it was chosen on; 0.52-1.12 on four groups
+# of one texture made after (3-4 bipeds, 2-3 quadrupeds).
 SEPARATION_MIN = 2.0
 # ... comparing a track's codes this many frames apart (the keypoints stage's default
 # frame_step): codes of every frame would move little from one to the next whoever they are.
