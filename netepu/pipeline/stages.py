@@ -468,8 +468,6 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
     several = bool(species) and len(species) > 1 and have_texture
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
-        if not have_texture:
-            log.info("identities: no texture codes (texture stage skipped): NSD appearance vectors")
         keys = ["id", "camera", "frame", "subject_id"]
         rig = read_calibration(up["scene"].summary["path"], cfg.train.data.units)
         motion = _motion(up["export"].folder, rig, column, i, cfg.train.inference.resolution)
@@ -513,8 +511,8 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
 
 def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution: int
             ) -> tuple[Callable[[], dict], float] | None:
-    """What ``method=motion`` needs where it may be used (``netepu.identities.method`` motion,
-    or auto on texture codes), else None: a function giving the export's subject-frames'
+    """What ``method=motion`` needs where it may be used (``netepu.identities.method`` motion
+    or auto), else None: a function giving the export's subject-frames'
     world positions ((frame, subject_id) -> (3,); every mask decoded, once, and only if
     asked) and ``netepu.identities.jump`` in world units (``auto``: the tracker's
     ``position_scale`` rule on the hull's grid of ``resolution``).
@@ -522,9 +520,9 @@ def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution
     Raises:
         ConfigError: ``method=motion`` and no subject seen by two cameras.
     """
-    method = str(i.method)
-    if method != "motion" and (method != "auto" or column == "app"):
+    if str(i.method) not in ("motion", "auto"):
         return None
+    method = str(i.method)
 
     @functools.cache
     def positions() -> dict:
@@ -551,11 +549,15 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
         keep = np.isin(np.asarray(table["id"], np.int64), sorted(rows))
         table = {c: v[keep] for c, v in table.items()}
     method = str(i.method)
-    if method == "auto" and column == "app":
+    by_vectors = method == "auto" and column == "app"
+    if by_vectors:
         # NSD's appearance vectors tell individuals apart too little for code_separation to
         # choose by (0.65-1.12 for groups of one texture, 0.83-1.64 for distinct ones:
-        # docs/benchmarks/code_separation.md); the pooled subject-frames, as before
-        method = "subjects"
+        # docs/benchmarks/code_separation.md), and less well than where they go: identity
+        # 0.40-0.82 by them against 0.79-1.00 by motion on 10 contact runs, distinct
+        # textures or not (docs/pipeline.md "Without a texture model"); the subjects by
+        # them only where no subject has a position
+        method = "motion" if motion is not None and motion[0]() else "subjects"
     positions, jump = motion if motion is not None else (None, 0.0)
     identity, summary = assign_identities(  # rows without a code hold NaN
         table, column, k, method, int(i.restarts),
@@ -563,6 +565,12 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
         positions, jump,
     )
     summary["fill"] = str(i.fill)
+    if by_vectors:
+        summary["chosen_by"] = "auto: no texture codes"
+        log.info("identities: no texture codes: %s", "from where the subjects go "
+                 "(method=motion; netepu.identities.method=subjects takes NSD's appearance "
+                 "vectors)" if method == "motion" else "NSD's appearance vectors (no subject "
+                 "seen by two cameras)")
     if summary.get("chosen_by") == "auto" and summary["method"] in ("motion", "tracks"):
         log.warning(
             "identities: the texture codes of %s do not tell the individuals apart (the two "

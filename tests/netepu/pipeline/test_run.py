@@ -469,7 +469,7 @@ def test_identities_stage_warns_when_the_codes_cannot_tell_individuals_apart(tmp
 
     from omegaconf import OmegaConf
 
-    from netepu.pipeline.stages import _assign
+    from netepu.pipeline.stages import _assign, look_alike
     from nsd.io.embeddings import EmbeddingWriter
 
     rng = np.random.default_rng(8)
@@ -492,12 +492,17 @@ def test_identities_stage_warns_when_the_codes_cannot_tell_individuals_apart(tmp
     i.method = "subjects"  # asked for: no warning, no choice made
     _, _, summary = _assign(tmp_path, None, "texture_reid", i, 0)
     assert summary["method"] == "subjects" and "separation" not in summary and not caplog.text
-    i.method = "auto"  # NSD's appearance vectors (no texture model): the subjects, as before
-    _, _, summary = _assign(tmp_path, None, "app", i, 0)
+    i.method = "auto"  # NSD's appearance vectors (no texture model), nobody seen by two
+    _, _, summary = _assign(tmp_path, None, "app", i, 0)  # cameras: the subjects, as before
     assert summary["method"] == "subjects" and "separation" not in summary and not caplog.text
-    i.method = "auto"  # with the subjects' positions: from where they go, and said so
     x = np.array([1.0, 0.0, 0.0])
-    motion = ({(t, k): (k - 1) * x for t in every_20th for k in (1, 2)}, 0.2)
+    motion = (lambda: {(t, k): (k - 1) * x for t in every_20th for k in (1, 2)}, 0.2)
+    with caplog.at_level(logging.WARNING):  # with positions: where they go, no look-alike
+        _, identity, summary = _assign(tmp_path, None, "app", i, 0, motion)  # warning
+    assert summary["method"] == "motion" and "separation" not in summary and not caplog.text
+    assert summary["chosen_by"] == "auto: no texture codes" and not look_alike(summary)
+    assert len(set(identity[table["subject_id"] == 1].tolist())) == 1
+    i.method = "auto"  # with the subjects' positions: from where they go, and said so
     with caplog.at_level(logging.WARNING):
         _, identity, summary = _assign(tmp_path, None, "texture_reid", i, 0, motion)
     assert summary["method"] == "motion" and "where the subjects go" in caplog.text
@@ -897,4 +902,5 @@ def test_motion_without_positions_is_a_clear_error_and_auto_falls_back(random_ca
     i.method = "auto"  # asked only if the codes fail; nothing to move by, so the tracks
     positions, jump = _motion(tmp_path, rig, "texture_reid", i, 48)
     assert positions() == {} and jump > 0
-    assert _motion(tmp_path, rig, "app", i, 48) is None  # auto on NSD's vectors: subjects
+    i.method = "subjects"  # the codes asked for: nothing to decode
+    assert _motion(tmp_path, rig, "texture_reid", i, 48) is None
