@@ -51,7 +51,12 @@ from nsd.export.grids import write_grids
 from nsd.export.overlay import write_overlay_videos
 from nsd.export.parallel import resolve_workers
 from nsd.export.pose_tools import KeypointFile, write_pose_tool_files
-from nsd.export.positions import read_positions, triangulate_positions, write_positions
+from nsd.export.positions import (
+    mask_centroids,
+    read_positions,
+    triangulate_positions,
+    write_positions,
+)
 from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.inference.tracking import position_scale
@@ -470,7 +475,13 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         keys = ["id", "camera", "frame", "subject_id"]
         rig = read_calibration(up["scene"].summary["path"], cfg.train.data.units)
-        motion = _motion(up["export"].folder, rig, column, i, cfg.train.inference.resolution)
+        export = up["export"].folder
+
+        @functools.cache
+        def centroids() -> dict:  # every mask decoded once, for motion and positions.csv
+            return mask_centroids(json.loads((export / "subjects.coco.json").read_text()))
+
+        motion = _motion(export, rig, column, i, cfg.train.inference.resolution, centroids)
         if not several:
             source = up["texture"].folder if have_texture else up["export"].folder
             table, identity, summary = _assign(source, None, column, i, int(i.k), motion)
@@ -483,7 +494,7 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
         write_identities(out / "identities.csv",
                          {**{c: table[c].tolist() for c in keys}, "identity": identity.tolist()})
         by_row = dict(zip(table["id"].tolist(), identity.tolist(), strict=True))
-        positions = triangulate_positions(up["export"].folder, rig, by_row)
+        positions = triangulate_positions(export, rig, by_row, centroids=centroids())
         write_positions(out / "positions.csv", positions)
         write_identity_tracks(up["export"].folder, by_row, out / "tracks", positions)
         summary["column"] = column
@@ -509,13 +520,15 @@ def identities_stage(cfg: DictConfig, have_texture: bool, ground_truth: bool,
     )
 
 
-def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution: int
+def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution: int,
+            centroids: Callable[[], dict] | None = None
             ) -> tuple[Callable[[], dict], float] | None:
     """What ``method=motion`` needs where it may be used (``netepu.identities.method`` motion
     or auto), else None: a function giving the export's subject-frames'
     world positions ((frame, subject_id) -> (3,); every mask decoded, once, and only if
-    asked) and ``netepu.identities.jump`` in world units (``auto``: the tracker's
-    ``position_scale`` rule on the hull's grid of ``resolution``).
+    asked; ``centroids`` gives the export's mask centroids if they are shared) and
+    ``netepu.identities.jump`` in world units (``auto``: the tracker's ``position_scale``
+    rule on the hull's grid of ``resolution``).
 
     Raises:
         ConfigError: ``method=motion`` and no subject seen by two cameras.
@@ -526,7 +539,8 @@ def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution
 
     @functools.cache
     def positions() -> dict:
-        return {key: p for key, (p, _) in triangulate_positions(export, rig).items()}
+        return {key: p for key, (p, _) in triangulate_positions(
+            export, rig, centroids=centroids() if centroids is not None else None).items()}
 
     if method == "motion" and not positions():  # asked for: checked before it is used
         raise ConfigError(f"netepu.identities.method=motion needs subjects seen by two or "

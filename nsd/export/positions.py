@@ -18,7 +18,7 @@ import io
 import json
 import os
 from collections import defaultdict
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +53,7 @@ def mask_centroids(coco: dict) -> dict[int, np.ndarray]:
 
 def triangulate_positions(
     export: str | os.PathLike, rig: CameraRig, row_ids: dict[int, int] | None = None,
-    frames: Collection[int] | None = None,
+    frames: Collection[int] | None = None, centroids: Mapping[int, np.ndarray] | None = None,
 ) -> dict[tuple[int, int], tuple[np.ndarray, int]]:
     """World position of every individual and frame with at least two views.
 
@@ -63,6 +63,8 @@ def triangulate_positions(
         row_ids: annotation id -> identity (>= 0; others are left out); default: each row's
             ``subject_id``.
         frames: only these frames (default: all; only their masks are decoded).
+        centroids: :func:`mask_centroids` of this export, if already computed (no mask is
+            decoded again: a second grouping of the same rows costs no decode).
 
     Returns:
         ``(frame, id)`` -> (position (3,) float64, number of views).
@@ -72,7 +74,8 @@ def triangulate_positions(
         wanted = {int(f) for f in frames}
         coco = {**coco, "annotations": [a for a in coco["annotations"]
                                         if int(a["frame"]) in wanted]}
-    centroids = mask_centroids(coco)
+    if centroids is None:
+        centroids = mask_centroids(coco)
     groups: dict[tuple[int, int], list[tuple[str, np.ndarray]]] = defaultdict(list)
     for a in coco["annotations"]:
         aid = int(a["id"])

@@ -61,6 +61,10 @@ def test_known_positions_are_triangulated_back(random_cameras, tmp_path):
         assert got[key][1] == len(rig)
     one_view = {a["id"]: (ids[a["id"]] if a["camera"] == "cam0" else -1) for a in anns}
     assert triangulate_positions(tmp_path, rig, one_view) == {}  # one view: no position
+    cents = mask_centroids({"annotations": anns})  # shared: the same positions, no decode
+    again = triangulate_positions(tmp_path, rig, ids, centroids=cents)
+    assert all(np.array_equal(again[key][0], got[key][0]) for key in got)
+    assert triangulate_positions(tmp_path, rig, ids, centroids={}) == {}  # only those given
     write_positions(tmp_path / "positions.csv", got)
     back = read_positions(tmp_path / "positions.csv")
     for key in got:
