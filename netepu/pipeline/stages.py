@@ -533,9 +533,9 @@ def _motion(export: Path, rig: CameraRig, column: str, i: DictConfig, resolution
     Raises:
         ConfigError: ``method=motion`` and no subject seen by two cameras.
     """
-    if str(i.method) not in ("motion", "auto"):
-        return None
     method = str(i.method)
+    if method not in ("motion", "auto"):
+        return None
 
     @functools.cache
     def positions() -> dict:

@@ -221,7 +221,7 @@ def assign_identities(
     if fill not in FILL_METHODS:
         raise ValueError(f"identities: fill must be one of {FILL_METHODS}, got {fill!r}")
     if method == "motion":
-        positions = positions() if callable(positions) else positions
+        positions = _resolved(positions)
         if not positions or not jump > 0:
             raise ValueError("identities: method motion needs the subjects' world positions "
                              f"and a jump > 0 (got jump={jump})")
@@ -255,7 +255,7 @@ def assign_identities(
         separation = code_separation(pooled, items[:, 0], items[:, 1])
         method = auto_method(separation, positions is not None and jump > 0)
         if method == "motion":
-            positions = positions() if callable(positions) else positions
+            positions = _resolved(positions)
             method = "motion" if positions else "tracks"  # nobody seen by two cameras
         summary |= {"method": method, "chosen_by": "auto", "separation": separation}
         if method == "motion":
@@ -312,6 +312,11 @@ def auto_method(separation: float, motion: bool = True) -> str:
     if separation >= SEPARATION_MIN:
         return "subjects"
     return "motion" if motion else "tracks"
+
+
+def _resolved(positions: Positions | Callable[[], Positions] | None) -> Positions | None:
+    """``positions`` as given, or what the function given returns (called here, once)."""
+    return positions() if callable(positions) else positions
 
 
 def _by_motion(sid: np.ndarray, frame: np.ndarray, k: int, positions: Positions, jump: float
