@@ -82,6 +82,8 @@ class InferenceSettings(ConfigSection):
             learned ownership alone).
         hull_contested: that bonus where the hull cannot settle the owner, on pixels near
             two or more individuals (:func:`nsd.cues.occupancy.contested_pixels`).
+        hole_share: the holes a visible mask encloses, up to this share of its area, are
+            filled (:func:`nsd.cues.holes.fill_holes`; 0: off).
         colour_model, colour_model_bins, colour_model_margin: the individuals' colour
             models in the mask ownership (:class:`nsd.inference.colour_models.ColourModels`,
             :attr:`colour_models`; weight 0: off).
@@ -102,6 +104,7 @@ class InferenceSettings(ConfigSection):
     colour_sigma: float
     hull_ownership: float
     hull_contested: float
+    hole_share: float
     colour_model: float
     colour_model_bins: int
     colour_model_margin: float
@@ -127,6 +130,9 @@ class InferenceSettings(ConfigSection):
         need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
         need(float(self.hull_ownership) >= 0.0, "hull_ownership", "must be >= 0 (0: off)")
         need(float(self.hull_contested) >= 0.0, "hull_contested", "must be >= 0 (0: off)")
+        need(isinstance(self.hole_share, (int, float)) and not isinstance(self.hole_share, bool)
+             and 0.0 <= float(self.hole_share) < 1.0, "hole_share",
+             "must be a share of a mask's area in [0, 1) (0: off)")
         need(float(self.colour_model) >= 0.0, "colour_model", "must be >= 0 (0: off)")
         bins = self.colour_model_bins
         need(isinstance(bins, int) and not isinstance(bins, bool) and 2 <= bins <= 32,
@@ -307,6 +313,7 @@ def decompose_views(
     common = dict(
         colour_sigma=settings.colour_sigma,
         colour_models=settings.colour_models,
+        hole_share=settings.hole_share,
         evidence_threshold=evidence_threshold,
         evidence_softness=evidence_softness,
         **kwargs,

@@ -48,3 +48,24 @@ def test_occlusion_reasoning_skipped_without_overlap():
         model.detector.head.bias.view(-1, 6)[:, 2] = 0.0  # same place: overlapping
     dec = decompose(model, torch.rand(2, 3, 24, 32), torch.rand(2, 3, 24, 32), refine="none")
     assert dec.occlusion_reasoning is True
+
+
+def test_residual_masks_have_their_speckle_filled():
+    """A body whose colour matches the floor at a few pixels: the residual leaves them out of
+    its mask; the default hole filling (nsd/cues/holes.py) gives them back, hole_share=0 not."""
+    model = _model(-5.0)
+    bgs = torch.full((1, 3, 24, 32), 0.3)
+    images = bgs.clone()
+    images[..., 4:20, 8:24] = 0.8
+    speckle = torch.zeros(24, 32, dtype=torch.bool)
+    speckle[6:18:4, 10:22:4] = True
+    images[..., speckle] = 0.3
+    prior = torch.full((1, 24, 32), -1)
+    prior[:, 4:20, 8:24] = 1  # window 1 owns the body
+    kw = dict(owner_prior=prior, owner_bonus=10.0, min_weight=1.0)
+    body = torch.zeros(24, 32, dtype=torch.bool)
+    body[4:20, 8:24] = True
+    plain = decompose(model, images, bgs, hole_share=0.0, **kw).masks[0, 1] > 0.5
+    assert torch.equal(plain, body & ~speckle)
+    filled = decompose(model, images, bgs, **kw).masks[0, 1] > 0.5
+    assert torch.equal(filled, body)
