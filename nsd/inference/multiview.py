@@ -84,9 +84,10 @@ class InferenceSettings(ConfigSection):
             two or more individuals (:func:`nsd.cues.occupancy.contested_pixels`).
         hole_share: the holes a visible mask encloses, up to this share of its area, are
             filled (:func:`nsd.cues.holes.fill_holes`; 0: off).
-        colour_model, colour_model_bins, colour_model_margin: the individuals' colour
-            models in the mask ownership (:class:`nsd.inference.colour_models.ColourModels`,
-            :attr:`colour_models`; weight 0: off).
+        colour_model, colour_model_bins, colour_model_margin, colour_model_separation: the
+            individuals' colour models in the mask ownership
+            (:class:`nsd.inference.colour_models.ColourModels`, :attr:`colour_models`;
+            weight 0: off).
         mixture_gain, mixture_slack, mixture_scene_gain, mixture_scene_sample: when the
             hull's 3D mixture replaces its k-means (:class:`nsd.cues.clustering.MixtureRules`,
             :attr:`mixture`).
@@ -108,6 +109,7 @@ class InferenceSettings(ConfigSection):
     colour_model: float
     colour_model_bins: int
     colour_model_margin: float
+    colour_model_separation: float
     mixture_gain: float
     mixture_slack: float
     mixture_scene_gain: float
@@ -139,6 +141,10 @@ class InferenceSettings(ConfigSection):
              "colour_model_bins",
              "must be a whole number of levels per colour channel in [2, 32]")
         need(float(self.colour_model_margin) >= 0.0, "colour_model_margin", "must be >= 0")
+        need(isinstance(self.colour_model_separation, (int, float))
+             and not isinstance(self.colour_model_separation, bool)
+             and float(self.colour_model_separation) <= 1.0, "colour_model_separation",
+             "must be a kappa <= 1 (0: the colour models everywhere)")
         self.mixture  # noqa: B018  (validates the mixture_* keys)
 
     @classmethod
@@ -163,7 +169,8 @@ class InferenceSettings(ConfigSection):
         if float(self.colour_model) <= 0:
             return None
         return ColourModels(float(self.colour_model), int(self.colour_model_bins),
-                            float(self.colour_model_margin))
+                            float(self.colour_model_margin),
+                            float(self.colour_model_separation))
 
     @property
     def multiview(self) -> bool:
@@ -362,6 +369,7 @@ def decompose_views(
     dec = decompose(model, images, backgrounds, detections=cat, owner_prior=torch.cat(owners),
                     owner_bonus=torch.cat(bonus),
                     owner_allowed=torch.cat(allowed) if allowed else None, groups=groups,
+                    instants=torch.arange(len(slots)).repeat_interleave(num_views),
                     **common)
     dec.slots = torch.cat(slots)
     return dec

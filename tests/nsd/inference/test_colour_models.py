@@ -8,7 +8,12 @@ import pytest
 import torch
 
 from nsd.core.errors import ConfigError
-from nsd.inference.colour_models import ColourModels, colour_log_likelihood, sure_owners
+from nsd.inference.colour_models import (
+    ColourModels,
+    colour_log_likelihood,
+    colour_separation,
+    sure_owners,
+)
 from nsd.inference.multiview import InferenceSettings
 from nsd.inference.single import decompose
 from nsd.io.scene_data import SceneData
@@ -102,7 +107,10 @@ def test_colour_models_change_owners_never_the_foreground(tiny_scene):
 
 @pytest.mark.parametrize("kv", [{"colour_model": -1.0}, {"colour_model_bins": 1},
                                 {"colour_model_bins": 33}, {"colour_model_bins": 2.5},
-                                {"colour_model_bins": True}, {"colour_model_margin": -0.5}])
+                                {"colour_model_bins": True}, {"colour_model_margin": -0.5},
+                                {"colour_model_separation": 1.5},
+                                {"colour_model_separation": True},
+                                {"colour_model_separation": "high"}])
 def test_wrong_colour_model_settings_name_their_key(kv):
     (key,) = kv
     with pytest.raises(ConfigError, match=f"inference.{key}"):
@@ -112,8 +120,9 @@ def test_wrong_colour_model_settings_name_their_key(kv):
 def test_settings_give_the_models_or_none():
     assert InferenceSettings.defaults(colour_model=0.0).colour_models is None
     on = InferenceSettings.defaults(colour_model=2.0, colour_model_bins=4,
-                                    colour_model_margin=1.0).colour_models
-    assert on == ColourModels(2.0, 4, 1.0)
+                                    colour_model_margin=1.0,
+                                    colour_model_separation=0.25).colour_models
+    assert on == ColourModels(2.0, 4, 1.0, 0.25)
 
 
 def test_greyscale_footage_separates_by_grey_level():
@@ -133,3 +142,72 @@ def test_greyscale_footage_separates_by_grey_level():
         assert models.rescore(score, img, fg).argmax(1)[0, 0].tolist() == (
             [0] * 4 + [1] * 4 + [owner] * 2)
     assert score.argmax(1)[0, 0, 8:].tolist() == [1, 1]  # without the models: window 1
+
+
+GREEN = (0.1, 0.9, 0.1)
+
+
+def test_separation_is_one_where_colours_tell_apart_and_minus_one_where_they_are_equal():
+    """Known values, bins 2 (K = 8): every pixel sure. Window 0 red, window 1 blue: each
+    pixel's own histogram, counted without it, still likes it best: a = 1, kappa = 1.
+    Both windows 2 red + 2 blue: without itself a pixel's own cell counts 1 against the
+    other window's 2 (1.5 / 7.5 < 2.5 / 8): a = 0, kappa = (0 - 1/2) / (1/2) = -1."""
+    sure = torch.ones(1, 1, 8, dtype=torch.bool)
+    apart = colour_separation(_image([RED] * 4 + [BLUE] * 4),
+                              torch.tensor([[[0] * 4 + [1] * 4]]), sure, 2, 2)
+    assert apart.tolist() == [1.0]
+    alike = colour_separation(_image([RED, RED, BLUE, BLUE] * 2),
+                              torch.tensor([[[0] * 4 + [1] * 4]]), sure, 2, 2)
+    assert alike.tolist() == [-1.0]
+
+
+def _slow_separation(img, owner, sure, n_windows, bins, instants):
+    """kappa per frame by hand: loop over the sure pixels, histograms recounted without each."""
+    B, _, H, W = img.shape
+    q = (img * bins).long().clamp(max=bins - 1)
+    cell = lambda b, y, x: tuple(int(v) for v in q[b, :, y, x])  # noqa: E731
+    K = bins**3
+    pix = [(b, y, x) for b in range(B) for y in range(H) for x in range(W) if sure[b, y, x]]
+    out = []
+    for b0 in range(B):
+        mine = [p for p in pix if instants[p[0]] == instants[b0]]
+        right = 0
+        for p in mine:
+            def p_of(w, skip, p=p):
+                same = [r for r in pix if r[0] == p[0] and owner[r] == w and r != skip]
+                hits = sum(cell(*r) == cell(*p) for r in same)
+                return (hits + 0.5) / (len(same) + 0.5 * K)
+            own = p_of(int(owner[p]), p)
+            best = max(p_of(w, None) for w in range(n_windows) if w != owner[p])
+            right += own > best
+        n = max(2, len({int(owner[p]) for p in mine}))
+        out.append((right / len(mine) - 1 / n) / (1 - 1 / n) if mine else 0.0)
+    return out
+
+
+def test_separation_matches_a_slow_count_and_pools_an_instants_frames():
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(4, 3, 3, 5, generator=g)
+    owner = torch.randint(0, 3, (4, 3, 5), generator=g)
+    sure = torch.rand(4, 3, 5, generator=g) > 0.3
+    alone = colour_separation(img, owner, sure, 3, 2)
+    assert alone.tolist() == pytest.approx(
+        _slow_separation(img, owner, sure, 3, 2, [0, 1, 2, 3]), abs=1e-6)
+    instants = torch.tensor([0, 0, 1, 1])  # frames 0 and 1 are one instant's two views
+    pooled = colour_separation(img, owner, sure, 3, 2, instants=instants)
+    assert pooled[0] == pooled[1] and pooled[2] == pooled[3]
+
+
+def test_individuals_of_one_colour_keep_the_learned_ownership():
+    """Two windows, each owning red and green pixels surely, and a strip where window 1
+    leads by too little to be sure: with ``separation`` the colour models (kappa -1 here)
+    add nothing and the learned scores decide; without it, the strip's colour counts."""
+    img = _image([RED, GREEN] * 4 + [RED] * 2)
+    score = torch.zeros(1, 2, 1, 10)
+    score[0, 1, 0, :3] = -5.0  # window 0 owns red, green, red surely
+    score[0, 0, 0, 3:8] = -5.0  # window 1 owns green, red, green, red, green
+    score[0, 1, 0, 8:] = 0.1  # the strip: window 1 ahead, not surely
+    fg = torch.ones(1, 1, 10, dtype=torch.bool)
+    gated = ColourModels(2.0, 2, 2.0, separation=0.2).rescore(score, img, fg)
+    assert torch.equal(gated, score)
+    assert not torch.equal(ColourModels(2.0, 2, 2.0).rescore(score, img, fg), score)
