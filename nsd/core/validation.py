@@ -205,7 +205,9 @@ RULES: dict[str, dict[str, Rule]] = {
                   "mixture_scene_sample": POS,
                   # the individuals' colour models (nsd.inference.colour_models); 0: off
                   "colour_model": _r("number", low=0), "colour_model_bins": _r(
-                      "int", low=2, high=32), "colour_model_margin": _r("number", low=0)},
+                      "int", low=2, high=32), "colour_model_margin": _r("number", low=0),
+                  "colour_model_separation": FRACTION,  # a kappa; 0: everywhere
+                  "hole_share": FRACTION},  # of a mask's area (nsd.cues.holes); 0: off
     "train": {  # conf/train.yaml's own keys
         "device": DEVICE,
         "stage": _r("str", choices=("decomposition", "pose")), "batch_size": POS,

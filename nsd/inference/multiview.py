@@ -133,8 +133,8 @@ class InferenceSettings(ConfigSection):
         need(float(self.hull_ownership) >= 0.0, "hull_ownership", "must be >= 0 (0: off)")
         need(float(self.hull_contested) >= 0.0, "hull_contested", "must be >= 0 (0: off)")
         need(isinstance(self.hole_share, (int, float)) and not isinstance(self.hole_share, bool)
-             and 0.0 <= float(self.hole_share) < 1.0, "hole_share",
-             "must be a share of a mask's area in [0, 1) (0: off)")
+             and 0.0 <= float(self.hole_share) <= 1.0, "hole_share",
+             "must be a share of a mask's area in [0, 1] (0: off)")
         need(float(self.colour_model) >= 0.0, "colour_model", "must be >= 0 (0: off)")
         bins = self.colour_model_bins
         need(isinstance(bins, int) and not isinstance(bins, bool) and 2 <= bins <= 32,
@@ -143,8 +143,8 @@ class InferenceSettings(ConfigSection):
         need(float(self.colour_model_margin) >= 0.0, "colour_model_margin", "must be >= 0")
         need(isinstance(self.colour_model_separation, (int, float))
              and not isinstance(self.colour_model_separation, bool)
-             and float(self.colour_model_separation) <= 1.0, "colour_model_separation",
-             "must be a kappa <= 1 (0: the colour models everywhere)")
+             and 0.0 <= float(self.colour_model_separation) <= 1.0, "colour_model_separation",
+             "must be a kappa in [0, 1] (0: the colour models everywhere)")
         self.mixture  # noqa: B018  (validates the mixture_* keys)
 
     @classmethod

@@ -129,6 +129,6 @@ def test_native_masks_fill_the_speckle_of_a_body_close_to_the_floors_colour():
 
 def test_the_config_holds_the_modules_default_and_refuses_bad_shares():
     assert InferenceSettings.defaults().hole_share == HOLE_SHARE
-    for bad in (-0.1, 1.0, True, "x"):
+    for bad in (-0.1, 1.5, True, "x"):
         with pytest.raises(ConfigError, match=r"inference\.hole_share"):
             InferenceSettings.defaults(hole_share=bad)

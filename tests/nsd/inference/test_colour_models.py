@@ -109,6 +109,7 @@ def test_colour_models_change_owners_never_the_foreground(tiny_scene):
                                 {"colour_model_bins": 33}, {"colour_model_bins": 2.5},
                                 {"colour_model_bins": True}, {"colour_model_margin": -0.5},
                                 {"colour_model_separation": 1.5},
+                                {"colour_model_separation": -0.5},
                                 {"colour_model_separation": True},
                                 {"colour_model_separation": "high"}])
 def test_wrong_colour_model_settings_name_their_key(kv):
