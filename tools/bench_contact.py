@@ -88,6 +88,12 @@ SCENES |= {
     "3 quadrupeds of one texture, 4 cameras, seed 5": (
         3, ["num_individuals=3", "species=[quadruped]", "texture_ids=[6,6,6]",
             "motion.area_radius=2.0", "seed=5"]),
+    # made after inference.colour_model_separation was chosen: one texture for all, and two
+    # pairs (a look-alike pair and one texture twice)
+    "3 bipeds of one texture, 4 cameras, seed 6": (
+        3, ["num_individuals=3", "texture_ids=[4,4,4]", "seed=6"]),
+    "4 bipeds, a look-alike pair and a pair of one texture, 4 cameras, seed 7": (
+        4, ["num_individuals=4", "texture_ids=[1,11,7,7]", "seed=7"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
