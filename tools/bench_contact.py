@@ -94,6 +94,9 @@ SCENES |= {
         3, ["num_individuals=3", "texture_ids=[4,4,4]", "seed=6"]),
     "4 bipeds, a look-alike pair and a pair of one texture, 4 cameras, seed 7": (
         4, ["num_individuals=4", "texture_ids=[1,11,7,7]", "seed=7"]),
+    # made after colour_model_separation became a rule between pairs of individuals
+    "3 bipeds, a pair of one texture and another, 4 cameras, seed 8": (
+        3, ["num_individuals=3", "texture_ids=[9,9,2]", "seed=8"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
