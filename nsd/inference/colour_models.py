@@ -20,13 +20,14 @@ as it was. Which pixels are foreground is not changed, only who owns them.
 
 Individuals of one colour (mice of one strain) are the exception: their histograms differ
 only by the pixels each happened to own surely, and that noise moved pixels between them
-(mask mIoU 0.009-0.017 lower than without the models on six runs of one texture). So the
-term is used in an instant only where the models tell its individuals apart
-(``separation``, :func:`colour_separation`): each surely owned pixel is given to the window
-whose histogram, its own counted without the pixel, likes its colour best, and
-:math:`\kappa` is the share given back to the owner, above the chance :math:`1/n` of the
-instant's :math:`n` individuals, :math:`\kappa = (a - 1/n) / (1 - 1/n)`. One colour per
-individual gives :math:`\kappa` near 1, one colour for all near 0 or below.
+(mask mIoU 0.009-0.017 lower than without the models on six runs of one texture). So
+individuals that colour cannot tell apart share one model (``separation``,
+:func:`colour_classes`): for two individuals seen in one frame, each surely owned pixel of
+either is set against the other's histogram, its own counted without the pixel; where the
+share :math:`a_{ij}` that goes back to its owner gives :math:`\kappa_{ij} = 2 a_{ij} - 1`
+below ``separation`` (one colour for both: about 0 or below; distinct coats: near 1), the
+two are joined. Joined individuals, pooled, look the same to the colour term, which then
+tells them only from the others.
 
 Measured in docs/nsd.md ("Colour models of the individuals").
 """
@@ -40,7 +41,10 @@ from torch import Tensor
 
 from nsd.cues.colour_cells import colour_cells
 
-__all__ = ["ColourModels", "colour_log_likelihood", "colour_separation", "sure_owners"]
+# Pixels two individuals must own surely between them before their colours are compared.
+MIN_PAIR_PIXELS = 20
+
+__all__ = ["ColourModels", "colour_classes", "colour_log_likelihood", "sure_owners"]
 
 
 def sure_owners(score: Tensor, candidates: Tensor, margin: float) -> tuple[Tensor, Tensor]:
@@ -61,22 +65,27 @@ def sure_owners(score: Tensor, candidates: Tensor, margin: float) -> tuple[Tenso
 
 
 def _counts(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int, bins: int,
-            groups: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-    """Each window's (pooled) histogram (B * N, K), the pixels' colour cells (B, H, W) and
-    their owners' flat window indices (B, H, W)."""
+            groups: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each window's own histogram (B * N, K), the individual each window belongs to (B * N,)
+    (its group id, or an id of its own), the pixels' colour cells (B, H, W) and their
+    owners' flat window indices (B, H, W)."""
     B = images.shape[0]
     N, K = num_windows, bins**3
     cells = colour_cells(images, bins)
     window = torch.arange(B)[:, None, None] * N + owner  # (B, H, W) flat window index
     counts = torch.bincount((window * K + cells)[sure], minlength=B * N * K)
     counts = counts.reshape(B * N, K).to(images.dtype)
-    if groups is not None:
-        g = groups.reshape(-1)
-        shared = int(g.max().clamp_min(-1)) + 1  # ids of the shared histograms
-        ids = torch.where(g >= 0, g, shared + torch.arange(B * N))  # -1: a window alone
-        pooled = counts.new_zeros(shared + B * N, K).index_add_(0, ids, counts)
-        counts = pooled[ids]
-    return counts, cells, window
+    g = groups.reshape(-1) if groups is not None else torch.full((B * N,), -1)
+    shared = int(g.max().clamp_min(-1)) + 1  # ids of the shared histograms
+    ids = torch.where(g >= 0, g, shared + torch.arange(B * N))  # -1: a window alone
+    return counts, ids, cells, window
+
+
+def _pooled(counts: Tensor, ids: Tensor) -> Tensor:
+    """The histograms (B * N, K) of the windows' individuals: ``counts`` summed over the
+    windows of one id."""
+    pooled = counts.new_zeros(int(ids.max()) + 1 if len(ids) else 0, counts.shape[1])
+    return pooled.index_add_(0, ids, counts)[ids]
 
 
 def _log_likelihood(counts: Tensor, cells: Tensor) -> Tensor:
@@ -111,62 +120,57 @@ def colour_log_likelihood(
     Returns:
         (B, N, H, W).
     """
-    counts, cells, _ = _counts(images, owner, sure, num_windows, bins, groups)
-    return _log_likelihood(counts, cells)
+    counts, ids, cells, _ = _counts(images, owner, sure, num_windows, bins, groups)
+    return _log_likelihood(_pooled(counts, ids), cells)
 
 
-def colour_separation(
-    images: Tensor,
-    owner: Tensor,
-    sure: Tensor,
-    num_windows: int,
-    bins: int,
-    groups: Tensor | None = None,
-    instants: Tensor | None = None,
-) -> Tensor:
-    r"""How well the colour models tell an instant's individuals apart: :math:`\kappa` per
-    frame (B,), the same for every frame of one instant (module docstring).
+def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int, bins: int,
+                   separation: float, groups: Tensor | None = None) -> Tensor:
+    r"""The individuals that colour cannot tell apart, joined: a class id per window (B * N,)
+    (module docstring).
 
-    Every surely owned pixel is given to the window whose histogram likes its colour best,
-    its own window's histogram counted without it (leave-one-out); :math:`a` is the share
-    of the instant's sure pixels that go back to their owner and :math:`n` the number of
-    windows that own some, and :math:`\kappa = (a - 1/n) / (1 - 1/n)`: 1 where colours
-    alone say who is who, about 0 (or below) where the individuals look alike.
+    For two individuals :math:`i, j` seen in one frame, each surely owned pixel of either is
+    set against the other's histogram, its own counted without it (leave-one-out);
+    :math:`a_{ij}` is the share it goes back to its owner, and the two are joined when
+    :math:`\kappa_{ij} = 2 a_{ij} - 1` is below ``separation`` (over at least ``min_pixels``
+    pixels); classes are the joined individuals' connected sets.
 
     Args:
         images, owner, sure, num_windows, bins, groups: as :func:`colour_log_likelihood`.
-        instants: (B,) long, the frames of one instant (the views of one time step) share
-            an id; None: each frame alone.
+        separation: the :math:`\kappa_{ij}` below which two individuals are joined.
     """
-    counts, cells, window = _counts(images, owner, sure, num_windows, bins, groups)
-    return _kappa(counts, cells, window, _log_likelihood(counts, cells), owner, sure, groups,
-                  instants)
+    counts, ids, cells, window = _counts(images, owner, sure, num_windows, bins, groups)
+    return _classes(counts, ids, cells, window, owner, sure, separation)
 
 
-def _kappa(counts: Tensor, cells: Tensor, window: Tensor, ll: Tensor, owner: Tensor,
-           sure: Tensor, groups: Tensor | None, instants: Tensor | None) -> Tensor:
-    """:func:`colour_separation` from :func:`_counts` and :func:`_log_likelihood`."""
-    B, N = ll.shape[:2]
-    K = counts.shape[1]
-    dtype = ll.dtype
-    instants = torch.arange(B) if instants is None else instants
-    frame = torch.arange(B)[:, None, None].expand_as(owner)[sure]
+def _classes(counts: Tensor, ids: Tensor, cells: Tensor, window: Tensor, owner: Tensor,
+             sure: Tensor, separation: float) -> Tensor:
+    """:func:`colour_classes` from :func:`_counts`."""
+    B = cells.shape[0]
+    N, K = counts.shape[0] // B, counts.shape[1]
+    size = int(ids.max()) + 1 if len(ids) else 0
+    pooled = _pooled(counts, ids)
+    ll = _log_likelihood(pooled, cells)
     w, c = window[sure], cells[sure]
-    own = ((counts[w, c] - 0.5) / (counts.sum(-1)[w] - 1 + 0.5 * K)).log()  # leave-one-out
-    rivals = ll.permute(0, 2, 3, 1)[sure]  # (P, N)
-    rivals[torch.arange(len(w)), owner[sure]] = -torch.inf
-    back = (own > rivals.max(1).values).to(dtype)
-    moment = instants[frame]
-    count = int(instants.max()) + 1 if len(instants) else 0
-    right = torch.zeros(count, dtype=dtype).index_add_(0, moment, back)
-    pixels = torch.zeros(count, dtype=dtype).index_add_(0, moment, torch.ones_like(back))
-    ident = groups.reshape(-1) if groups is not None else torch.arange(B * N)
-    ident = torch.where(ident >= 0, ident, B * N + torch.arange(B * N))  # a window alone
-    owns = torch.zeros(count, int(ident.max()) + 1 if len(ident) else 0, dtype=torch.bool)
-    owns[moment, ident[w]] = True
-    n = owns.sum(1).clamp_min(2).to(dtype)
-    kappa = (right / pixels.clamp_min(1) - 1 / n) / (1 - 1 / n)
-    return torch.where(pixels > 0, kappa, torch.zeros(count, dtype=dtype))[instants]
+    own = ((pooled[w, c] - 0.5) / (pooled.sum(-1)[w] - 1 + 0.5 * K)).log()  # leave-one-out
+    frame = torch.arange(B)[:, None, None].expand_as(owner)[sure]
+    rival = frame[:, None] * N + torch.arange(N)  # (P, N) flat windows of the pixel's frame
+    mine, theirs = ids[w][:, None].expand_as(rival), ids[rival]
+    lost = ll.permute(0, 2, 3, 1)[sure] >= own[:, None]  # (P, N)
+    other = mine != theirs
+    pair = (mine * size + theirs)[other]
+    lost_n = torch.bincount(pair, weights=lost[other].to(ll.dtype), minlength=size * size)
+    seen_n = torch.bincount(pair, minlength=size * size).to(ll.dtype)
+    lost_n, seen_n = lost_n.reshape(size, size), seen_n.reshape(size, size)
+    lost_n, seen_n = lost_n + lost_n.T, seen_n + seen_n.T
+    kappa = 1 - 2 * lost_n / seen_n.clamp_min(1)
+    join = (seen_n >= MIN_PAIR_PIXELS) & (kappa < separation)
+    cls = torch.arange(size)
+    while True:  # each individual takes the smallest class id among those it joins
+        nxt = torch.where(join, cls[None, :], size).amin(1).minimum(cls)
+        if torch.equal(nxt, cls):
+            return cls[ids]
+        cls = nxt
 
 
 @dataclass(frozen=True)
@@ -177,8 +181,8 @@ class ColourModels:
         weight: of the colour log-likelihood in the ownership score (0: off).
         bins: levels per RGB channel of the histograms.
         margin: nats of ownership score by which a pixel's owner must lead to teach it.
-        separation: the colour term is used in an instant only where its
-            :func:`colour_separation` reaches this (0: everywhere).
+        separation: individuals whose colours tell them apart by less than this
+            (:func:`colour_classes`) share one colour model (0: each its own).
     """
 
     weight: float
@@ -187,22 +191,21 @@ class ColourModels:
     separation: float = 0.0
 
     def rescore(self, score: Tensor, images: Tensor, candidates: Tensor,
-                groups: Tensor | None = None, instants: Tensor | None = None) -> Tensor:
-        """Log ownership scores (B, N, H, W) with the colour term added (in the instants
-        whose individuals it tells apart, ``separation``).
+                groups: Tensor | None = None) -> Tensor:
+        """Log ownership scores (B, N, H, W) with the colour term added (one model for the
+        individuals it cannot tell apart, ``separation``).
 
         Args:
             score: log ownership scores (B, N, H, W).
             images: (B, 3, H, W) in [0, 1].
             candidates: (B, H, W) bool, the foreground pixels a window claims.
-            groups: as :func:`colour_log_likelihood`; instants: as :func:`colour_separation`.
+            groups: as :func:`colour_log_likelihood`.
         """
         if self.weight <= 0 or score.shape[1] < 2:
             return score
         owner, sure = sure_owners(score, candidates, self.margin)
-        counts, cells, window = _counts(images, owner, sure, score.shape[1], self.bins, groups)
-        ll = _log_likelihood(counts, cells)
-        if self.separation > 0:
-            kappa = _kappa(counts, cells, window, ll, owner, sure, groups, instants)
-            ll = ll * (kappa >= self.separation).to(ll.dtype)[:, None, None, None]
-        return score + self.weight * ll
+        counts, ids, cells, window = _counts(images, owner, sure, score.shape[1], self.bins,
+                                             groups)
+        if self.separation > 0:  # one model for the individuals colour cannot tell apart
+            ids = _classes(counts, ids, cells, window, owner, sure, self.separation)
+        return score + self.weight * _log_likelihood(_pooled(counts, ids), cells)

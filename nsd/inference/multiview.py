@@ -369,7 +369,6 @@ def decompose_views(
     dec = decompose(model, images, backgrounds, detections=cat, owner_prior=torch.cat(owners),
                     owner_bonus=torch.cat(bonus),
                     owner_allowed=torch.cat(allowed) if allowed else None, groups=groups,
-                    instants=torch.arange(len(slots)).repeat_interleave(num_views),
                     **common)
     dec.slots = torch.cat(slots)
     return dec

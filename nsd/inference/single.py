@@ -141,7 +141,6 @@ def decompose(
     owner_allowed: Tensor | None = None,
     colour_models: ColourModels | None = None,
     groups: Tensor | None = None,
-    instants: Tensor | None = None,
     hole_share: float = HOLE_SHARE,
 ) -> Decomposition:
     """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
@@ -167,8 +166,6 @@ def decompose(
             (:mod:`nsd.inference.colour_models`); None: off.
         groups: (B, N) long, windows that share one colour model (the same id >= 0, e.g. one
             hull individual in every view of an instant); None: each window alone.
-        instants: (B,) long, the frames of one instant share an id (the colour models'
-            separation is measured per instant); None: each frame alone.
         hole_share: with ``refine="residual"``, the holes a mask encloses, up to this share
             of its area, are filled (:func:`nsd.cues.holes.fill_holes`; 0: off).
     """
@@ -200,7 +197,7 @@ def decompose(
             score = score - 1e4 * ~owner_allowed  # the learned order where none is allowed
         claim = fg[:, None] & claim
         if colour_models is not None:
-            score = colour_models.rescore(score, images, claim[:, 0], groups, instants)
+            score = colour_models.rescore(score, images, claim[:, 0], groups)
         owner = score.max(1, keepdim=True).indices  # argmax (first on ties), 5x faster on CPU
         masks = (torch.arange(raw.shape[1])[None, :, None, None] == owner) & claim
         masks = fill_holes_batch(masks.to(raw.dtype), hole_share)

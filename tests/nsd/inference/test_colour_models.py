@@ -10,8 +10,8 @@ import torch
 from nsd.core.errors import ConfigError
 from nsd.inference.colour_models import (
     ColourModels,
+    colour_classes,
     colour_log_likelihood,
-    colour_separation,
     sure_owners,
 )
 from nsd.inference.multiview import InferenceSettings
@@ -148,67 +148,50 @@ def test_greyscale_footage_separates_by_grey_level():
 GREEN = (0.1, 0.9, 0.1)
 
 
-def test_separation_is_one_where_colours_tell_apart_and_minus_one_where_they_are_equal():
-    """Known values, bins 2 (K = 8): every pixel sure. Window 0 red, window 1 blue: each
-    pixel's own histogram, counted without it, still likes it best: a = 1, kappa = 1.
-    Both windows 2 red + 2 blue: without itself a pixel's own cell counts 1 against the
-    other window's 2 (1.5 / 7.5 < 2.5 / 8): a = 0, kappa = (0 - 1/2) / (1/2) = -1."""
-    sure = torch.ones(1, 1, 8, dtype=torch.bool)
-    apart = colour_separation(_image([RED] * 4 + [BLUE] * 4),
-                              torch.tensor([[[0] * 4 + [1] * 4]]), sure, 2, 2)
-    assert apart.tolist() == [1.0]
-    alike = colour_separation(_image([RED, RED, BLUE, BLUE] * 2),
-                              torch.tensor([[[0] * 4 + [1] * 4]]), sure, 2, 2)
-    assert alike.tolist() == [-1.0]
+def test_individuals_colour_cannot_tell_apart_are_joined():
+    """Known values, bins 2 (K = 8), every pixel sure, 30 pixels each. Windows 0 and 1 both
+    red and green half and half: without itself a pixel's own cell gives (14 + 1/2) / (29 +
+    4) against the other's (15 + 1/2) / (30 + 4), so it never goes back (kappa -1): joined.
+    Window 2 all blue: kappa 1 against both: apart. A cut at -1 joins none (kappa is
+    never below -1)."""
+    img = _image([RED, GREEN] * 30 + [BLUE] * 30)
+    owner = torch.tensor([[[0, 0, 1, 1] * 15 + [2] * 30]])
+    sure = torch.ones(1, 1, 90, dtype=torch.bool)
+    assert colour_classes(img, owner, sure, 3, 2, 0.2).tolist() == [0, 0, 2]
+    assert colour_classes(img, owner, sure, 3, 2, -1.0).tolist() == [0, 1, 2]
+    # too few pixels between them: never compared, never joined
+    few = torch.zeros_like(sure)
+    few[0, 0, :12] = True  # 6 pixels each
+    assert colour_classes(img, owner, few, 3, 2, 0.2).tolist() == [0, 1, 2]
 
 
-def _slow_separation(img, owner, sure, n_windows, bins, instants):
-    """kappa per frame by hand: loop over the sure pixels, histograms recounted without each."""
-    B, _, H, W = img.shape
-    q = (img * bins).long().clamp(max=bins - 1)
-    cell = lambda b, y, x: tuple(int(v) for v in q[b, :, y, x])  # noqa: E731
-    K = bins**3
-    pix = [(b, y, x) for b in range(B) for y in range(H) for x in range(W) if sure[b, y, x]]
-    out = []
-    for b0 in range(B):
-        mine = [p for p in pix if instants[p[0]] == instants[b0]]
-        right = 0
-        for p in mine:
-            def p_of(w, skip, p=p):
-                same = [r for r in pix if r[0] == p[0] and owner[r] == w and r != skip]
-                hits = sum(cell(*r) == cell(*p) for r in same)
-                return (hits + 0.5) / (len(same) + 0.5 * K)
-            own = p_of(int(owner[p]), p)
-            best = max(p_of(w, None) for w in range(n_windows) if w != owner[p])
-            right += own > best
-        n = max(2, len({int(owner[p]) for p in mine}))
-        out.append((right / len(mine) - 1 / n) / (1 - 1 / n) if mine else 0.0)
-    return out
-
-
-def test_separation_matches_a_slow_count_and_pools_an_instants_frames():
-    g = torch.Generator().manual_seed(0)
-    img = torch.rand(4, 3, 3, 5, generator=g)
-    owner = torch.randint(0, 3, (4, 3, 5), generator=g)
-    sure = torch.rand(4, 3, 5, generator=g) > 0.3
-    alone = colour_separation(img, owner, sure, 3, 2)
-    assert alone.tolist() == pytest.approx(
-        _slow_separation(img, owner, sure, 3, 2, [0, 1, 2, 3]), abs=1e-6)
-    instants = torch.tensor([0, 0, 1, 1])  # frames 0 and 1 are one instant's two views
-    pooled = colour_separation(img, owner, sure, 3, 2, instants=instants)
-    assert pooled[0] == pooled[1] and pooled[2] == pooled[3]
+def test_joined_classes_chain_and_groups_join_across_views():
+    """Three windows of one colour in one view: all one class (0 joins 1, 1 joins 2). Two
+    views of one instant, groups 5 and 6 in each: the classes are the groups'."""
+    img = _image([RED, GREEN] * 45)
+    owner = torch.tensor([[[0, 1, 2] * 30]])
+    sure = torch.ones(1, 1, 90, dtype=torch.bool)
+    assert colour_classes(img, owner, sure, 3, 2, 0.2).tolist() == [0, 0, 0]
+    two = torch.cat([_image([RED, GREEN] * 15 + [BLUE] * 30)] * 2)
+    owner2 = torch.tensor([[[0, 1] * 15 + [2] * 30]] * 2)
+    groups = torch.tensor([[5, 5, 6], [7, 7, 6]])  # windows 0 and 1 of a view share a group
+    cls = colour_classes(two, owner2, torch.ones(2, 1, 60, dtype=torch.bool), 3, 2, 0.2, groups)
+    assert cls[2] == cls[5] and cls[0] == cls[1] and cls[0] != cls[2]
 
 
 def test_individuals_of_one_colour_keep_the_learned_ownership():
-    """Two windows, each owning red and green pixels surely, and a strip where window 1
-    leads by too little to be sure: with ``separation`` the colour models (kappa -1 here)
-    add nothing and the learned scores decide; without it, the strip's colour counts."""
-    img = _image([RED, GREEN] * 4 + [RED] * 2)
-    score = torch.zeros(1, 2, 1, 10)
-    score[0, 1, 0, :3] = -5.0  # window 0 owns red, green, red surely
-    score[0, 0, 0, 3:8] = -5.0  # window 1 owns green, red, green, red, green
-    score[0, 1, 0, 8:] = 0.1  # the strip: window 1 ahead, not surely
-    fg = torch.ones(1, 1, 10, dtype=torch.bool)
-    gated = ColourModels(2.0, 2, 2.0, separation=0.2).rescore(score, img, fg)
-    assert torch.equal(gated, score)
-    assert not torch.equal(ColourModels(2.0, 2, 2.0).rescore(score, img, fg), score)
+    """Two windows, each owning red and green pixels surely in about equal shares, and a red
+    strip where window 1 leads by too little to be sure: with ``separation`` the two share
+    one colour model (kappa 0.13 < 0.2), which adds the same to both, and the learned
+    scores decide; without it, window 0's few more red pixels take the strip."""
+    img = _image([RED] * 17 + [GREEN] * 13 + [RED] * 13 + [GREEN] * 17 + [RED] * 2)
+    score = torch.zeros(1, 2, 1, 62)
+    score[0, 1, 0, :30] = -5.0  # window 0 owns 17 red and 13 green pixels surely
+    score[0, 0, 0, 30:60] = -5.0  # window 1 13 red and 17 green (kappa 2 * 34 / 60 - 1)
+    score[0, 1, 0, 60:] = 0.1  # the strip: window 1 ahead, not surely
+    fg = torch.ones(1, 1, 62, dtype=torch.bool)
+    joined = ColourModels(2.0, 2, 2.0, separation=0.2).rescore(score, img, fg)
+    assert torch.allclose(joined[0, 0] - joined[0, 1], score[0, 0] - score[0, 1])
+    assert joined.argmax(1)[0, 0, 60:].tolist() == [1, 1]
+    apart = ColourModels(2.0, 2, 2.0).rescore(score, img, fg)
+    assert apart.argmax(1)[0, 0, 60:].tolist() == [0, 0]
