@@ -44,7 +44,13 @@ from nsd.cues.colour_cells import colour_cells
 # Pixels two individuals must own surely between them before their colours are compared.
 MIN_PAIR_PIXELS = 20
 
-__all__ = ["ColourModels", "colour_classes", "colour_log_likelihood", "sure_owners"]
+__all__ = [
+    "ColourModels",
+    "colour_classes",
+    "colour_log_likelihood",
+    "colour_pair_separation",
+    "sure_owners",
+]
 
 
 def sure_owners(score: Tensor, candidates: Tensor, margin: float) -> tuple[Tensor, Tensor]:
@@ -124,16 +130,31 @@ def colour_log_likelihood(
     return _log_likelihood(_pooled(counts, ids), cells)
 
 
-def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int, bins: int,
-                   separation: float, groups: Tensor | None = None) -> Tensor:
-    r"""The individuals that colour cannot tell apart, joined: a class id per window (B * N,)
-    (module docstring).
+def colour_pair_separation(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int,
+                           bins: int, groups: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    r"""How well colour tells each two individuals apart: :math:`\kappa_{ij}` and the pixels
+    it is measured on, both (I, I) over the individuals' ids (module docstring).
 
     For two individuals :math:`i, j` seen in one frame, each surely owned pixel of either is
     set against the other's histogram, its own counted without it (leave-one-out);
-    :math:`a_{ij}` is the share it goes back to its owner, and the two are joined when
-    :math:`\kappa_{ij} = 2 a_{ij} - 1` is below ``separation`` (over at least ``min_pixels``
-    pixels); classes are the joined individuals' connected sets.
+    :math:`a_{ij}` is the share that goes back to its owner and
+    :math:`\kappa_{ij} = 2 a_{ij} - 1`. An individual's id is its group (``groups``) or,
+    for a window alone, ``max(groups) + 1`` + its flat window index ``b * N + n``.
+
+    Args:
+        images, owner, sure, num_windows, bins, groups: as :func:`colour_log_likelihood`.
+    """
+    counts, ids, cells, window = _counts(images, owner, sure, num_windows, bins, groups)
+    return _pair_kappa(counts, ids, cells, window, owner, sure)
+
+
+def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int, bins: int,
+                   separation: float, groups: Tensor | None = None) -> Tensor:
+    r"""The individuals that colour cannot tell apart, joined: a class id per window (B * N,).
+
+    Two individuals are joined where :func:`colour_pair_separation`'s :math:`\kappa_{ij}` is
+    below ``separation``, measured on at least ``MIN_PAIR_PIXELS`` pixels; classes are the
+    joined individuals' connected sets, each named by its smallest id.
 
     Args:
         images, owner, sure, num_windows, bins, groups: as :func:`colour_log_likelihood`.
@@ -143,9 +164,9 @@ def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int
     return _classes(counts, ids, cells, window, owner, sure, separation)
 
 
-def _classes(counts: Tensor, ids: Tensor, cells: Tensor, window: Tensor, owner: Tensor,
-             sure: Tensor, separation: float) -> Tensor:
-    """:func:`colour_classes` from :func:`_counts`."""
+def _pair_kappa(counts: Tensor, ids: Tensor, cells: Tensor, window: Tensor, owner: Tensor,
+                sure: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`colour_pair_separation` from :func:`_counts`."""
     B = cells.shape[0]
     N, K = counts.shape[0] // B, counts.shape[1]
     size = int(ids.max()) + 1 if len(ids) else 0
@@ -163,8 +184,15 @@ def _classes(counts: Tensor, ids: Tensor, cells: Tensor, window: Tensor, owner: 
     seen_n = torch.bincount(pair, minlength=size * size).to(ll.dtype)
     lost_n, seen_n = lost_n.reshape(size, size), seen_n.reshape(size, size)
     lost_n, seen_n = lost_n + lost_n.T, seen_n + seen_n.T
-    kappa = 1 - 2 * lost_n / seen_n.clamp_min(1)
-    join = (seen_n >= MIN_PAIR_PIXELS) & (kappa < separation)
+    return 1 - 2 * lost_n / seen_n.clamp_min(1), seen_n
+
+
+def _classes(counts: Tensor, ids: Tensor, cells: Tensor, window: Tensor, owner: Tensor,
+             sure: Tensor, separation: float) -> Tensor:
+    """:func:`colour_classes` from :func:`_counts`."""
+    kappa, seen = _pair_kappa(counts, ids, cells, window, owner, sure)
+    join = (seen >= MIN_PAIR_PIXELS) & (kappa < separation)
+    size = len(kappa)
     cls = torch.arange(size)
     while True:  # each individual takes the smallest class id among those it joins
         nxt = torch.where(join, cls[None, :], size).amin(1).minimum(cls)

@@ -12,6 +12,7 @@ from nsd.inference.colour_models import (
     ColourModels,
     colour_classes,
     colour_log_likelihood,
+    colour_pair_separation,
     sure_owners,
 )
 from nsd.inference.multiview import InferenceSettings
@@ -195,3 +196,43 @@ def test_individuals_of_one_colour_keep_the_learned_ownership():
     assert joined.argmax(1)[0, 0, 60:].tolist() == [1, 1]
     apart = ColourModels(2.0, 2, 2.0).rescore(score, img, fg)
     assert apart.argmax(1)[0, 0, 60:].tolist() == [0, 0]
+
+
+def _slow_pair_kappa(img, owner, sure, n_windows, bins):
+    """kappa_ij by hand (each window alone): every sure pixel of i in a frame where j is,
+    against j's histogram, i's recounted without it."""
+    B, _, H, W = img.shape
+    q = (img * bins).long().clamp(max=bins - 1)
+    K = bins**3
+    pix = [(b, y, x) for b in range(B) for y in range(H) for x in range(W) if sure[b, y, x]]
+    cell = {p: tuple(int(v) for v in q[p[0], :, p[1], p[2]]) for p in pix}
+
+    def prob(b, w, colour, skip=None):
+        mine = [r for r in pix if r[0] == b and owner[r] == w and r != skip]
+        return (sum(cell[r] == colour for r in mine) + 0.5) / (len(mine) + 0.5 * K)
+
+    kappa = {}
+    for b in range(B):
+        for i in range(n_windows):
+            for j in range(n_windows):
+                if i == j:
+                    continue
+                lost = seen = 0
+                for a, z in ((i, j), (j, i)):
+                    for p in pix:
+                        if p[0] == b and owner[p] == a:
+                            seen += 1
+                            lost += prob(b, z, cell[p]) >= prob(b, a, cell[p], p)
+                kappa[(b * n_windows + i, b * n_windows + j)] = (1 - 2 * lost / max(seen, 1),
+                                                                   seen)
+    return kappa
+
+
+def test_pair_separation_matches_a_slow_count():
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(2, 3, 4, 5, generator=g)
+    owner = torch.randint(0, 3, (2, 4, 5), generator=g)
+    sure = torch.rand(2, 4, 5, generator=g) > 0.3
+    kappa, seen = colour_pair_separation(img, owner, sure, 3, 2)
+    for (i, j), (k, n) in _slow_pair_kappa(img, owner, sure, 3, 2).items():
+        assert seen[i, j] == n and kappa[i, j].item() == pytest.approx(k, abs=1e-6), (i, j)
