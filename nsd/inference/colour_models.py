@@ -29,7 +29,8 @@ below ``separation`` (one colour for both: about 0 or below; distinct coats: nea
 two are joined. Joined individuals, pooled, look the same to the colour term, which then
 tells them only from the others.
 
-Measured in docs/nsd.md ("Colour models of the individuals").
+Measured in docs/nsd.md ("Colour models of the individuals"; "Speckled masks, and colours
+that do not tell individuals apart").
 """
 
 from __future__ import annotations
