@@ -50,6 +50,7 @@ def fill_holes(masks: np.ndarray, share: float = HOLE_SHARE) -> np.ndarray:
     if share <= 0 or out.size == 0:
         return out
     N = out.shape[0]
+    union = out.any(0)
     for n in range(N):
         limit = share * out[n].sum()
         if limit < 1:
@@ -62,12 +63,13 @@ def fill_holes(masks: np.ndarray, share: float = HOLE_SHARE) -> np.ndarray:
         small[0] = False  # label 0: the mask itself
         if not small.any():
             continue
-        others = out.any(0) & ~out[n]  # a hole where another subject shows stays open
+        others = union & ~out[n]  # a hole where another subject shows stays open
         small &= np.bincount(labels[others], minlength=count) == 0
         hole = small[labels]
         if not hole.any():
             continue
         out[n, hole] = True
+        union |= hole
     return out
 
 

@@ -146,7 +146,8 @@ def colour_pair_separation(images: Tensor, owner: Tensor, sure: Tensor, num_wind
         images, owner, sure, num_windows, bins, groups: as :func:`colour_log_likelihood`.
     """
     counts, ids, cells, window = _counts(images, owner, sure, num_windows, bins, groups)
-    return _pair_kappa(counts, ids, cells, window, owner, sure)
+    pooled = _pooled(counts, ids)
+    return _pair_kappa(pooled, _log_likelihood(pooled, cells), ids, cells, window, owner, sure)
 
 
 def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int, bins: int,
@@ -162,17 +163,17 @@ def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int
         separation: the :math:`\kappa_{ij}` below which two individuals are joined.
     """
     counts, ids, cells, window = _counts(images, owner, sure, num_windows, bins, groups)
-    return _classes(counts, ids, cells, window, owner, sure, separation)
-
-
-def _pair_kappa(counts: Tensor, ids: Tensor, cells: Tensor, window: Tensor, owner: Tensor,
-                sure: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`colour_pair_separation` from :func:`_counts`."""
-    B = cells.shape[0]
-    N, K = counts.shape[0] // B, counts.shape[1]
-    size = int(ids.max()) + 1 if len(ids) else 0
     pooled = _pooled(counts, ids)
-    ll = _log_likelihood(pooled, cells)
+    return _classes(pooled, _log_likelihood(pooled, cells), ids, cells, window, owner, sure,
+                    separation)
+
+
+def _pair_kappa(pooled: Tensor, ll: Tensor, ids: Tensor, cells: Tensor, window: Tensor,
+                owner: Tensor, sure: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`colour_pair_separation` from the individuals' histograms (B * N, K) and their
+    likelihoods (B, N, H, W)."""
+    B, N, K = ll.shape[0], ll.shape[1], pooled.shape[1]
+    size = int(ids.max()) + 1 if len(ids) else 0
     w, c = window[sure], cells[sure]
     own = ((pooled[w, c] - 0.5) / (pooled.sum(-1)[w] - 1 + 0.5 * K)).log()  # leave-one-out
     frame = torch.arange(B)[:, None, None].expand_as(owner)[sure]
@@ -188,10 +189,10 @@ def _pair_kappa(counts: Tensor, ids: Tensor, cells: Tensor, window: Tensor, owne
     return 1 - 2 * lost_n / seen_n.clamp_min(1), seen_n
 
 
-def _classes(counts: Tensor, ids: Tensor, cells: Tensor, window: Tensor, owner: Tensor,
-             sure: Tensor, separation: float) -> Tensor:
-    """:func:`colour_classes` from :func:`_counts`."""
-    kappa, seen = _pair_kappa(counts, ids, cells, window, owner, sure)
+def _classes(pooled: Tensor, ll: Tensor, ids: Tensor, cells: Tensor, window: Tensor,
+             owner: Tensor, sure: Tensor, separation: float) -> Tensor:
+    """:func:`colour_classes` from :func:`_pair_kappa`'s inputs."""
+    kappa, seen = _pair_kappa(pooled, ll, ids, cells, window, owner, sure)
     join = (seen >= MIN_PAIR_PIXELS) & (kappa < separation)
     size = len(kappa)
     cls = torch.arange(size)
@@ -235,6 +236,10 @@ class ColourModels:
         owner, sure = sure_owners(score, candidates, self.margin)
         counts, ids, cells, window = _counts(images, owner, sure, score.shape[1], self.bins,
                                              groups)
+        pooled = _pooled(counts, ids)
+        ll = _log_likelihood(pooled, cells)
         if self.separation > 0:  # one model for the individuals colour cannot tell apart
-            ids = _classes(counts, ids, cells, window, owner, sure, self.separation)
-        return score + self.weight * _log_likelihood(_pooled(counts, ids), cells)
+            classes = _classes(pooled, ll, ids, cells, window, owner, sure, self.separation)
+            if not torch.equal(classes, ids):  # some were joined
+                ll = _log_likelihood(_pooled(counts, classes), cells)
+        return score + self.weight * ll
