@@ -16,7 +16,9 @@ measured on the same models.
 Reports made with it: ``holes`` (``hole_share``: the small holes a visible mask encloses
 filled, :mod:`nsd.cues.holes`; made as ``tools/bench_holes.py``, this script's first
 name), ``colour_separation`` (``colour_model_separation``: the colour models only in the
-instants whose individuals they tell apart, :mod:`nsd.inference.colour_models`).
+instants whose individuals they tell apart, :mod:`nsd.inference.colour_models`),
+``islands`` (``island_share``: a subject's small islands inside another subject given to
+it, :mod:`nsd.cues.holes`).
 
 Writes ``docs/benchmarks/<--report>.{md,json}``.
 """
@@ -43,6 +45,10 @@ NOTES = {  # what each setting does, for the report's notes
     "hole_share": "the holes a visible mask encloses, up to that share of its area, are "
                   "filled where no other subject shows (0: off; nsd/cues/holes.py); the "
                   "hull-only row's masks are filled the same way",
+    "island_share": "a subject's islands (4-connected pieces other than its largest) that "
+                    "one other subject encloses, up to that share of its area, are given to "
+                    "that subject (0: off; nsd/cues/holes.py); the hull-only row's masks are "
+                    "cleaned the same way",
     "colour_model_separation": "the individuals' colour models are used in an instant only "
                                "where their leave-one-out kappa reaches it (0: everywhere; "
                                "nsd/inference/colour_models.py); the hull-only row has no "

@@ -207,7 +207,8 @@ RULES: dict[str, dict[str, Rule]] = {
                   "colour_model": _r("number", low=0), "colour_model_bins": _r(
                       "int", low=2, high=32), "colour_model_margin": _r("number", low=0),
                   "colour_model_separation": FRACTION,  # a kappa; 0: everywhere
-                  "hole_share": FRACTION},  # of a mask's area (nsd.cues.holes); 0: off
+                  "hole_share": FRACTION,  # of a mask's area (nsd.cues.holes); 0: off
+                  "island_share": FRACTION},  # of a mask's area (nsd.cues.holes); 0: off
     "train": {  # conf/train.yaml's own keys
         "device": DEVICE,
         "stage": _r("str", choices=("decomposition", "pose")), "batch_size": POS,

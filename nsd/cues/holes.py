@@ -1,34 +1,48 @@
-r"""Small holes of the visible masks: where a body's colour is close to the floor behind it.
+r"""Speckle of the visible masks: small holes filled, small islands given away.
 
-Every visible mask is drawn from the background residual (:mod:`nsd.cues.evidence`): a
-pixel is foreground where the frame differs from the background by more than the cut. Where
-a body's colour is close to the floor's behind it (a grey coat on grey bedding, a spotted
-coat's light patches) single pixels and small clusters fall below the cut, and the mask
-comes out speckled: on a scene of four grey bipeds on a grey floor the masks score mIoU
-0.611, 0.639 with their small holes filled (docs/nsd.md, "Speckled masks").
+Every visible mask is drawn from the background residual (:mod:`nsd.cues.evidence`) and
+its pixels go to the subject that owns them (:mod:`nsd.inference.single`). Both leave
+speckle, which :class:`Speckle` cleans in two rules (docs/nsd.md, "Speckled masks").
 
-A *hole* of subject :math:`n`'s mask :math:`M_n` is a 4-connected region of pixels outside
-:math:`M_n` that :math:`M_n` encloses (it does not reach the frame's border). A hole is given
-to :math:`n` when
+*Holes.* Where a body's colour is close to the floor's behind it (a grey coat on grey
+bedding, a spotted coat's light patches) single pixels and small clusters fall below the
+residual's cut: on a scene of four grey bipeds on a grey floor the masks score mIoU 0.611,
+0.639 with their small holes filled. A *hole* of subject :math:`n`'s mask :math:`M_n` is a
+4-connected region of pixels outside :math:`M_n` that :math:`M_n` encloses (it does not
+reach the frame's border). A hole is given to :math:`n` when
 
-.. math:: |h| \le s\,|M_n|
+.. math:: |h| \le s_h\,|M_n|
 
 and no other subject owns a pixel of it (that subject may be seen there, e.g. a hand in
-front of the body), :math:`s` the ``share`` (scale-free: the same rule for a mouse of 100
-pixels and a person of 100,000, at any resolution). The masks stay disjoint. Holes that
-held a few pixels of another subject were tried too (those pixels moved to :math:`n`):
-masks up to 0.011 better in mIoU, but detection up to 0.012 worse on 4 runs, since a
-front subject's fragments over a body are taken from it (docs/nsd.md, "Speckled masks").
+front of the body), :math:`s_h` the ``hole_share``. Holes that held a few pixels of another
+subject were tried too (those pixels moved to :math:`n`): masks up to 0.011 better in
+mIoU, but detection up to 0.012 worse on 4 runs, since a front subject's fragments over a
+body are taken from it.
+
+*Islands.* Where two textured bodies touch, single pixels of one whose colour the other's
+coat also has go to the other (the individuals' colour models, the learned weights): the
+front body comes out sprinkled with the other's pixels. An *island* of :math:`n` is a
+4-connected component of :math:`M_n` other than its largest, with
+
+.. math:: |c| \le s_i\,|M_n|,
+
+whose 4-neighbours all belong to one other subject :math:`m` (none on the floor, none
+outside the frame); it is given to :math:`m`. A fragment that reaches the floor or a third
+subject (a hand held out over another body's outline) stays. Both shares are of the mask's
+own area: the same rules for a mouse of 100 pixels and a person of 100,000, at any
+resolution. The masks stay disjoint and their union does not change.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["HOLE_SHARE", "fill_holes", "fill_holes_batch"]
+__all__ = ["HOLE_SHARE", "ISLAND_SHARE", "SPECKLE", "Speckle", "fill_holes", "give_islands"]
 
 # The largest hole filled, as a share of its subject's visible area. conf/inference/default.yaml
 # (``inference.hole_share``) holds the same value; chosen on 16 runs (docs/benchmarks/holes.md:
@@ -73,11 +87,76 @@ def fill_holes(masks: np.ndarray, share: float = HOLE_SHARE) -> np.ndarray:
     return out
 
 
-def fill_holes_batch(masks: Tensor, share: float = HOLE_SHARE) -> Tensor:
-    """:func:`fill_holes` for each frame of (B, N, H, W) disjoint 0/1 masks (any dtype);
-    returns them in the same dtype."""
-    if share <= 0 or masks.numel() == 0:
-        return masks
-    binary = (masks > 0.5).cpu().numpy()
-    filled = np.stack([fill_holes(frame, share) for frame in binary])
-    return torch.from_numpy(filled).to(device=masks.device, dtype=masks.dtype)
+# The largest island given away, as a share of its subject's visible area;
+# conf/inference/default.yaml (``inference.island_share``) holds the same value.
+ISLAND_SHARE = 0.01
+_RING = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # a component's ring: its 4-neighbours
+
+
+def give_islands(masks: np.ndarray, share: float = ISLAND_SHARE) -> np.ndarray:
+    """Give each small island of a subject's mask to the one subject around it (module
+    docstring).
+
+    Args:
+        masks: (N, H, W) bool, disjoint.
+        share: largest island moved, as a share of its subject's area (0: none).
+
+    Returns:
+        (N, H, W) bool, disjoint, the same union; a new array.
+    """
+    out = np.array(masks, dtype=bool, copy=True)
+    if share <= 0 or out.shape[0] < 2 or out.size == 0:
+        return out
+    N, H, W = out.shape
+    owner = np.where(out.any(0), out.argmax(0), -1)
+    moves = []
+    for n in range(N):
+        limit = share * out[n].sum()
+        if limit < 1:
+            continue
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(
+            out[n].astype(np.uint8), connectivity=4)
+        if count <= 2:  # the floor and at most one component
+            continue
+        area = stats[:, cv2.CC_STAT_AREA]
+        largest = 1 + int(area[1:].argmax())
+        for c in np.flatnonzero(area[1:] <= limit) + 1:
+            x, y, w, h = (int(v) for v in stats[c, :4])
+            if c == largest or x == 0 or y == 0 or x + w == W or y + h == H:
+                continue
+            box = (slice(y - 1, y + h + 1), slice(x - 1, x + w + 1))
+            comp = labels[box] == c
+            ring = (cv2.dilate(comp.astype(np.uint8), _RING) > 0) & ~comp
+            holders = owner[box][ring]
+            if holders[0] >= 0 and (holders == holders[0]).all():
+                moves.append((n, int(holders[0]), box, comp))
+    for n, m, box, comp in moves:
+        out[n][box][comp] = False
+        out[m][box][comp] = True
+    return out
+
+
+@dataclass(frozen=True)
+class Speckle:
+    """The two speckle rules of the visible masks (module docstring); a share of 0 turns
+    its rule off."""
+
+    hole_share: float = HOLE_SHARE
+    island_share: float = ISLAND_SHARE
+
+    def clean(self, masks: np.ndarray) -> np.ndarray:
+        """(N, H, W) disjoint bool masks with their islands given away, then their holes
+        filled; a new array."""
+        return fill_holes(give_islands(masks, self.island_share), self.hole_share)
+
+    def clean_batch(self, masks: Tensor) -> Tensor:
+        """:meth:`clean` for each frame of (B, N, H, W) disjoint 0/1 masks (any dtype);
+        returns them in the same dtype."""
+        if (self.hole_share <= 0 and self.island_share <= 0) or masks.numel() == 0:
+            return masks
+        binary = (masks > 0.5).cpu().numpy()
+        clean = np.stack([self.clean(frame) for frame in binary])
+        return torch.from_numpy(clean).to(device=masks.device, dtype=masks.dtype)
+
+
+SPECKLE = Speckle()  # the shipped rules

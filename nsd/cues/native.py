@@ -31,8 +31,9 @@ subject that owns them; this module applies the same rule at native resolution:
   where their clothes or coats meet, which a mask decided 10 times coarser cannot place.
   Without ``MIN_CORE`` core pixels for every subject, the prior alone decides.
 
-A subject's native mask is the foreground pixels within reach that it owns, with the small
-holes it encloses filled as at the training size (:mod:`nsd.cues.holes`). At equal
+A subject's native mask is the foreground pixels within reach that it owns, its speckle
+cleaned as at the training size (:mod:`nsd.cues.holes`: small holes filled, small islands
+given to the subject around them). At equal
 resolution it gives back the training-size masks up to pixels at their boundaries.
 
 Measured on a 1280 x 1024 synthetic scene (docs/benchmarks/native_hd.md): mIoU 0.65
@@ -51,7 +52,7 @@ import torch
 
 from nsd.cues.colour_cells import colour_cells
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
-from nsd.cues.holes import HOLE_SHARE, fill_holes
+from nsd.cues.holes import SPECKLE, Speckle
 
 __all__ = ["colour_owners", "native_masks"]
 
@@ -71,7 +72,7 @@ def native_masks(
     evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS,
     colour: bool = True,
-    hole_share: float = HOLE_SHARE,
+    speckle: Speckle = SPECKLE,
 ) -> np.ndarray:
     """Native-resolution visible masks (module docstring).
 
@@ -81,8 +82,8 @@ def native_masks(
         background: its native background, (H, W, 3) uint8 RGB.
         colour: the subjects' colours move the boundaries between them (false: the
             spatial owner alone).
-        hole_share: the holes a mask encloses, up to this share of its area, are filled
-            (:func:`nsd.cues.holes.fill_holes`; 0: none).
+        speckle: the masks' small holes filled and small islands given to the subject
+            around them, as at the training size (:class:`nsd.cues.holes.Speckle`).
 
     Returns:
         (N, H, W) bool, disjoint.
@@ -106,7 +107,7 @@ def native_masks(
     claimed = reach & fg & (owners.max(0) > 0)
     if colour and N >= 2:
         owner = colour_owners(view, owners, owner, claimed)
-    return fill_holes((owner[None] == np.arange(N)[:, None, None]) & claimed[None], hole_share)
+    return speckle.clean((owner[None] == np.arange(N)[:, None, None]) & claimed[None])
 
 
 def colour_owners(view: np.ndarray, prior: np.ndarray, owner: np.ndarray,

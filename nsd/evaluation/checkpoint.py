@@ -112,7 +112,7 @@ def evaluate_checkpoint(checkpoint: str | Path, scene: str | Path | None = None,
         model = trained.model
         hull = evaluate_hull(data, idx, gt, settings.grid(data.rig, data.frame_hw),
                              model.cfg.num_windows, split=not model.detector.use_presence,
-                             rules=settings.mixture, hole_share=settings.hole_share)
+                             rules=settings.mixture, speckle=settings.speckle)
         metrics.update({f"hull_{k}": v for k, v in hull.items()})
     metrics.update({"frames": float(len(idx)), "step": float(trained.step)})
     return metrics

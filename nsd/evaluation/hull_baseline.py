@@ -20,7 +20,7 @@ from torch import Tensor
 
 from nsd.cues.clustering import ClusterTrack, MixtureRules
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
-from nsd.cues.holes import HOLE_SHARE, fill_holes_batch
+from nsd.cues.holes import SPECKLE, Speckle
 from nsd.cues.occupancy import VoxelGrid, multiview_proposals, scene_track
 from nsd.evaluation.contact import touches
 from nsd.evaluation.decomposition import (
@@ -59,7 +59,7 @@ def hull_decomposition(
     evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS,
     track: ClusterTrack | None = None,
-    hole_share: float = HOLE_SHARE,
+    speckle: Speckle = SPECKLE,
 ) -> HullDecomposition:
     """Decompose one instant with the visual hull alone.
 
@@ -68,13 +68,13 @@ def hull_decomposition(
         grid: the hull's voxel grid of these cameras at this size.
         k: individuals (windows); ``split`` and ``track`` (carried from the previous
             instant) as :func:`nsd.cues.clustering.cluster_individuals`.
-        hole_share: the small holes of the masks filled, as the learned decomposition's
-            (:func:`nsd.cues.holes.fill_holes`; 0: none).
+        speckle: the masks' speckle cleaned as the learned decomposition's
+            (:class:`nsd.cues.holes.Speckle`).
     """
     ev = foreground_evidence(images, backgrounds, evidence_threshold, evidence_softness)
     hull = multiview_proposals(ev, grid, k, split=split, track=track)
     slots = torch.arange(k)[None, :, None, None]
-    masks = fill_holes_batch((hull.owners[:, None] == slots).float(), hole_share)
+    masks = speckle.clean_batch((hull.owners[:, None] == slots).float())
     return HullDecomposition(masks, masks, hull.depths, hull.valid.float(), hull.valid)
 
 
@@ -83,11 +83,11 @@ def evaluate_hull(
     data, frames: Sequence[int], gt, grid: VoxelGrid, k: int, split: bool = True,
     threshold: float = 0.5, evidence_threshold: float = EVIDENCE_THRESHOLD,
     evidence_softness: float = EVIDENCE_SOFTNESS, rules: MixtureRules | None = None,
-    hole_share: float = HOLE_SHARE,
+    speckle: Speckle = SPECKLE,
 ) -> dict[str, float]:
     """The metrics of :func:`nsd.evaluation.decomposition.evaluate_model` (without the
     novel-view ones) for the hull-only decomposition of ``frames`` of ``data``; ``rules``:
-    when the hull's 3D mixture replaces its k-means (None: the shipped defaults); ``hole_share``
+    when the hull's 3D mixture replaces its k-means (None: the shipped defaults); ``speckle``
     as :func:`hull_decomposition`."""
     tally = Tally()
     V = data.num_views
@@ -98,7 +98,7 @@ def evaluate_hull(
     for t in frames:
         views, bgs = data.views(int(t))
         dec = hull_decomposition(views, bgs, grid, k, split, evidence_threshold,
-                                 evidence_softness, track, hole_share)
+                                 evidence_softness, track, speckle)
         truths = instant_truth(gt, data, int(t))
         counts = tally.counts(touches(truths))
         per_view = score_views(dec, truths, threshold, counts)

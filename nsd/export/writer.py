@@ -262,7 +262,7 @@ class SubjectWriter:
                 {"camera": cam, "frame": t},
                 (views[v], self.native_backgrounds[v]) if refine else None,
                 bool(self.cfg["native_colour"]),
-                float(self.inference.hole_share),
+                self.inference.speckle,
             )
             for r in res:
                 r["association_id"] = int(assoc[v, r["slot"]])

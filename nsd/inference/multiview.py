@@ -40,6 +40,7 @@ from nsd.core.device import model_device, move
 from nsd.core.errors import ConfigError
 from nsd.cues.clustering import ClusterTrack, MixtureRules
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
+from nsd.cues.holes import Speckle
 from nsd.cues.occupancy import (
     CONTEST_BAND,
     VoxelGrid,
@@ -84,6 +85,9 @@ class InferenceSettings(ConfigSection):
             two or more individuals (:func:`nsd.cues.occupancy.contested_pixels`).
         hole_share: the holes a visible mask encloses, up to this share of its area, are
             filled (:func:`nsd.cues.holes.fill_holes`; 0: off).
+        island_share: a subject's islands enclosed by one other subject, up to this share
+            of its area, are given to that subject (:func:`nsd.cues.holes.give_islands`;
+            0: off).
         colour_model, colour_model_bins, colour_model_margin, colour_model_separation: the
             individuals' colour models in the mask ownership
             (:class:`nsd.inference.colour_models.ColourModels`, :attr:`colour_models`;
@@ -106,6 +110,7 @@ class InferenceSettings(ConfigSection):
     hull_ownership: float
     hull_contested: float
     hole_share: float
+    island_share: float
     colour_model: float
     colour_model_bins: int
     colour_model_margin: float
@@ -132,9 +137,11 @@ class InferenceSettings(ConfigSection):
         need(float(self.colour_sigma) >= 0.0, "colour_sigma", "must be >= 0 (0: off)")
         need(float(self.hull_ownership) >= 0.0, "hull_ownership", "must be >= 0 (0: off)")
         need(float(self.hull_contested) >= 0.0, "hull_contested", "must be >= 0 (0: off)")
-        need(isinstance(self.hole_share, (int, float)) and not isinstance(self.hole_share, bool)
-             and 0.0 <= float(self.hole_share) <= 1.0, "hole_share",
-             "must be a share of a mask's area in [0, 1] (0: off)")
+        for key in ("hole_share", "island_share"):
+            share = getattr(self, key)
+            need(isinstance(share, (int, float)) and not isinstance(share, bool)
+                 and 0.0 <= float(share) <= 1.0, key,
+                 "must be a share of a mask's area in [0, 1] (0: off)")
         need(float(self.colour_model) >= 0.0, "colour_model", "must be >= 0 (0: off)")
         bins = self.colour_model_bins
         need(isinstance(bins, int) and not isinstance(bins, bool) and 2 <= bins <= 32,
@@ -162,6 +169,12 @@ class InferenceSettings(ConfigSection):
         """The hull's :class:`nsd.cues.clustering.MixtureRules` from the ``mixture_*`` keys."""
         return MixtureRules.from_config(
             {f.name: getattr(self, f.name) for f in dataclasses.fields(MixtureRules)})
+
+    @property
+    def speckle(self) -> Speckle:
+        """The masks' :class:`nsd.cues.holes.Speckle` rules from ``hole_share`` and
+        ``island_share``."""
+        return Speckle(float(self.hole_share), float(self.island_share))
 
     @property
     def colour_models(self) -> ColourModels | None:
@@ -320,7 +333,7 @@ def decompose_views(
     common = dict(
         colour_sigma=settings.colour_sigma,
         colour_models=settings.colour_models,
-        hole_share=settings.hole_share,
+        speckle=settings.speckle,
         evidence_threshold=evidence_threshold,
         evidence_softness=evidence_softness,
         **kwargs,

@@ -26,9 +26,10 @@ learned from the pixels each owns surely, add the likelihood of the pixel's colo
 (:mod:`nsd.inference.colour_models`).
 NSD still decides which subject a pixel belongs to and who
 occludes whom; the median background, which NSD already needs, only sharpens
-the silhouettes. The small holes a mask encloses, where the body's colour is close to the
-floor's, are filled (``hole_share``, :mod:`nsd.cues.holes`). ``refine="none"`` returns
-the raw masks.
+the silhouettes. Their speckle is cleaned (:mod:`nsd.cues.holes`): the small holes a mask
+encloses, where the body's colour is close to the floor's, are filled (``hole_share``), and a
+subject's small islands inside another subject, where touching bodies share colours, are
+given to it (``island_share``). ``refine="none"`` returns the raw masks.
 
 Cross-view identities come from the appearance association: in each frame,
 the windows of every view are matched one-to-one (Hungarian on the cosine
@@ -50,7 +51,7 @@ from torch import Tensor
 
 from nsd.core.device import model_device, move
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
-from nsd.cues.holes import HOLE_SHARE, fill_holes_batch
+from nsd.cues.holes import SPECKLE, Speckle
 from nsd.inference.colour_models import ColourModels
 from nsd.model.association import appearance_similarity
 from nsd.model.bi_nvs import BiNVS
@@ -141,7 +142,7 @@ def decompose(
     owner_allowed: Tensor | None = None,
     colour_models: ColourModels | None = None,
     groups: Tensor | None = None,
-    hole_share: float = HOLE_SHARE,
+    speckle: Speckle = SPECKLE,
 ) -> Decomposition:
     """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
 
@@ -166,8 +167,8 @@ def decompose(
             (:mod:`nsd.inference.colour_models`); None: off.
         groups: (B, N) long, windows that share one colour model (the same id >= 0, e.g. one
             hull individual in every view of an instant); None: each window alone.
-        hole_share: with ``refine="residual"``, the holes a mask encloses, up to this share
-            of its area, are filled (:func:`nsd.cues.holes.fill_holes`; 0: off).
+        speckle: with ``refine="residual"``, the masks' small holes filled and small
+            islands given to the subject around them (:class:`nsd.cues.holes.Speckle`).
     """
     was_training = model.training
     model.eval()
@@ -200,7 +201,7 @@ def decompose(
             score = colour_models.rescore(score, images, claim[:, 0], groups)
         owner = score.max(1, keepdim=True).indices  # argmax (first on ties), 5x faster on CPU
         masks = (torch.arange(raw.shape[1])[None, :, None, None] == owner) & claim
-        masks = fill_holes_batch(masks.to(raw.dtype), hole_share)
+        masks = speckle.clean_batch(masks.to(raw.dtype))
     elif refine == "none":
         masks = raw
     else:

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from nsd.cues.holes import HOLE_SHARE
+from nsd.cues.holes import SPECKLE, Speckle
 from nsd.cues.native import native_masks
 
 __all__ = ["SUBJECT_CATEGORY", "decomposition_to_coco", "encode_rle", "resize_mask"]
@@ -44,7 +44,7 @@ def decomposition_to_coco(
     extra: dict | None = None,
     native: tuple[np.ndarray, np.ndarray] | None = None,
     native_colour: bool = True,
-    hole_share: float = HOLE_SHARE,
+    speckle: Speckle = SPECKLE,
 ) -> list[dict]:
     """COCO results for frame ``b`` of an :class:`nsd.inference.single.Decomposition`.
 
@@ -60,15 +60,15 @@ def decomposition_to_coco(
             and thresholded.
         native_colour: at native resolution, the subjects' colours move the boundaries
             between them (:func:`nsd.cues.native.colour_owners`).
-        hole_share: at native resolution, the small holes of the masks filled
-            (:func:`nsd.cues.holes.fill_holes`).
+        speckle: at native resolution, the masks' speckle cleaned
+            (:class:`nsd.cues.holes.Speckle`).
     """
     out = []
     active = np.flatnonzero(dec.active[b].cpu().numpy())
     refined = None
     if native is not None and len(active):
         low = (dec.masks[b, active].cpu().numpy() > threshold).astype(np.float32)
-        refined = native_masks(low, *native, colour=native_colour, hole_share=hole_share)
+        refined = native_masks(low, *native, colour=native_colour, speckle=speckle)
     for j, k in enumerate(active):
         if refined is not None:
             m = refined[j]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from nsd.cues.holes import Speckle
 from nsd.inference.single import decompose
 from nsd.model.build import build_model
 from tests.nsd.training.test_train import tiny_cfg
@@ -52,7 +53,7 @@ def test_occlusion_reasoning_skipped_without_overlap():
 
 def test_residual_masks_have_their_speckle_filled():
     """A body whose colour matches the floor at a few pixels: the residual leaves them out of
-    its mask; the default hole filling (nsd/cues/holes.py) gives them back, hole_share=0 not."""
+    its mask; the default hole filling (nsd/cues/holes.py) gives them back, no speckle rules not."""
     model = _model(-5.0)
     bgs = torch.full((1, 3, 24, 32), 0.3)
     images = bgs.clone()
@@ -65,7 +66,30 @@ def test_residual_masks_have_their_speckle_filled():
     kw = dict(owner_prior=prior, owner_bonus=10.0, min_weight=1.0)
     body = torch.zeros(24, 32, dtype=torch.bool)
     body[4:20, 8:24] = True
-    plain = decompose(model, images, bgs, hole_share=0.0, **kw).masks[0, 1] > 0.5
+    plain = decompose(model, images, bgs, speckle=Speckle(0.0, 0.0), **kw).masks[0, 1] > 0.5
     assert torch.equal(plain, body & ~speckle)
     filled = decompose(model, images, bgs, **kw).masks[0, 1] > 0.5
     assert torch.equal(filled, body)
+
+
+def test_residual_masks_give_another_subjects_islands_to_the_body_around_them():
+    """Pixels of a body that the ownership gave to another subject (colours both coats share):
+    the default island rule (nsd/cues/holes.py) gives them to the body around them."""
+    model = _model(5.0)
+    bgs = torch.full((1, 3, 24, 32), 0.3)
+    images = bgs.clone()
+    images[..., 4:20, 4:20] = 0.8  # window 1's body
+    images[..., 4:20, 24:30] = 0.6  # window 0's body
+    prior = torch.full((1, 24, 32), -1)
+    prior[:, 4:20, 4:20] = 1
+    prior[:, 4:20, 24:30] = 0
+    islands = torch.zeros(24, 32, dtype=torch.bool)
+    islands[8:16:4, 8:16:4] = True  # 4 pixels of window 1's body that window 0 owns
+    prior[:, islands] = 0
+    # a bonus above any log weight (>= log of the smallest float, -87): the prior decides
+    kw = dict(owner_prior=prior, owner_bonus=200.0, min_weight=1.0)
+    plain = decompose(model, images, bgs, speckle=Speckle(0.04, 0.0), **kw).masks[0] > 0.5
+    assert plain[0][islands].all() and not plain[1][islands].any()
+    clean = decompose(model, images, bgs, **kw).masks[0] > 0.5
+    assert clean[1, 4:20, 4:20].all() and not clean[0, 4:20, 4:20].any()
+    assert clean[0, 4:20, 24:30].all()  # window 0's own body stays
