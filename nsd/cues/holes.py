@@ -92,7 +92,6 @@ def fill_holes(masks: np.ndarray, share: float = HOLE_SHARE) -> np.ndarray:
 # runs (docs/benchmarks/islands.md): 0.01 and 0.04 within 0.003 of each other in mask mIoU,
 # 0.04 the higher on all 6 and the share the holes use.
 ISLAND_SHARE = 0.04
-_RING = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # a component's ring: its 4-neighbours
 
 
 def give_islands(masks: np.ndarray, share: float = ISLAND_SHARE) -> np.ndarray:
@@ -109,8 +108,8 @@ def give_islands(masks: np.ndarray, share: float = ISLAND_SHARE) -> np.ndarray:
     out = np.array(masks, dtype=bool, copy=True)
     if share <= 0 or out.shape[0] < 2 or out.size == 0:
         return out
-    N, H, W = out.shape
-    owner = np.where(out.any(0), out.argmax(0), -1)
+    N = out.shape[0]
+    beyond = None  # every pixel's owner, -1 on the floor, -2 outside the frame: when needed
     moves = []
     for n in range(N):
         limit = share * out[n].sum()
@@ -118,23 +117,31 @@ def give_islands(masks: np.ndarray, share: float = ISLAND_SHARE) -> np.ndarray:
             continue
         count, labels, stats, _ = cv2.connectedComponentsWithStats(
             out[n].astype(np.uint8), connectivity=4)
-        if count <= 2:  # the floor and at most one component
-            continue
         area = stats[:, cv2.CC_STAT_AREA]
-        largest = 1 + int(area[1:].argmax())
-        for c in np.flatnonzero(area[1:] <= limit) + 1:
-            x, y, w, h = (int(v) for v in stats[c, :4])
-            if c == largest or x == 0 or y == 0 or x + w == W or y + h == H:
-                continue
-            box = (slice(y - 1, y + h + 1), slice(x - 1, x + w + 1))
-            comp = labels[box] == c
-            ring = (cv2.dilate(comp.astype(np.uint8), _RING) > 0) & ~comp
-            holders = owner[box][ring]
-            if holders[0] >= 0 and (holders == holders[0]).all():
-                moves.append((n, int(holders[0]), box, comp))
-    for n, m, box, comp in moves:
-        out[n][box][comp] = False
-        out[m][box][comp] = True
+        small = area <= limit
+        small[0] = False  # label 0: the rest of the frame
+        small[1 + int(area[1:].argmax()) if count > 1 else 0] = False  # its largest piece
+        if not small.any():
+            continue
+        if beyond is None:
+            owner = np.where(out.any(0), out.argmax(0), -1)
+            beyond = np.pad(owner, 1, constant_values=-2)
+        # which owners each small piece's 4-neighbours have (columns: outside the frame, the
+        # floor, subject 0, 1, ...); a neighbour of n's own lies in the same piece
+        ys, xs = np.nonzero(small[labels])
+        piece = labels[ys, xs]
+        seen = np.zeros((count, N + 2), bool)
+        for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            nb = beyond[ys + 1 + dy, xs + 1 + dx]
+            other = nb != n
+            seen[piece[other], nb[other] + 2] = True
+        given = small & (seen.sum(1) == 1) & ~seen[:, :2].any(1)
+        move = given[piece]
+        if move.any():
+            moves.append((n, ys[move], xs[move], seen[piece[move], 2:].argmax(1)))
+    for n, ys, xs, holder in moves:
+        out[n, ys, xs] = False
+        out[holder, ys, xs] = True
     return out
 
 
