@@ -234,6 +234,8 @@ def _cases(base: Path, nodense: Path) -> list[Case]:
         Case("identities.jump 0", run, [*sc, "netepu.identities.jump=0"], "jump"),
         Case("inference.hole_share 2", run, [*sc, "train.inference.hole_share=2"],
              "hole_share"),
+        Case("inference.island_share -1", run, [*sc, "train.inference.island_share=-1"],
+             "island_share"),
         Case("inference.colour_model_separation high", run,
              [*sc, "train.inference.colour_model_separation=high"], "colour_model_separation"),
         Case("netepu.species unknown", run, [*sc, "netepu.species=cow"], "species"),
