@@ -95,6 +95,15 @@ def _pooled(counts: Tensor, ids: Tensor) -> Tensor:
     return pooled.index_add_(0, ids, counts)[ids]
 
 
+def _models(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int, bins: int,
+            groups: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_counts` and the individuals' pooled histograms (B * N, K) with their
+    log-likelihoods (B, N, H, W): ``counts, ids, cells, window, pooled, ll``."""
+    counts, ids, cells, window = _counts(images, owner, sure, num_windows, bins, groups)
+    pooled = _pooled(counts, ids)
+    return counts, ids, cells, window, pooled, _log_likelihood(pooled, cells)
+
+
 def _log_likelihood(counts: Tensor, cells: Tensor) -> Tensor:
     r""":math:`\log p_i(I(p))` (B, N, H, W) from the histograms (B * N, K), cells (B, H, W)."""
     B, H, W = cells.shape
@@ -127,8 +136,7 @@ def colour_log_likelihood(
     Returns:
         (B, N, H, W).
     """
-    counts, ids, cells, _ = _counts(images, owner, sure, num_windows, bins, groups)
-    return _log_likelihood(_pooled(counts, ids), cells)
+    return _models(images, owner, sure, num_windows, bins, groups)[-1]
 
 
 def colour_pair_separation(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int,
@@ -145,9 +153,8 @@ def colour_pair_separation(images: Tensor, owner: Tensor, sure: Tensor, num_wind
     Args:
         images, owner, sure, num_windows, bins, groups: as :func:`colour_log_likelihood`.
     """
-    counts, ids, cells, window = _counts(images, owner, sure, num_windows, bins, groups)
-    pooled = _pooled(counts, ids)
-    return _pair_kappa(pooled, _log_likelihood(pooled, cells), ids, cells, window, owner, sure)
+    _, ids, cells, window, pooled, ll = _models(images, owner, sure, num_windows, bins, groups)
+    return _pair_kappa(pooled, ll, ids, cells, window, owner, sure)
 
 
 def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int, bins: int,
@@ -162,10 +169,8 @@ def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int
         images, owner, sure, num_windows, bins, groups: as :func:`colour_log_likelihood`.
         separation: the :math:`\kappa_{ij}` below which two individuals are joined.
     """
-    counts, ids, cells, window = _counts(images, owner, sure, num_windows, bins, groups)
-    pooled = _pooled(counts, ids)
-    return _classes(pooled, _log_likelihood(pooled, cells), ids, cells, window, owner, sure,
-                    separation)
+    _, ids, cells, window, pooled, ll = _models(images, owner, sure, num_windows, bins, groups)
+    return _classes(pooled, ll, ids, cells, window, owner, sure, separation)
 
 
 def _pair_kappa(pooled: Tensor, ll: Tensor, ids: Tensor, cells: Tensor, window: Tensor,
@@ -234,10 +239,8 @@ class ColourModels:
         if self.weight <= 0 or score.shape[1] < 2:
             return score
         owner, sure = sure_owners(score, candidates, self.margin)
-        counts, ids, cells, window = _counts(images, owner, sure, score.shape[1], self.bins,
-                                             groups)
-        pooled = _pooled(counts, ids)
-        ll = _log_likelihood(pooled, cells)
+        counts, ids, cells, window, pooled, ll = _models(images, owner, sure, score.shape[1],
+                                                         self.bins, groups)
         if self.separation > 0:  # one model for the individuals colour cannot tell apart
             classes = _classes(pooled, ll, ids, cells, window, owner, sure, self.separation)
             if not torch.equal(classes, ids):  # some were joined
