@@ -18,7 +18,8 @@ filled, :mod:`nsd.cues.holes`; made as ``tools/bench_holes.py``, this script's f
 name), ``colour_separation`` (``colour_model_separation``: the colour models only in the
 instants whose individuals they tell apart, :mod:`nsd.inference.colour_models`),
 ``islands`` (``island_share``: a subject's small islands inside another subject given to
-it, :mod:`nsd.cues.holes`).
+it, :mod:`nsd.cues.holes`), ``neighbours`` (``neighbour_weight``: neighbouring pixels of one
+colour drawn to one owner, :mod:`nsd.inference.neighbours`).
 
 Writes ``docs/benchmarks/<--report>.{md,json}``.
 """
@@ -49,6 +50,11 @@ NOTES = {  # what each setting does, for the report's notes
                     "one other subject encloses, up to that share of its area, are given to "
                     "that subject (0: off; nsd/cues/holes.py); the hull-only row's masks are "
                     "cleaned the same way",
+    "neighbour_weight": "neighbouring pixels of one colour are drawn to one owner by a "
+                        "contrast-sensitive Potts term on the mask ownership, between windows "
+                        "as far as the colour models tell them apart (0: off; "
+                        "nsd/inference/neighbours.py); the hull-only row has no ownership "
+                        "scores and is unchanged",
     "colour_model_separation": "the individuals' colour models are used in an instant only "
                                "where their leave-one-out kappa reaches it (0: everywhere; "
                                "nsd/inference/colour_models.py); the hull-only row has no "

@@ -208,7 +208,9 @@ RULES: dict[str, dict[str, Rule]] = {
                       "int", low=2, high=32), "colour_model_margin": _r("number", low=0),
                   "colour_model_separation": FRACTION,  # a kappa; 0: everywhere
                   "hole_share": FRACTION,  # of a mask's area (nsd.cues.holes); 0: off
-                  "island_share": FRACTION},  # of a mask's area (nsd.cues.holes); 0: off
+                  "island_share": FRACTION,  # of a mask's area (nsd.cues.holes); 0: off
+                  # the Potts term of nsd.inference.neighbours; weight 0: off
+                  "neighbour_weight": _r("number", low=0), "neighbour_sigma": _r("number", low=0)},
     "train": {  # conf/train.yaml's own keys
         "device": DEVICE,
         "stage": _r("str", choices=("decomposition", "pose")), "batch_size": POS,

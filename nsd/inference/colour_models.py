@@ -51,6 +51,7 @@ __all__ = [
     "colour_log_likelihood",
     "colour_pair_separation",
     "sure_owners",
+    "window_compatibility",
 ]
 
 
@@ -170,7 +171,7 @@ def colour_classes(images: Tensor, owner: Tensor, sure: Tensor, num_windows: int
         separation: the :math:`\kappa_{ij}` below which two individuals are joined.
     """
     _, ids, cells, window, pooled, ll = _models(images, owner, sure, num_windows, bins, groups)
-    return _classes(pooled, ll, ids, cells, window, owner, sure, separation)
+    return _classes(*_pair_kappa(pooled, ll, ids, cells, window, owner, sure), ids, separation)
 
 
 def _pair_kappa(pooled: Tensor, ll: Tensor, ids: Tensor, cells: Tensor, window: Tensor,
@@ -194,10 +195,27 @@ def _pair_kappa(pooled: Tensor, ll: Tensor, ids: Tensor, cells: Tensor, window: 
     return 1 - 2 * lost_n / seen_n.clamp_min(1), seen_n
 
 
-def _classes(pooled: Tensor, ll: Tensor, ids: Tensor, cells: Tensor, window: Tensor,
-             owner: Tensor, sure: Tensor, separation: float) -> Tensor:
-    """:func:`colour_classes` from :func:`_pair_kappa`'s inputs."""
-    kappa, seen = _pair_kappa(pooled, ll, ids, cells, window, owner, sure)
+def window_compatibility(kappa: Tensor, seen: Tensor, ids: Tensor, num_windows: int) -> Tensor:
+    r"""How much colour tells each two windows of a frame apart, (B, N, N) in [0, 1]: their
+    individuals' :math:`\kappa_{ij}` (:func:`colour_pair_separation`) clipped to [0, 1]; 1 where
+    it was measured on fewer than ``MIN_PAIR_PIXELS`` pixels; 0 for two windows of one
+    individual and on the diagonal. The compatibility of
+    :mod:`nsd.inference.neighbours`' Potts term.
+
+    Args:
+        kappa, seen: (I, I) over the individuals' ids; ids: (B * N,) each window's individual.
+        num_windows: N.
+    """
+    ids = ids.reshape(-1, num_windows)
+    measured = seen >= MIN_PAIR_PIXELS
+    known = torch.where(measured, kappa.clamp(0, 1), torch.ones_like(kappa))
+    out = known[ids[:, :, None], ids[:, None, :]]
+    return out * (ids[:, :, None] != ids[:, None, :])
+
+
+def _classes(kappa: Tensor, seen: Tensor, ids: Tensor, separation: float) -> Tensor:
+    """:func:`colour_classes` from :func:`_pair_kappa`'s (I, I) ``kappa`` and ``seen`` and the
+    windows' individuals ``ids`` (B * N,)."""
     join = (seen >= MIN_PAIR_PIXELS) & (kappa < separation)
     size = len(kappa)
     cls = torch.arange(size)
@@ -236,13 +254,21 @@ class ColourModels:
             candidates: (B, H, W) bool, the foreground pixels a window claims.
             groups: as :func:`colour_log_likelihood`.
         """
+        return self.rescore_with_compatibility(score, images, candidates, groups)[0]
+
+    def rescore_with_compatibility(self, score: Tensor, images: Tensor, candidates: Tensor,
+                                   groups: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+        """:meth:`rescore`'s scores and the windows' :func:`window_compatibility` (B, N, N)
+        from the same histograms (None where the colour term is off or N < 2)."""
         if self.weight <= 0 or score.shape[1] < 2:
-            return score
+            return score, None
         owner, sure = sure_owners(score, candidates, self.margin)
         counts, ids, cells, window, pooled, ll = _models(images, owner, sure, score.shape[1],
                                                          self.bins, groups)
+        kappa, seen = _pair_kappa(pooled, ll, ids, cells, window, owner, sure)
         if self.separation > 0:  # one model for the individuals colour cannot tell apart
-            classes = _classes(pooled, ll, ids, cells, window, owner, sure, self.separation)
+            classes = _classes(kappa, seen, ids, self.separation)
             if not torch.equal(classes, ids):  # some were joined
                 ll = _log_likelihood(_pooled(counts, classes), cells)
-        return score + self.weight * ll
+        compatibility = window_compatibility(kappa, seen, ids, score.shape[1])
+        return score + self.weight * ll, compatibility

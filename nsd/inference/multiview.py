@@ -51,6 +51,7 @@ from nsd.cues.occupancy import (
 )
 from nsd.cues.proposals import match_proposals
 from nsd.inference.colour_models import ColourModels
+from nsd.inference.neighbours import NeighbourAgreement
 from nsd.inference.single import Decomposition, decompose
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
@@ -88,6 +89,9 @@ class InferenceSettings(ConfigSection):
         island_share: a subject's islands enclosed by one other subject, up to this share
             of its area, are given to that subject (:func:`nsd.cues.holes.give_islands`;
             0: off).
+        neighbour_weight, neighbour_sigma: the Potts term by which neighbouring pixels of one
+            colour share an owner (:class:`nsd.inference.neighbours.NeighbourAgreement`,
+            :attr:`neighbours`; weight 0: off).
         colour_model, colour_model_bins, colour_model_margin, colour_model_separation: the
             individuals' colour models in the mask ownership
             (:class:`nsd.inference.colour_models.ColourModels`, :attr:`colour_models`;
@@ -111,6 +115,8 @@ class InferenceSettings(ConfigSection):
     hull_contested: float
     hole_share: float
     island_share: float
+    neighbour_weight: float
+    neighbour_sigma: float
     colour_model: float
     colour_model_bins: int
     colour_model_margin: float
@@ -142,6 +148,12 @@ class InferenceSettings(ConfigSection):
             need(isinstance(share, (int, float)) and not isinstance(share, bool)
                  and 0.0 <= float(share) <= 1.0, key,
                  "must be a share of a mask's area in [0, 1] (0: off)")
+        for key in ("neighbour_weight", "neighbour_sigma"):
+            value = getattr(self, key)
+            need(isinstance(value, (int, float)) and not isinstance(value, bool)
+                 and 0.0 <= float(value) < float("inf"), key, "must be a number >= 0")
+        need(float(self.neighbour_sigma) > 0.0 or float(self.neighbour_weight) == 0.0,
+             "neighbour_sigma", "must be > 0 while inference.neighbour_weight is on")
         need(float(self.colour_model) >= 0.0, "colour_model", "must be >= 0 (0: off)")
         bins = self.colour_model_bins
         need(isinstance(bins, int) and not isinstance(bins, bool) and 2 <= bins <= 32,
@@ -175,6 +187,12 @@ class InferenceSettings(ConfigSection):
         """The masks' :class:`nsd.cues.holes.Speckle` rules from ``hole_share`` and
         ``island_share``."""
         return Speckle(float(self.hole_share), float(self.island_share))
+
+    @property
+    def neighbours(self) -> NeighbourAgreement:
+        """The masks' :class:`nsd.inference.neighbours.NeighbourAgreement` from
+        ``neighbour_weight`` and ``neighbour_sigma``."""
+        return NeighbourAgreement(float(self.neighbour_weight), float(self.neighbour_sigma))
 
     @property
     def colour_models(self) -> ColourModels | None:
@@ -334,6 +352,7 @@ def decompose_views(
         colour_sigma=settings.colour_sigma,
         colour_models=settings.colour_models,
         speckle=settings.speckle,
+        neighbours=settings.neighbours,
         evidence_threshold=evidence_threshold,
         evidence_softness=evidence_softness,
         **kwargs,

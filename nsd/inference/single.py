@@ -23,7 +23,8 @@ weights alone). Multi-view inference adds, in the log domain, ``owner_bonus`` fo
 subject whose visual-hull individual owns the pixel (:mod:`nsd.inference.multiview`; a
 smaller bonus where the hull cannot settle the owner), and the individuals' colour models,
 learned from the pixels each owns surely, add the likelihood of the pixel's colour
-(:mod:`nsd.inference.colour_models`).
+(:mod:`nsd.inference.colour_models`). Neighbouring pixels of one colour are then drawn to
+one owner, where colour tells their candidates apart (:mod:`nsd.inference.neighbours`).
 NSD still decides which subject a pixel belongs to and who
 occludes whom; the median background, which NSD already needs, only sharpens
 the silhouettes. Their speckle is cleaned (:mod:`nsd.cues.holes`): the small holes a mask
@@ -53,6 +54,7 @@ from nsd.core.device import model_device, move
 from nsd.cues.evidence import EVIDENCE_SOFTNESS, EVIDENCE_THRESHOLD, foreground_evidence
 from nsd.cues.holes import SPECKLE, Speckle
 from nsd.inference.colour_models import ColourModels
+from nsd.inference.neighbours import NEIGHBOURS_OFF, NeighbourAgreement
 from nsd.model.association import appearance_similarity
 from nsd.model.bi_nvs import BiNVS
 from nsd.model.detector import Detections
@@ -143,6 +145,7 @@ def decompose(
     colour_models: ColourModels | None = None,
     groups: Tensor | None = None,
     speckle: Speckle = SPECKLE,
+    neighbours: NeighbourAgreement = NEIGHBOURS_OFF,
 ) -> Decomposition:
     """Decompose frames (B, 3, H, W) with their backgrounds into subjects.
 
@@ -169,6 +172,9 @@ def decompose(
             hull individual in every view of an instant); None: each window alone.
         speckle: with ``refine="residual"``, the masks' small holes filled and small
             islands given to the subject around them (:class:`nsd.cues.holes.Speckle`).
+        neighbours: with ``refine="residual"``, the Potts term by which neighbouring pixels of
+            one colour share an owner (:mod:`nsd.inference.neighbours`; its compatibility
+            from ``colour_models``, Potts where they are off); default off.
     """
     was_training = model.training
     model.eval()
@@ -197,8 +203,11 @@ def decompose(
         if owner_allowed is not None:
             score = score - 1e4 * ~owner_allowed  # the learned order where none is allowed
         claim = fg[:, None] & claim
+        compatibility = None
         if colour_models is not None:
-            score = colour_models.rescore(score, images, claim[:, 0], groups)
+            score, compatibility = colour_models.rescore_with_compatibility(
+                score, images, claim[:, 0], groups)
+        score = neighbours.rescore(score, images, claim[:, 0], compatibility)
         owner = score.max(1, keepdim=True).indices  # argmax (first on ties), 5x faster on CPU
         masks = (torch.arange(raw.shape[1])[None, :, None, None] == owner) & claim
         masks = speckle.clean_batch(masks.to(raw.dtype))

@@ -143,7 +143,8 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     bgs = torch.cat([data.views(t)[1] for t in (0, 1)])
     V = data.num_views
     same = InferenceSettings.defaults(window_blend=0.0, depth="detector", resolution=16,
-                                      hull_ownership=0.0, hull_contested=0.0, colour_model=0.0)
+                                      hull_ownership=0.0, hull_contested=0.0, colour_model=0.0,
+                                      neighbour_weight=0.0)
     multi = decompose_views(model, views, bgs, V, same, same.grid(data.rig, data.frame_hw))
     single = decompose(model, views, bgs)
     for key in ("windows", "depths", "masks", "raw_masks", "app"):
@@ -152,7 +153,8 @@ def test_no_blend_and_detector_depths_reproduce_single_image_inference(tiny_scen
     assert single.slots is None
     # the single setting is decompose itself
     one = decompose_views(model, views, bgs, V,
-                          InferenceSettings.defaults(views="single", colour_model=0.0))
+                          InferenceSettings.defaults(views="single", colour_model=0.0,
+                                                     neighbour_weight=0.0))
     assert torch.equal(one.masks, single.masks) and one.slots is None
     with pytest.raises(ValueError, match="whole instants"):
         decompose_views(model, views[:3], bgs[:3], V, same, same.grid(data.rig, data.frame_hw))
