@@ -93,13 +93,17 @@ def neighbour_agreement(score: Tensor, images: Tensor, claim: Tensor, weight: fl
     if compatibility is None:
         compatibility = (1 - torch.eye(N, dtype=score.dtype)).expand(B, N, N)
     k = colour_affinities(images.to(score.dtype), claim, sigma)  # (B, 9, H, W)
+    mu = compatibility.to(score.dtype)
+    padded = score.new_zeros(B, N, H + 2, W + 2)  # Q with a frame of zeros
     out = score
     for _ in range(steps):
-        q = torch.softmax(out, 1)
-        near_q = F.unfold(q, 3, padding=1).view(B, N, 9, H, W)
-        message = (near_q * k[:, None]).sum(2)  # (B, N, H, W): neighbours' agreement with j
-        out = score - weight * torch.einsum("bij,bjhw->bihw", compatibility.to(score.dtype),
-                                            message)
+        padded[:, :, 1:-1, 1:-1] = torch.softmax(out, 1)
+        message = torch.zeros_like(score)  # (B, N, H, W): neighbours' agreement with each j
+        for n in range(9):
+            if n != 4:  # neighbour (dy, dx) = (n // 3 - 1, n % 3 - 1)
+                dy, dx = divmod(n, 3)
+                message.addcmul_(padded[:, :, dy:dy + H, dx:dx + W], k[:, n:n + 1])
+        out = score - weight * torch.einsum("bij,bjhw->bihw", mu, message)
     return out
 
 
