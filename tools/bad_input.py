@@ -236,6 +236,8 @@ def _cases(base: Path, nodense: Path) -> list[Case]:
              "hole_share"),
         Case("inference.island_share -1", run, [*sc, "train.inference.island_share=-1"],
              "island_share"),
+        Case("inference.neighbour_sigma 0", run, [*sc, "train.inference.neighbour_sigma=0"],
+             "neighbour_sigma"),
         Case("inference.colour_model_separation high", run,
              [*sc, "train.inference.colour_model_separation=high"], "colour_model_separation"),
         Case("netepu.species unknown", run, [*sc, "netepu.species=cow"], "species"),
