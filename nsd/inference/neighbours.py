@@ -39,7 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["NEIGHBOUR_SIGMA", "NEIGHBOUR_STEPS", "NEIGHBOUR_WEIGHT", "NeighbourAgreement",
+__all__ = ["NEIGHBOURS_OFF", "NEIGHBOUR_SIGMA", "NEIGHBOUR_STEPS", "NEIGHBOUR_WEIGHT",
+           "NeighbourAgreement",
            "colour_affinities", "neighbour_agreement"]
 
 # The shipped defaults when no config gives them; conf/inference/default.yaml
