@@ -40,8 +40,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = ["NEIGHBOURS_OFF", "NEIGHBOUR_SIGMA", "NEIGHBOUR_STEPS", "NEIGHBOUR_WEIGHT",
-           "NeighbourAgreement",
-           "colour_affinities", "neighbour_agreement"]
+           "NeighbourAgreement", "colour_affinities", "neighbour_agreement"]
 
 # The shipped defaults when no config gives them; conf/inference/default.yaml
 # (``inference.neighbour_weight``, ``inference.neighbour_sigma``) holds the same values, chosen
