@@ -1,6 +1,7 @@
 """Speed against torch's CPU threads: training steps, whole exports and one frame of inference.
 
     .venv/bin/python tools/bench_threads.py        # ~9 minutes, nothing else running
+    .venv/bin/python tools/bench_threads.py --spread 6   # ~6 minutes: threads_spread.md
 
 Each row runs in a fresh process (``threads`` as a command's ``threads=`` sets them) with
 its CPU affinity cut to that many cores (``taskset`` as a scheduler would), on the default
@@ -42,7 +43,9 @@ scene:
 * ``frame_ms``: one multi-view decomposition of one frame (4 views) alone;
 * ``gemm_gflops``: a 2048 x 2048 matrix product, what more threads can give.
 
-Writes ``docs/benchmarks/threads.{md,json}``.
+Writes ``docs/benchmarks/threads.{md,json}``. ``--spread K`` runs only the default training
+step (and the gemm) in K alternating pairs of fresh processes, 1 and every core, and writes
+``docs/benchmarks/threads_spread.{md,json}``: how much one pair's speed-up says.
 """
 
 from __future__ import annotations
@@ -53,6 +56,8 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -132,6 +137,12 @@ def trace_ssim():
     ssim_module._SSIM.apply = staticmethod(lambda *a: ssim_module._SSIM.forward(_Traced, *a))
 
 result["train_step_ms"], task = train_ms(cpu_columns=True)
+a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
+gemm = lambda: 2 * 2048**3 / median_time(lambda: torch.mm(a, b), repeats=5, warmup=1) / 1e9
+if sys.argv[4:] == ["train_only"]:  # --spread: the default step and the gemm alone
+    result["gemm_gflops"] = gemm()
+    print(json.dumps(result))
+    sys.exit(0)
 if sys.argv[4:] == ["heap_returned"]:  # and the step as it was before all three changes
     trace_ssim()
     result["train_step_ms_previous"], _ = train_ms(torch.contiguous_format)
@@ -173,8 +184,7 @@ grid = st.grid(data.rig, data.frame_hw)
 views, bgs = data.views(30)
 frame = lambda: decompose_views(task.model, views, bgs, data.num_views, st, grid)
 result["frame_ms"] = 1000 * median_time(frame, repeats=24, warmup=4)
-a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
-result["gemm_gflops"] = 2 * 2048**3 / median_time(lambda: torch.mm(a, b), repeats=5, warmup=1) / 1e9
+result["gemm_gflops"] = gemm()
 print(json.dumps(result))
 """
 
@@ -236,7 +246,53 @@ SPEED = {  # column -> True when larger is faster
 }
 
 
+def spread(pairs: int) -> None:
+    """``pairs`` alternating fresh processes of 1 and of every core, the default training step
+    and the gemm only: how far one pair's speed-up is from another's. Writes
+    ``threads_spread.{md,json}``."""
+    cores = sorted(os.sched_getaffinity(0))
+    n = len(cores)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(pairs):
+            row = {"pair": i + 1}
+            for threads in ((1, n) if i % 2 == 0 else (n, 1)):  # which goes first alternates
+                cpus = ",".join(str(c) for c in cores[:threads])
+                out = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD,
+                                      str(threads), "-", tmp, "train_only"],
+                                     capture_output=True, text=True, check=True, cwd=ROOT)
+                got = json.loads(out.stdout.strip().splitlines()[-1])
+                row[f"train_step_ms_{threads}"] = got["train_step_ms"]
+                row[f"gemm_gflops_{threads}"] = got["gemm_gflops"]
+            row["train_speed_up"] = row["train_step_ms_1"] / row[f"train_step_ms_{n}"]
+            row["gemm_speed_up"] = row[f"gemm_gflops_{n}"] / row["gemm_gflops_1"]
+            rows.append(row)
+            print(row, flush=True)
+    summary = {}
+    for key in ("train_step_ms_1", f"train_step_ms_{n}", "train_speed_up", "gemm_speed_up"):
+        values = [r[key] for r in rows]
+        summary |= {f"{key}_median": float(np.median(values)), f"{key}_min": min(values),
+                    f"{key}_max": max(values)}
+    pooled = float(np.median([r["train_step_ms_1"] for r in rows])
+                   / np.median([r[f"train_step_ms_{n}"] for r in rows]))
+    write_report(
+        "threads_spread", f"Training on 1 and {n} threads: the spread between processes", rows,
+        extra={**summary, "train_speed_up_of_medians": pooled, "pairs": pairs},
+        notes=(f"`tools/bench_threads.py --spread {pairs}`: {pairs} pairs of fresh processes, "
+               f"one on 1 core and one on {n} (taskset, that many torch threads), which of "
+               "the two goes first alternating from pair to pair; in each, the median of 60 "
+               "default training steps after 5 warm-ups from a fresh model (default scene, "
+               "batch and size, as `train_step_ms` of threads.md) and a 2048 x 2048 fp32 "
+               "matrix product (median of 5), what more threads can give. `train_speed_up`: "
+               "the pair's 1-core step over its n-core step; `train_speed_up_of_medians`: the "
+               "median 1-core step over the median n-core step."),
+    )
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["--spread"]:
+        spread(int(sys.argv[2]) if len(sys.argv) > 2 else 6)
+        return
     cores = sorted(os.sched_getaffinity(0))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
