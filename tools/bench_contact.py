@@ -182,6 +182,8 @@ def main() -> None:
                          "scenes already in it are not generated again")
     ap.add_argument("--checkpoints", type=Path, default=None,
                     help="an earlier root whose runs' checkpoints are loaded instead of training")
+    ap.add_argument("--note", default="",
+                    help="a sentence appended to the report's notes (e.g. how its runs were made)")
     ap.add_argument("--train-only", action="store_true",
                     help="train and export, score nothing, write no report (see --rescore)")
     args = ap.parse_args()
@@ -276,7 +278,8 @@ def main() -> None:
                "export whose camera-frame holds another row of their identity (at most one "
                "of them can be right). "
                "`measured`: this run, or the date and commit of rows carried from an "
-               "earlier report (`--carry`: scenes not re-run)."),
+               "earlier report (`--carry`: scenes not re-run)." + (f" {args.note}" if args.note
+                                                                    else "")),
     )
 
 
