@@ -14,21 +14,13 @@ colour likelihood, with RGB quantised into ``bins`` levels per channel
 .. math::
     p_i(c) = \frac{h_i(c) + \tfrac12}{\sum_{c'} h_i(c') + \tfrac{K}{2}},
 
-measures how well colour tells two individuals apart (below). What the ownership score gains
-is the likelihood under the same histogram shrunk towards the colours of its frame,
-
-.. math::
-    q_i(c) = \frac{h_i(c) + \alpha f(c)}{\sum_{c'} h_i(c') + \alpha}, \qquad
-    f(c) = \frac{\sum_j h_j(c) + \tfrac12}{\sum_{j, c'} h_j(c') + \tfrac{K}{2}},
-
-:math:`f` the add-half histogram of all the frame's windows' models together and
-:math:`\alpha` = ``PRIOR_COUNTS`` = 32 pseudo-counts, added to the log ownership score with
-``weight``: :math:`\log o_i(p) + w \log q_i(I(p))`. A window with few sure pixels then has the
-frame's colours, :math:`q_i \approx f`, and leaves the learned ownership as it was. (Shrunk
-towards a uniform histogram instead, as the add-half :math:`p_i` is, such a window scored
-every common colour far below its neighbours' peaked histograms and lost its pixels to them:
-a whole individual's mask went to its look-alike neighbour; docs/nsd.md "Neighbours of one
-colour".) Which pixels are foreground is not changed, only who owns them.
+is added to the log ownership score with ``weight``: :math:`\log o_i(p) + w \log p_i(I(p))`.
+A window with few sure pixels has a near-uniform :math:`p_i`, which likes every common colour
+less than a neighbour's peaked histogram does, so it tends to lose contested pixels to its
+neighbours (a whole look-alike's mask, at worst). Shrinking the histograms towards the frame's
+colours instead was measured and not kept: it lost more identities over time than it found
+instances (docs/nsd.md, "A window with few sure pixels"). Which pixels are foreground is not
+changed, only who owns them.
 
 Individuals of one colour (mice of one strain) are the exception: their histograms differ
 only by the pixels each happened to own surely, and that noise moved pixels between them
@@ -56,12 +48,8 @@ from nsd.cues.colour_cells import colour_cells
 
 # Pixels two individuals must own surely between them before their colours are compared.
 MIN_PAIR_PIXELS = 20
-# Pseudo-counts of the frame's colours in each histogram of the ownership score (alpha, module
-# docstring); 8, 32 and 64 scored within 0.001 of mask mIoU on four checkpoints.
-PRIOR_COUNTS = 32.0
 
 __all__ = [
-    "PRIOR_COUNTS",
     "ColourModels",
     "colour_classes",
     "colour_log_likelihood",
@@ -129,19 +117,6 @@ def _log_likelihood(counts: Tensor, cells: Tensor) -> Tensor:
     log_p = log_p.reshape(B, -1, K)
     N = log_p.shape[1]
     return log_p.gather(2, cells.reshape(B, 1, H * W).expand(B, N, H * W)).reshape(B, N, H, W)
-
-
-def _frame_log_likelihood(counts: Tensor, cells: Tensor) -> Tensor:
-    r""":math:`\log q_i(I(p))` (B, N, H, W): the histograms (B * N, K) shrunk towards the colours
-    of their frame, ``PRIOR_COUNTS`` pseudo-counts (module docstring); cells (B, H, W)."""
-    B, H, W = cells.shape
-    K = counts.shape[1]
-    own = counts.reshape(B, -1, K)
-    frame = own.sum(1, keepdim=True)
-    prior = (frame + 0.5) / (frame.sum(-1, keepdim=True) + 0.5 * K)
-    log_q = ((own + PRIOR_COUNTS * prior) / (own.sum(-1, keepdim=True) + PRIOR_COUNTS)).log()
-    N = log_q.shape[1]
-    return log_q.gather(2, cells.reshape(B, 1, H * W).expand(B, N, H * W)).reshape(B, N, H, W)
 
 
 def colour_log_likelihood(
@@ -298,6 +273,6 @@ class ColourModels:
         if self.separation > 0:  # one model for the individuals colour cannot tell apart
             classes = _classes(kappa, seen, ids, self.separation)
             if not torch.equal(classes, ids):  # some were joined
-                pooled = _pooled(counts, classes)
+                ll = _log_likelihood(_pooled(counts, classes), cells)
         compatibility = window_compatibility(kappa, seen, ids, score.shape[1])
-        return score + self.weight * _frame_log_likelihood(pooled, cells), compatibility
+        return score + self.weight * ll, compatibility

@@ -91,23 +91,6 @@ def test_colour_models_settle_a_tie_by_colour():
     assert torch.equal(models.rescore(score[:, :1], img, fg), score[:, :1])
 
 
-def test_a_window_with_no_sure_pixels_keeps_its_learned_pixels():
-    """Window 0 owns 100 red pixels surely; window 1 owns none surely but leads the learned
-    score by 1 nat on one more red pixel. Its histogram shrunk towards the frame's colours
-    (all red) likes red almost as much as window 0's: the pixel stays with window 1. Shrunk
-    towards a uniform histogram (the add-half likelihood), it would go to window 0."""
-    img = _image([RED] * 101)
-    score = torch.zeros(1, 2, 1, 101)
-    score[0, 0, 0, :100] = 5.0
-    score[0, 1, 0, 100] = 1.0
-    fg = torch.ones(1, 1, 101, dtype=torch.bool)
-    out = ColourModels(weight=2.0, bins=2, margin=2.0).rescore(score, img, fg)
-    assert out.argmax(1)[0, 0, 100] == 1 and (out.argmax(1)[0, 0, :100] == 0).all()
-    owner, sure = sure_owners(score, fg, 2.0)
-    uniform = score + 2.0 * colour_log_likelihood(img, owner, sure, 2, bins=2)
-    assert uniform.argmax(1)[0, 0, 100] == 0
-
-
 def test_colour_models_change_owners_never_the_foreground(tiny_scene):
     """decompose with and without the colour models: the same foreground pixels are given
     to some window, and every pixel to exactly one."""
