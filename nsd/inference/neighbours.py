@@ -50,6 +50,14 @@ NEIGHBOUR_SIGMA = 0.2
 NEIGHBOUR_STEPS = 3
 
 
+def _neighbours(x: Tensor) -> list[Tensor]:
+    """The 9 views of ``x`` (..., H, W) shifted to each pixel's 3 x 3 neighbourhood, zero
+    outside the frame: entry ``(dy + 1) * 3 + (dx + 1)`` holds ``x[..., y + dy, x + dx]``."""
+    H, W = x.shape[-2:]
+    padded = F.pad(x, (1, 1, 1, 1))
+    return [padded[..., dy:dy + H, dx:dx + W] for dy in range(3) for dx in range(3)]
+
+
 def colour_affinities(images: Tensor, claim: Tensor, sigma: float) -> Tensor:
     r""":math:`k(p, q)` of each pixel with its 8 neighbours, 0 unless both are claimed.
 
@@ -61,9 +69,8 @@ def colour_affinities(images: Tensor, claim: Tensor, sigma: float) -> Tensor:
     Returns:
         (B, 9, H, W): neighbour ``(dy + 1) * 3 + (dx + 1)`` of each pixel; the centre (4) is 0.
     """
-    B, _, H, W = images.shape
-    near = F.unfold(images, 3, padding=1).view(B, 3, 9, H, W)
-    near_claim = F.unfold(claim[:, None].to(images.dtype), 3, padding=1).view(B, 9, H, W)
+    near = torch.stack(_neighbours(images), 2)  # (B, 3, 9, H, W)
+    near_claim = torch.stack(_neighbours(claim.to(images.dtype)), 1)  # (B, 9, H, W)
     k = torch.exp(-(near - images[:, :, None]).pow(2).sum(1) / (2 * sigma**2))
     k = k * near_claim * claim[:, None]
     k[:, 4] = 0
@@ -87,22 +94,20 @@ def neighbour_agreement(score: Tensor, images: Tensor, claim: Tensor, weight: fl
     Returns:
         (B, N, H, W); equal to ``score`` where ``weight`` <= 0, ``steps`` is 0 or N < 2.
     """
-    B, N, H, W = score.shape
+    B, N = score.shape[:2]
     if weight <= 0 or steps <= 0 or N < 2:
         return score
     if compatibility is None:
         compatibility = (1 - torch.eye(N, dtype=score.dtype)).expand(B, N, N)
     k = colour_affinities(images.to(score.dtype), claim, sigma)  # (B, 9, H, W)
     mu = compatibility.to(score.dtype)
-    padded = score.new_zeros(B, N, H + 2, W + 2)  # Q with a frame of zeros
     out = score
     for _ in range(steps):
-        padded[:, :, 1:-1, 1:-1] = torch.softmax(out, 1)
+        near_q = _neighbours(torch.softmax(out, 1))
         message = torch.zeros_like(score)  # (B, N, H, W): neighbours' agreement with each j
-        for n in range(9):
-            if n != 4:  # neighbour (dy, dx) = (n // 3 - 1, n % 3 - 1)
-                dy, dx = divmod(n, 3)
-                message.addcmul_(padded[:, :, dy:dy + H, dx:dx + W], k[:, n:n + 1])
+        for n, q in enumerate(near_q):
+            if n != 4:
+                message.addcmul_(q, k[:, n:n + 1])
         out = score - weight * torch.einsum("bij,bjhw->bihw", mu, message)
     return out
 
