@@ -50,6 +50,7 @@ step (and the gemm) in K alternating pairs of fresh processes, 1 and every core,
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -246,6 +247,15 @@ SPEED = {  # column -> True when larger is faster
 }
 
 
+def child(threads: int, cpus: str, checkpoint: str, tmp: str, *mode: str) -> dict:
+    """The figures of one fresh ``CHILD`` process with ``threads`` torch threads on ``cpus``
+    (``mode``: ``heap_returned`` or ``train_only``; none: every figure)."""
+    out = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD, str(threads),
+                          checkpoint, tmp, *mode],
+                         capture_output=True, text=True, check=True, cwd=ROOT)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def spread(pairs: int) -> None:
     """``pairs`` alternating fresh processes of 1 and of every core, the default training step
     and the gemm only: how far one pair's speed-up is from another's. Writes
@@ -257,11 +267,8 @@ def spread(pairs: int) -> None:
         for i in range(pairs):
             row = {"pair": i + 1}
             for threads in ((1, n) if i % 2 == 0 else (n, 1)):  # which goes first alternates
-                cpus = ",".join(str(c) for c in cores[:threads])
-                out = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD,
-                                      str(threads), "-", tmp, "train_only"],
-                                     capture_output=True, text=True, check=True, cwd=ROOT)
-                got = json.loads(out.stdout.strip().splitlines()[-1])
+                got = child(threads, ",".join(str(c) for c in cores[:threads]), "-", tmp,
+                            "train_only")
                 row[f"train_step_ms_{threads}"] = got["train_step_ms"]
                 row[f"gemm_gflops_{threads}"] = got["gemm_gflops"]
             row["train_speed_up"] = row["train_step_ms_1"] / row[f"train_step_ms_{n}"]
@@ -290,8 +297,13 @@ def spread(pairs: int) -> None:
 
 
 def main() -> None:
-    if sys.argv[1:2] == ["--spread"]:
-        spread(int(sys.argv[2]) if len(sys.argv) > 2 else 6)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--spread", type=int, default=0, metavar="K",
+                    help="only K alternating pairs of 1- and n-core processes of the default "
+                         "training step (threads_spread.md)")
+    args = ap.parse_args()
+    if args.spread:
+        spread(args.spread)
         return
     cores = sorted(os.sched_getaffinity(0))
     rows = []
@@ -301,14 +313,8 @@ def main() -> None:
                         f"hydra.run.dir={run}"], check=True, capture_output=True, cwd=ROOT)
         for n in range(1, len(cores) + 1):
             cpus = ",".join(str(c) for c in cores[:n])
-            out = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD, str(n),
-                                  str(run / "checkpoint.pt"), tmp],
-                                 capture_output=True, text=True, check=True, cwd=ROOT)
-            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
-            returned = subprocess.run(["taskset", "-c", cpus, sys.executable, "-c", CHILD, str(n),
-                                       str(run / "checkpoint.pt"), tmp, "heap_returned"],
-                                      capture_output=True, text=True, check=True, cwd=ROOT)
-            before = json.loads(returned.stdout.strip().splitlines()[-1])
+            rows.append(child(n, cpus, str(run / "checkpoint.pt"), tmp))
+            before = child(n, cpus, str(run / "checkpoint.pt"), tmp, "heap_returned")
             rows[-1]["train_step_ms_heap_returned"] = before["train_step_ms"]
             rows[-1]["train_step_ms_previous"] = before["train_step_ms_previous"]
             rows[-1]["train_step_ms_ranks"] = (rows[-1]["train_step_ms"] if n == 1
