@@ -2,13 +2,17 @@
 
     .venv/bin/python tools/train_species_models.py biped            # ~40 min on two cores
     .venv/bin/python tools/train_species_models.py biped --check    # retrain, compare SHA-256
+    .venv/bin/python tools/train_species_models.py quadruped --pose-from OLD.pt  # last stage only
 
 For a species: ``netepu-train`` geometry on the synthetic world (``RECIPES``: overrides and
 steps), then the texture stage from that geometry, both with the trainer's fixed seed,
 on the recipe's CPU threads and with step budgets (never minutes, which depend on the
-machine). The texture checkpoint (which holds its geometry model) is stripped to its config
-and weights and written to ``netepu/pipeline/models/<species>.pt``; ``models.json`` records
-how it was made, its SHA-256 and the final held-out figures of both stages.
+machine); then, where the recipe has ``pose_steps``, the pose code refitted on fresh poses
+(:mod:`netepu.geometry.pose_code`, seeded). ``--pose-from`` runs that last stage alone on a
+file the first two made (its SHA-256 is recorded as ``pose_from_sha256``). The texture
+checkpoint (which holds its geometry model) is stripped to its config and weights and
+written to ``netepu/pipeline/models/<species>.pt``; ``models.json`` records how it was made,
+its SHA-256 and the final held-out figures of the stages.
 
 The same torch build, CPU kind and thread count reproduce the file bit for bit: ``--check``
 trains again into a temporary folder and compares the hash with the manifest's (other CPUs
@@ -24,10 +28,15 @@ import tempfile
 import time
 from pathlib import Path
 
+import torch
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from netepu.cli.train import run  # noqa: E402
+from netepu.geometry.data import DataConfig  # noqa: E402
+from netepu.geometry.model import build_geometry_model  # noqa: E402
+from netepu.geometry.pose_code import PoseCodeSettings, refit_pose_code  # noqa: E402
 from netepu.pipeline.species_models import MODELS  # noqa: E402
 from nsd.core.atomic import atomic_save_torch  # noqa: E402
 from nsd.core.config import compose_app  # noqa: E402
@@ -45,6 +54,7 @@ RECIPES = {
         "geometry_steps": 6000,
         "texture": [],
         "texture_steps": 2083,
+        "pose_steps": 0,
         "threads": 2,
     },
     "quadruped": {
@@ -52,6 +62,8 @@ RECIPES = {
         "geometry_steps": 5000,
         "texture": ["netepu.texture.model.renderer.k=20"],
         "texture_steps": 2083,
+        # docs/netepu.md "The pose code": its decoder's floor on fresh poses 60 -> 27 mm
+        "pose_steps": 2400,
         "threads": 2,
     },
 }
@@ -69,6 +81,22 @@ def _train(overrides: list[str], steps: int, threads: int, out: Path) -> dict[st
 def _figures(metrics: dict[str, float]) -> dict[str, float]:
     return {k: round(float(v), 6) for k, v in sorted(metrics.items())
             if k.split("/")[0] in FIGURES}
+
+
+def refit_pose(model: dict, steps: int, threads: int) -> dict[str, float]:
+    """Refit the pose code of the stripped checkpoint ``model`` (its geometry weights replaced
+    in place) for ``steps`` steps on ``threads`` threads; returns the figures."""
+    torch.set_num_threads(threads)
+    net = model["config"]["netepu"]
+    geo = build_geometry_model(net["model"], int(net["data"]["n_keypoints"]),
+                               float(net["data"]["radius"]))
+    geo.load_state_dict(model["modules"]["geometry"])
+    figures = refit_pose_code(geo, DataConfig.from_mapping(net["data"]),
+                              PoseCodeSettings(steps=steps),
+                              progress=lambda step, loss: print(f"pose code: step {step}, "
+                                                                f"loss {loss:.4f}", flush=True))
+    model["modules"]["geometry"] = {k: v.detach().clone() for k, v in geo.state_dict().items()}
+    return {k: round(v, 6) for k, v in figures.items()}
 
 
 def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
@@ -98,6 +126,36 @@ def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
         "minutes": {"geometry": round((t1 - t0) / 60, 1), "texture": round((t2 - t1) / 60, 1)},
         "figures": {"geometry": _figures(geo), "texture": _figures(tex)},
     }
+    if recipe["pose_steps"]:
+        made["steps"]["pose"] = max(1, round(recipe["pose_steps"] * scale))
+        t3 = time.perf_counter()
+        made["figures"]["pose_code"] = refit_pose(model, made["steps"]["pose"], threads)
+        made["minutes"]["pose"] = round((time.perf_counter() - t3) / 60, 1)
+    return model, made
+
+
+def _pose_only(species: str, source: Path, manifest_path: Path, threads: int) -> tuple[dict, dict]:
+    """The pose stage alone on ``source`` (a file of the first two stages, whose manifest
+    entry, if it is the shipped one, is carried over)."""
+    steps = RECIPES[species]["pose_steps"]
+    if not steps:
+        raise SystemExit(f"{species}: the recipe has no pose stage (pose_steps 0)")
+    digest = sha256_file(source)
+    entry = _manifest(manifest_path).get("models", {}).get(species, {})
+    made = {k: v for k, v in entry.items()
+            if k not in ("file", "sha256", "bytes", "torch", "machine", "commit", "date")}
+    if entry.get("sha256") != digest:
+        raise SystemExit(f"--pose-from {source}: not the file models.json records for "
+                         f"{species} (sha256 {digest[:16]}...): retrain all stages instead")
+    if "pose" in entry.get("steps", {}):
+        raise SystemExit(f"--pose-from {source}: its pose code was refitted already (from "
+                         f"{str(entry.get('pose_from_sha256'))[:16]}...)")
+    model = load_checkpoint(source)
+    t0 = time.perf_counter()
+    made["figures"] = {**made.get("figures", {}), "pose_code": refit_pose(model, steps, threads)}
+    made["steps"] = {**made.get("steps", {}), "pose": steps}
+    made["minutes"] = {**made.get("minutes", {}), "pose": round((time.perf_counter() - t0) / 60, 1)}
+    made["pose_from_sha256"] = digest
     return model, made
 
 
@@ -118,11 +176,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=MODELS, help="the models folder")
     ap.add_argument("--work", type=Path, default=None,
                     help="keep the two training runs here (default: a temporary folder)")
+    ap.add_argument("--pose-from", type=Path, default=None,
+                    help="only refit the pose code of this file (made by the first two stages)")
     args = ap.parse_args(argv)
     manifest_path = args.out / "models.json"
     with tempfile.TemporaryDirectory(prefix="species-models-") as tmp:
         threads = args.threads or RECIPES[args.species]["threads"]
-        model, made = train_species(args.species, args.work or Path(tmp), threads)
+        if args.pose_from is not None:
+            model, made = _pose_only(args.species, args.pose_from, manifest_path, threads)
+        else:
+            model, made = train_species(args.species, args.work or Path(tmp), threads)
         target = Path(tmp) / f"{args.species}.pt" if args.check else args.out / f"{args.species}.pt"
         atomic_save_torch(model, target)
         digest = sha256_file(target)

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import json
+
+import pytest
 import torch
 
+import tools.train_species_models as tsm
 from netepu.geometry.model import load_geometry_model
 from netepu.texture.model import load_texture_model
 from nsd.core.atomic import atomic_save_torch
@@ -60,3 +64,33 @@ def test_species_model_is_reproduced_bit_for_bit(tmp_path):
     for k, v in geo.state_dict().items():
         assert torch.equal(v, geo2.state_dict()[k])
     assert set(model) == {"format", "config", "modules", "step"}  # no optimiser, no RNG state
+
+
+def test_pose_stage_alone_refits_the_recorded_file_and_refuses_another(tmp_path, monkeypatch):
+    model, made = train_species("biped", tmp_path / "run", threads=1, scale=0.002,
+                                extra=_tiny(tmp_path / "cache"))
+    source = tmp_path / "biped.pt"
+    atomic_save_torch(model, source)
+    manifest = tmp_path / "models.json"
+    manifest.write_text(json.dumps({"models": {"biped": {
+        "file": "biped.pt", "sha256": sha256_file(source), **made}}}))
+    monkeypatch.setitem(tsm.RECIPES, "biped", {**tsm.RECIPES["biped"], "pose_steps": 3})
+    refit, made2 = tsm._pose_only("biped", source, manifest, threads=1)
+    assert made2["steps"] == {**made["steps"], "pose": 3}
+    assert made2["pose_from_sha256"] == sha256_file(source)
+    assert made2["figures"]["texture"] == made["figures"]["texture"]  # carried over
+    assert {"round_trip_own_after_mm", "feature_change"} <= set(made2["figures"]["pose_code"])
+    before, after = model["modules"]["geometry"], refit["modules"]["geometry"]
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed and all(k.startswith(("encoder.", "decoder.mlp_pos.")) for k in changed)
+    assert refit["modules"]["texture"] is not None
+    # a file that is not the one models.json records: refused, naming it
+    other = tmp_path / "other.pt"
+    atomic_save_torch(refit, other)
+    with pytest.raises(SystemExit, match=r"other\.pt"):
+        tsm._pose_only("biped", other, manifest, threads=1)
+    # the refitted file, once recorded, is not refitted a second time
+    manifest.write_text(json.dumps({"models": {"biped": {
+        "file": "other.pt", "sha256": sha256_file(other), **made2}}}))
+    with pytest.raises(SystemExit, match="refitted already"):
+        tsm._pose_only("biped", other, manifest, threads=1)
