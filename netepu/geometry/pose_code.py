@@ -4,7 +4,7 @@ Inverse rendering (:mod:`netepu.geometry.inverse`) returns the keypoints decoded
 code it finds, so the decoder's range is a floor under its error. The geometry stage trains
 the encoder and the keypoint decoder (``decoder.mlp_pos``) by the keypoint loss alone, on the
 poses of its training set (640 poses of one body). On fresh poses the shipped quadruped of
-2026-11-28 decoded no closer than 60 mm, the biped 19 mm
+2026-11-26 decoded no closer than 60 mm, the biped 19 mm
 (``docs/benchmarks/keypoint_floor.md``): the quadruped's keypoints from perfect masks were
 ~110 mm off.
 
