@@ -31,7 +31,6 @@ column. Writes
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -47,11 +46,11 @@ from netepu.geometry.data import DataConfig, build_geometry_data  # noqa: E402
 from netepu.geometry.evaluation import evaluate_views  # noqa: E402
 from netepu.geometry.maps import MapSettings  # noqa: E402
 from netepu.geometry.model import load_geometry_model  # noqa: E402
-from netepu.geometry.pose_code import fresh_poses  # noqa: E402
+from netepu.geometry.pose_code import fresh_poses, round_trip_error  # noqa: E402
 from netepu.pipeline.species_models import MODELS, builtin_initialisers  # noqa: E402
 from netepu.pipeline.subject_keypoints import invert_export  # noqa: E402
 from nsd.io.ground_truth import GroundTruth  # noqa: E402
-from tools.bench_keypoints import errors, truth_export  # noqa: E402
+from tools.bench_keypoints import errors, run_scene, truth_export  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 SPECIES = ("biped", "quadruped")
@@ -62,9 +61,9 @@ def floors(model, poses: torch.Tensor, steps: int) -> dict[str, float]:
     ``poses`` (n, K, 3) in metres."""
     for p in model.parameters():
         p.requires_grad_(False)
+    trip = round_trip_error(model, poses)
     with torch.no_grad():
         code = model.encode(poses)
-    trip = (code.keypoints - poses).norm(dim=-1).mean(1)
     z = code.z.clone().requires_grad_(True)
     centre = code.centre.clone().requires_grad_(True)
     opt = torch.optim.Adam([z, centre], lr=0.01)
@@ -98,15 +97,15 @@ def renders(model, config: dict) -> dict[str, float]:
 
 
 def invert(run: Path, scene: str, models: Path, species: str, kind: str, step: int,
-           work: Path) -> dict:
-    """MPJPE of the default inversion of ``run``'s export (``kind`` ``export``) or of the
-    ground truth's amodal masks of its rows (``amodal``), and seconds per subject-frame."""
+           out: Path) -> dict:
+    """MPJPE of the default inversion (into ``out``) of ``run``'s export (``kind``
+    ``export``) or of the ground truth's amodal masks of its rows (``amodal``, made once in
+    ``out``'s parent), and seconds per subject-frame."""
     export = run / "export"
     if kind == "amodal":
-        export = work / f"{run.name}_amodal"
-        truth_export(run / "export", scene, export, "amodal")
-    out = work / f"{run.name}_{kind}_{len(list(work.iterdir()))}"
-    torch.set_num_threads(1)
+        export = out.parent / f"{run.name}_amodal"
+        if not (export / "subjects.coco.json").is_file():
+            truth_export(run / "export", scene, export, "amodal")
     t = time.perf_counter()
     s = invert_export(export, scene, models / f"{species}.pt", out, frame_step=step,
                       occlusion=kind == "export",
@@ -132,6 +131,7 @@ def main() -> None:
     args = ap.parse_args()
     rows = []
     work = Path(tempfile.mkdtemp(prefix="bench-keypoint-floor-"))
+    torch.set_num_threads(1)  # the inversions' seconds are of one thread
     for entry in args.models:
         torch.manual_seed(0)
         name, _, folder = entry.rpartition("=")
@@ -151,9 +151,7 @@ def main() -> None:
                              "n": len(poses), **floors(model, poses, args.fit_steps)})
                 print(rows[-1], flush=True)
         for run in args.run:
-            scene = json.loads((run / "pipeline.json").read_text())["scene"]["summary"]["path"]
-            species = json.loads((Path(scene) / "gt" / "scene.json").read_text())[
-                "individuals"][0]["species"]
+            scene, species = run_scene(run)
             model, _ = load_geometry_model(models / f"{species}.pt")
             gt = GroundTruth.load(scene)
             poses = torch.cat([torch.as_tensor(np.asarray(kp[::args.frame_step]),
@@ -164,7 +162,8 @@ def main() -> None:
                    f"{len(gt.scene.keypoints3d)} individuals", "n": len(poses),
                    **floors(model, poses, args.fit_steps)}
             for kind in ("amodal", "export"):
-                e = invert(run, scene, models, species, kind, args.frame_step, work)
+                e = invert(run, scene, models, species, kind, args.frame_step,
+                           work / f"{name}_{run.name}_{kind}")
                 row |= {f"{kind}_{k}": v for k, v in e.items()}
             rows.append(row)
             print(rows[-1], flush=True)

@@ -97,6 +97,14 @@ def _initialiser(kw: dict, species: str) -> dict:
     return {**kw, "initialiser": str(MODELS / builtin_initialisers()[species]["file"])}
 
 
+def run_scene(run: Path) -> tuple[str, str]:
+    """The scene folder of an ``nsd-run`` folder and the species of its first individual."""
+    scene = json.loads((run / "pipeline.json").read_text())["scene"]["summary"]["path"]
+    species = json.loads((Path(scene) / "gt" / "scene.json").read_text())[
+        "individuals"][0]["species"]
+    return scene, species
+
+
 def truth_export(export: Path, scene: str, out: Path, kind: str) -> None:
     """A copy of ``export`` whose matched rows carry the ground truth's visible or amodal mask
     of their individual (unmatched rows dropped)."""
@@ -204,10 +212,8 @@ def main() -> None:
     jobs, exports, scenes = [], {}, {}  # (row name, run, masks, invert_export settings, model)
     mirrors = {}  # run -> its species' left/right index
     for run in args.run:
-        pipeline = json.loads((run / "pipeline.json").read_text())
-        scene = scenes[run] = pipeline["scene"]["summary"]["path"]
-        species = json.loads((Path(scene) / "gt" / "scene.json").read_text())[
-            "individuals"][0]["species"]
+        scene, species = run_scene(run)
+        scenes[run] = scene
         mirrors[run] = get_species(species).mirror_index()
         exports[run, "export"] = run / "export"
         for kind in ("visible", "amodal"):

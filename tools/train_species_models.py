@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from netepu.cli.train import run  # noqa: E402
 from netepu.geometry.data import DataConfig  # noqa: E402
-from netepu.geometry.model import build_geometry_model  # noqa: E402
+from netepu.geometry.model import geometry_model_from_state  # noqa: E402
 from netepu.geometry.pose_code import PoseCodeSettings, refit_pose_code  # noqa: E402
 from netepu.pipeline.species_models import MODELS  # noqa: E402
 from nsd.core.atomic import atomic_save_torch  # noqa: E402
@@ -83,20 +83,23 @@ def _figures(metrics: dict[str, float]) -> dict[str, float]:
             if k.split("/")[0] in FIGURES}
 
 
-def refit_pose(model: dict, steps: int, threads: int) -> dict[str, float]:
+def refit_pose(model: dict, made: dict, steps: int, threads: int) -> None:
     """Refit the pose code of the stripped checkpoint ``model`` (its geometry weights replaced
-    in place) for ``steps`` steps on ``threads`` threads; returns the figures."""
+    in place) for ``steps`` steps on ``threads`` threads; ``made`` gets the stage's steps,
+    minutes and figures."""
+    t0 = time.perf_counter()
     torch.set_num_threads(threads)
-    net = model["config"]["netepu"]
-    geo = build_geometry_model(net["model"], int(net["data"]["n_keypoints"]),
-                               float(net["data"]["radius"]))
-    geo.load_state_dict(model["modules"]["geometry"])
-    figures = refit_pose_code(geo, DataConfig.from_mapping(net["data"]),
+    geo, config = geometry_model_from_state(model, "the pose stage's input")
+    figures = refit_pose_code(geo, DataConfig.from_mapping(config["netepu"]["data"]),
                               PoseCodeSettings(steps=steps),
                               progress=lambda step, loss: print(f"pose code: step {step}, "
                                                                 f"loss {loss:.4f}", flush=True))
     model["modules"]["geometry"] = {k: v.detach().clone() for k, v in geo.state_dict().items()}
-    return {k: round(v, 6) for k, v in figures.items()}
+    made["steps"] = {**made.get("steps", {}), "pose": steps}
+    made["minutes"] = {**made.get("minutes", {}),
+                       "pose": round((time.perf_counter() - t0) / 60, 1)}
+    made["figures"] = {**made.get("figures", {}),
+                       "pose_code": {k: round(v, 6) for k, v in figures.items()}}
 
 
 def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
@@ -127,10 +130,7 @@ def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
         "figures": {"geometry": _figures(geo), "texture": _figures(tex)},
     }
     if recipe["pose_steps"]:
-        made["steps"]["pose"] = max(1, round(recipe["pose_steps"] * scale))
-        t3 = time.perf_counter()
-        made["figures"]["pose_code"] = refit_pose(model, made["steps"]["pose"], threads)
-        made["minutes"]["pose"] = round((time.perf_counter() - t3) / 60, 1)
+        refit_pose(model, made, max(1, round(recipe["pose_steps"] * scale)), threads)
     return model, made
 
 
@@ -151,10 +151,7 @@ def _pose_only(species: str, source: Path, manifest_path: Path, threads: int) ->
         raise SystemExit(f"--pose-from {source}: its pose code was refitted already (from "
                          f"{str(entry.get('pose_from_sha256'))[:16]}...)")
     model = load_checkpoint(source)
-    t0 = time.perf_counter()
-    made["figures"] = {**made.get("figures", {}), "pose_code": refit_pose(model, steps, threads)}
-    made["steps"] = {**made.get("steps", {}), "pose": steps}
-    made["minutes"] = {**made.get("minutes", {}), "pose": round((time.perf_counter() - t0) / 60, 1)}
+    refit_pose(model, made, steps, threads)
     made["pose_from_sha256"] = digest
     return model, made
 

@@ -27,7 +27,8 @@ from nsd.cameras.batch import CameraBatch
 from nsd.core.errors import CheckpointError, ConfigError
 from nsd.core.trainer import load_checkpoint
 
-__all__ = ["GeometryModel", "build_geometry_model", "load_geometry_model"]
+__all__ = ["GeometryModel", "build_geometry_model", "geometry_model_from_state",
+           "load_geometry_model"]
 
 
 class GeometryModel(nn.Module):
@@ -137,7 +138,13 @@ def load_geometry_model(path: str | os.PathLike) -> tuple[GeometryModel, dict[st
         ``(model, config)``: the model in eval mode and the run's config.
     """
 
-    state = load_checkpoint(path)
+    return geometry_model_from_state(load_checkpoint(path), str(path))
+
+
+def geometry_model_from_state(state: dict[str, Any], source: str) -> tuple[GeometryModel,
+                                                                           dict[str, Any]]:
+    """:func:`load_geometry_model` of a checkpoint already loaded (``source`` names it in
+    errors)."""
     config = state.get("config") or {}
     try:
         net = config["netepu"]
@@ -145,7 +152,7 @@ def load_geometry_model(path: str | os.PathLike) -> tuple[GeometryModel, dict[st
                                      float(net["data"]["radius"]))
         model.load_state_dict(state["modules"]["geometry"])
     except (KeyError, RuntimeError) as e:
-        raise CheckpointError(f"{path} is not a NeTePu geometry checkpoint: {e}") from e
+        raise CheckpointError(f"{source} is not a NeTePu geometry checkpoint: {e}") from e
     model.eval()
     return model, config
 
