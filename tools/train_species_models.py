@@ -140,6 +140,8 @@ def _pose_only(species: str, source: Path, manifest_path: Path, threads: int) ->
     steps = RECIPES[species]["pose_steps"]
     if not steps:
         raise SystemExit(f"{species}: the recipe has no pose stage (pose_steps 0)")
+    if not source.is_file():
+        raise SystemExit(f"--pose-from {source}: no such file")
     digest = sha256_file(source)
     entry = _manifest(manifest_path).get("models", {}).get(species, {})
     made = {k: v for k, v in entry.items()

@@ -89,6 +89,8 @@ def test_pose_stage_alone_refits_the_recorded_file_and_refuses_another(tmp_path,
     atomic_save_torch(refit, other)
     with pytest.raises(SystemExit, match=r"other\.pt"):
         tsm._pose_only("biped", other, manifest, threads=1)
+    with pytest.raises(SystemExit, match="no such file"):
+        tsm._pose_only("biped", tmp_path / "missing.pt", manifest, threads=1)
     # the refitted file, once recorded, is not refitted a second time
     manifest.write_text(json.dumps({"models": {"biped": {
         "file": "other.pt", "sha256": sha256_file(other), **made2}}}))
