@@ -10,6 +10,7 @@ it is pose- and view-independent like the real thing.
 from __future__ import annotations
 
 import functools
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -176,6 +177,10 @@ TINY_MODEL = {
 }
 
 
+# the toy trainer's folder, removed when the test session's interpreter exits
+_SCRATCH = tempfile.TemporaryDirectory(prefix="netepu-toy-")
+
+
 @functools.cache
 def trained_toy(steps: int = 300):
     """A tiny geometry model trained on one toy pose seen by 6 cameras (~5 s, once per session).
@@ -183,8 +188,6 @@ def trained_toy(steps: int = 300):
     Returns:
         ``(model, data, trainer)`` with the model in eval mode.
     """
-    import tempfile
-
     from netepu.geometry.losses import GeometryLossWeights
     from netepu.geometry.maps import MapSettings
     from netepu.geometry.model import build_geometry_model
@@ -197,7 +200,7 @@ def trained_toy(steps: int = 300):
     task = GeometryTask(model, data, GeometryStageConfig.defaults(
         batch_size=4, near=150, far=150, foreground=100, lr=3e-3, keypoint_noise=0.0,
         eval_views=6), GeometryLossWeights.defaults(), MapSettings.defaults())
-    out = Path(tempfile.mkdtemp(prefix="netepu-toy-"))
+    out = Path(_SCRATCH.name) / f"toy-{steps}"
     trainer = Trainer(task, TrainerConfig.defaults(max_steps=steps, progress=False, log_every=50,
                                           checkpoint_every=0, grad_clip=1.0), out)
     trainer.fit()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 import tempfile
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -45,11 +44,15 @@ def _models(seed: int = 0, **texture):
     return tex, geo
 
 
+# the tiny texture data's caches, removed when the test session's interpreter exits
+_SCRATCH = tempfile.TemporaryDirectory(prefix="netepu-texture-")
+
+
 @functools.cache
 def _tiny_data(textures: tuple[int, ...] = (0, 2), poses: int = 2, per_view: int = 2):
     from netepu.texture.data import build_texture_data
 
-    cache = tempfile.mkdtemp(prefix="netepu-texture-")
+    cache = tempfile.mkdtemp(dir=_SCRATCH.name)
     return build_texture_data(
         {"textures": list(textures), "train_poses": poses, "textures_per_view": per_view,
          "eval_poses": 2, "psnr_cameras": 1, "pool": 200, "cache_dir": cache},
@@ -298,7 +301,7 @@ def _task(textures=(0, 2), per_view=2, **optim):
 
 
 @pytest.mark.slow
-def test_tiny_model_overfits_one_individuals_views():
+def test_tiny_model_overfits_one_individuals_views(tmp_path):
     """One individual (texture 6), its training views: the colour error falls far below start."""
     from nsd.core.trainer import Trainer, TrainerConfig, seed_everything
 
@@ -308,7 +311,7 @@ def test_tiny_model_overfits_one_individuals_views():
     with torch.no_grad():
         task.texture.train()
         start = float(np.mean([task.training_step(0, rng)["colour"] for _ in range(3)]))
-    out = Path(tempfile.mkdtemp(prefix="netepu-texture-fit-"))
+    out = tmp_path
     Trainer(
         task,
         TrainerConfig.defaults(max_steps=200, progress=False, log_every=0, checkpoint_every=0),
