@@ -72,18 +72,38 @@ VARIANTS = [  # (name, masks, invert_export settings)
     ("occluders, prune every 10 steps", "export", {"inverse": {"prune_every": 10}}),
     ("learned initialiser, 40 steps (the quadrupeds' default)", "export",
      {"initialiser": "builtin", "init_steps": 40, "init_templates": 0}),
+    ("learned initialiser, 40 steps, 384 points per view (the quadrupeds' default before "
+     "2026-11-30)", "export", {"initialiser": "builtin", "init_steps": 40, "init_templates": 0,
+                               "inverse": {"init_points_per_view": 384}}),
     ("learned initialiser, 80 steps", "export",
      {"initialiser": "builtin", "init_steps": 80, "init_templates": 0}),
     ("learned initialiser + 1 screened template, 40 steps", "export",
-     {"initialiser": "builtin", "init_steps": 40, "init_templates": 1}),
+     {"initialiser": "builtin", "init_steps": 40, "init_templates": 1,
+      "inverse": {"init_poses": 16, "init_points_per_view": 384}}),
     ("learned initialiser + 2 screened templates, 60 steps (the default before "
      "2026-11-27 10:00)", "export",
      {"initialiser": "builtin", "init_steps": 60, "init_templates": 2,
-      "inverse": {"init_headings": 8, "init_screen_points": 128, "init_point_budget": 768}}),
-    ("learned initialiser + 2 templates screened cheaply (4 headings, 64 points), point "
-     "budget 576, 40 steps (the bipeds' default)", "export",
+      "inverse": {"init_headings": 8, "init_screen_points": 128, "init_point_budget": 768,
+                  "init_poses": 16, "init_points_per_view": 384}}),
+    ("learned initialiser + 2 templates screened cheaply (4 headings, 64 points) from 16 "
+     "poses, point budget 576, 40 steps (the bipeds' default before 2026-11-30)", "export",
      {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
-      "inverse": {"init_headings": 4, "init_screen_points": 64, "init_point_budget": 576}}),
+      "inverse": {"init_headings": 4, "init_screen_points": 64, "init_point_budget": 576,
+                  "init_poses": 16, "init_points_per_view": 384}}),
+    ("learned initialiser + 2 templates screened cheaply from 16 poses, point budget 448, 40 "
+     "steps", "export", {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
+                         "inverse": {"init_point_budget": 448, "init_poses": 16,
+                                     "init_points_per_view": 384}}),
+    ("learned initialiser + 2 templates screened cheaply from 16 poses, point budget 576, 30 "
+     "steps", "export", {"initialiser": "builtin", "init_steps": 30, "init_templates": 2,
+                         "inverse": {"init_poses": 16, "init_points_per_view": 384}}),
+    ("learned initialiser + 2 templates screened cheaply from 8 poses, point budget 576, 40 "
+     "steps, 384 points per view", "export",
+     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
+      "inverse": {"init_points_per_view": 384}}),
+    ("learned initialiser + 2 templates screened cheaply from 8 poses, point budget 576, at "
+     "most 288 points per view, 40 steps (the bipeds' default)", "export",
+     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2}),
     ("ground-truth visible masks + occluders", "visible", {}),
     ("ground-truth amodal masks", "amodal", {"occlusion": False}),
 ]

@@ -39,8 +39,9 @@ alike facing left or right, and a limb far from its place is not pulled back)
 
 A learned initialiser (:mod:`netepu.geometry.initialiser`)
     predicts the keypoints from the subject's visual hull; their code and centre are one
-    start. ``init_templates`` screened template starts (``init_headings`` headings each,
-    scored at ``init_screen_points``, loss points shared as ``init_point_budget``) run beside it
+    start. ``init_templates`` screened template starts (the first ``init_poses`` templates at
+    ``init_headings`` headings each, scored at ``init_screen_points``, loss points shared as
+    ``init_point_budget``, at most ``init_points_per_view`` each) run beside it
     for ``init_steps`` steps, the worse half dropped after half of them (``init_turns`` > 1
     adds the learned start turned about the up axis).
 
@@ -113,8 +114,10 @@ class InverseSettings:
         init_turns: the learned start at this many headings about the up axis through its
             centre (1: as predicted; 2: also turned 180 degrees, the heading a silhouette tells
             worst), all optimised.
-        init_headings, init_screen_points, init_point_budget: ``headings``, ``screen_points``
-            and ``point_budget`` beside a learned start (its templates only stand in where it
+        init_poses: the first this many templates are screened beside a learned start (0: all).
+        init_headings, init_screen_points, init_point_budget, init_points_per_view:
+            ``headings``, ``screen_points``, ``point_budget`` and ``points_per_view`` beside a
+            learned start (its templates only stand in where it
             is wrong, so they are screened more coarsely than the templates alone).
     """
 
@@ -135,10 +138,12 @@ class InverseSettings:
     warm_lr: float = 0.05
     init_steps: int = 40
     init_templates: int = 2
+    init_poses: int = 8
     init_turns: int = 1
     init_headings: int = 4
     init_screen_points: int = 64
     init_point_budget: int = 576
+    init_points_per_view: int = 288
 
 
 @dataclass
@@ -409,9 +414,11 @@ def invert_silhouettes(
             steps = s.init_steps
             run_s = replace(s, prune_every=max(1, steps // 2), headings=s.init_headings,
                             screen_points=s.init_screen_points,
-                            point_budget=s.init_point_budget)
+                            point_budget=s.init_point_budget,
+                            points_per_view=s.init_points_per_view)
             if s.init_templates:
-                zt, ct = _code_starts(model, masks, camera, templates, run_s, anchor, None)
+                pool = templates[:s.init_poses] if s.init_poses else templates
+                zt, ct = _code_starts(model, masks, camera, pool, run_s, anchor, None)
                 zt, ct = _screen(model, masks, cams, regions, zt, ct, run_s, rng, ignored,
                                  s.init_templates)
                 z0, c0 = torch.cat([z0, zt]), torch.cat([c0, ct])

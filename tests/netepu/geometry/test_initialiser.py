@@ -207,3 +207,23 @@ def test_screened_templates_beside_a_wrong_learned_start_win():
     res = invert_silhouettes(model, own, cam, code.keypoints[0][None], s, initialiser=wrong)
     assert res.start_steps == 30 and len(res.start_losses) == 1
     assert mpjpe(res.keypoints, code.keypoints[0]) < 0.05
+
+
+def test_only_the_first_init_poses_templates_are_screened_beside_a_learned_start(monkeypatch):
+    """Beside a learned start the screening scores the first ``init_poses`` templates at
+    ``init_headings`` headings (0: every template), and keeps ``init_templates`` of them."""
+    from netepu.geometry import inverse
+
+    model, own, cam, code, anchor, cfg = _toy_case()
+    learned = _Fixed(cfg, (code.keypoints[0] - anchor) / (cfg.extent * cfg.radius))
+    templates = code.keypoints[0] + 0.01 * torch.randn(5, *code.keypoints[0].shape,
+                                                       generator=torch.Generator().manual_seed(0))
+    screened, screen = [], inverse._screen
+    monkeypatch.setattr(inverse, "_screen", lambda model, masks, cams, regions, z0, *a, **k: (
+        screened.append(len(z0)) or screen(model, masks, cams, regions, z0, *a, **k)))
+    for poses, expected in ((2, 2 * 3), (4, 4 * 3), (0, 5 * 3), (9, 5 * 3)):
+        s = InverseSettings(points_per_view=64, init_steps=2, init_templates=2, init_headings=3,
+                            init_poses=poses)
+        res = invert_silhouettes(model, own, cam, templates, s, initialiser=learned)
+        assert screened[-1] == expected, (poses, screened)
+        assert res.start_steps == 3 * 1 + 1 * 1  # the learned start and 2 kept, then 1
