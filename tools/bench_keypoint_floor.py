@@ -25,7 +25,8 @@ thread. ``--geometry``: each model's renders of its data's held-out views too (s
 NNOPCS MSE, depth MAE: what the pose code must not spoil). ``--models NAME=DIR``: models
 folders to compare (default the shipped ``netepu/pipeline/models/``), named in the ``models``
 column. Writes
-``docs/benchmarks/keypoint_floor.{md,json}``.
+``docs/benchmarks/keypoint_floor.{md,json}`` (``--report``: another name; ``--species``: one
+body only).
 """
 
 from __future__ import annotations
@@ -127,6 +128,8 @@ def main() -> None:
                     help="NAME=DIR models folders (biped.pt, quadruped.pt, models.json)")
     ap.add_argument("--geometry", action="store_true",
                     help="also each model's renders of its held-out views (IoU, NNOPCS, depth)")
+    ap.add_argument("--species", nargs="+", choices=SPECIES, default=list(SPECIES),
+                    help="the bodies whose floors and renders are measured (default: both)")
     ap.add_argument("--report", default="keypoint_floor")
     args = ap.parse_args()
     rows = []
@@ -137,7 +140,7 @@ def main() -> None:
         name, _, folder = entry.rpartition("=")
         models = Path(folder)
         name = name or models.name
-        for species in SPECIES:
+        for species in args.species:
             model, config = load_geometry_model(models / f"{species}.pt")
             cfg = DataConfig.from_mapping(config["netepu"]["data"])
             if args.geometry:
