@@ -76,11 +76,14 @@ def fresh_poses(cfg: DataConfig, n: int, rng: np.random.Generator,
     """``n`` world poses (n, K, 3) as the geometry data samples them (``pose_variation``,
     ``position_jitter``): of the model's own individual (``proportion_variation`` 0), or each of
     a new individual of the synthetic world with that spread of proportions."""
+    def individual(identity: int):
+        return make_individual(cfg.species, identity=identity, seed=cfg.seed,
+                               proportion_variation=proportion_variation)
+
+    own = None if proportion_variation else individual(cfg.identity)  # one body, built once
     out = []
     for _ in range(n):
-        identity = cfg.identity if not proportion_variation else int(rng.integers(2**31))
-        ind = make_individual(cfg.species, identity=identity, seed=cfg.seed,
-                              proportion_variation=proportion_variation)
+        ind = own if own is not None else individual(int(rng.integers(2**31)))
         pos = rng.uniform(-cfg.position_jitter, cfg.position_jitter, 2)
         out.append(ind.keypoints3d(sample_pose(ind, rng, cfg.pose_variation,
                                                position=tuple(pos))).float())
