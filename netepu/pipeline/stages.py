@@ -391,7 +391,8 @@ def _keypoints_of_species(models: list[SpeciesModels], invert, export: Path, sce
     if short:
         summary["chosen"] = chosen
     if truth:
-        matched = subject_truth(export, scene)  # every row's mask decoded and matched once
+        # the fitted frames' rows decoded and matched once, for every body's file
+        matched = subject_truth(export, scene, {c.frame for c in choices})
         summary["species_accuracy"] = species_accuracy(export, scene, choices, matched)
         summary["accuracy"] = {s: keypoint_error(export, scene, out / s / "keypoints3d.npz",
                                                  other_bodies=True, matched=matched)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -33,10 +34,13 @@ __all__ = ["ground_truth_identities", "identity_accuracy", "identity_accuracy_by
 
 
 def ground_truth_identities(
-    export: str | Path, scene: str | Path, min_iou: float = 0.5
+    export: str | Path, scene: str | Path, min_iou: float = 0.5,
+    frames: Collection[int] | None = None,
 ) -> dict[int, tuple[str, int, int, int]]:
     """Annotation id -> (camera, frame, subject_id, ground-truth identity) of the exported rows
-    that match a visible ground-truth mask of their camera-frame (Hungarian on mask IoU)."""
+    that match a visible ground-truth mask of their camera-frame (Hungarian on mask IoU);
+    ``frames``: only the rows of these frames (None: all; the ground truth of the others is
+    not read)."""
 
     gt = GroundTruth.load(scene)
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())
@@ -47,6 +51,8 @@ def ground_truth_identities(
     out = {}
     for iid, anns in by_image.items():
         im = images[iid]
+        if frames is not None and int(im["frame"]) not in frames:
+            continue
         g = gt.frame(im["camera"], int(im["frame"]))
         if not len(g.identity):
             continue

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 from collections import Counter, defaultdict
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any
 
 import numpy as np
@@ -26,13 +26,14 @@ def mpjpe(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).double().norm(dim=-1).mean()
 
 
-def subject_truth(export: str | os.PathLike, scene: str | os.PathLike
-                  ) -> dict[tuple[int, int], int]:
+def subject_truth(export: str | os.PathLike, scene: str | os.PathLike,
+                  frames: Collection[int] | None = None) -> dict[tuple[int, int], int]:
     """(frame, subject_id) -> the ground-truth individual most of the subject-frame's rows
     match (:func:`nsd.evaluation.identity.ground_truth_identities`: every row's mask decoded
-    and matched, so a caller scoring several files of one export computes it once)."""
+    and matched, so a caller scoring several files of one export computes it once);
+    ``frames``: only these frames (None: all)."""
     votes: dict[tuple[int, int], Counter] = defaultdict(Counter)
-    for _cam, t, sid, ident in ground_truth_identities(export, scene).values():
+    for _cam, t, sid, ident in ground_truth_identities(export, scene, frames=frames).values():
         votes[(t, sid)][ident] += 1
     return {k: v.most_common(1)[0][0] for k, v in votes.items()}
 
@@ -47,9 +48,10 @@ def _matched(export: str | os.PathLike, scene: str | os.PathLike,
     those matched to an individual of another number of keypoints (another species);
     ``matched``: :func:`subject_truth`, if computed already."""
     truth = GroundTruth.load(scene).scene.keypoints3d
-    matched = subject_truth(export, scene) if matched is None else matched
     with np.load(keypoints) as z:
         frames, sids, kps = z["subject_frame"], z["subject_id"], z["subject_keypoints"]
+    if matched is None:  # the ground truth of the fitted frames alone
+        matched = subject_truth(export, scene, set(frames.tolist()))
     pairs = []
     for t, sid, kp in zip(frames.tolist(), sids.tolist(), kps, strict=True):
         if (t, sid) not in matched:

@@ -67,3 +67,32 @@ def test_species_choices_and_keypoints_of_another_body_are_scored_against_the_tr
         keypoint_error(world["export"], world["scene"], path)
     other = keypoint_error(world["export"], world["scene"], path, other_bodies=True)
     assert other["inverted"] == n and other["scored"] == 0 and np.isnan(other["mpjpe_mm"])
+
+
+def test_scoring_reads_the_ground_truth_of_the_fitted_frames_alone(world, tmp_path, monkeypatch):
+    """A file of two frames is scored from those frames' ground truth only, with the errors
+    of the matching over every frame; the frames' filter keeps exactly their rows."""
+    from nsd.evaluation.identity import ground_truth_identities
+    from nsd.evaluation.pose import subject_truth
+    from nsd.io.ground_truth import GroundTruth
+
+    every = ground_truth_identities(world["export"], world["scene"])
+    assert len({t for _, t, _, _ in every.values()}) > 2  # the world has more frames
+    some = ground_truth_identities(world["export"], world["scene"], frames={1, 3})
+    assert some == {a: v for a, v in every.items() if v[1] in (1, 3)} and some
+    truth = _truth(world)
+    frames = np.repeat([1, 3], len(truth))
+    sids = np.tile([i + 1 for i in truth], 2)
+    kps = np.stack([truth[s - 1][t] + 0.01 * s for t, s in zip(frames, sids, strict=True)])
+    path = tmp_path / "keypoints3d.npz"
+    np.savez(path, subject_frame=frames, subject_id=sids,
+             subject_keypoints=kps.astype(np.float32))
+    full = subject_frame_errors(world["export"], world["scene"], path,
+                                matched=subject_truth(world["export"], world["scene"]))
+    read = []
+    original = GroundTruth.frame
+    monkeypatch.setattr(GroundTruth, "frame",
+                        lambda self, cam, t: read.append(t) or original(self, cam, t))
+    assert subject_frame_errors(world["export"], world["scene"], path) == full
+    assert set(read) == {1, 3}
+    np.testing.assert_allclose(full[1], [1000 * 0.01 * s * 3 ** 0.5 for s in sids], rtol=1e-4)
