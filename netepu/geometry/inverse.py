@@ -69,6 +69,7 @@ from netepu.geometry.model import GeometryModel
 from netepu.geometry.sampling import sample_silhouette_points
 from nsd.cameras.batch import CameraBatch
 from nsd.cameras.projection import pixel_to_normalized
+from nsd.core.errors import ConfigError
 
 __all__ = [
     "InverseResult",
@@ -144,6 +145,27 @@ class InverseSettings:
     init_screen_points: int = 64
     init_point_budget: int = 576
     init_points_per_view: int = 288
+
+    def __post_init__(self) -> None:
+        """Counts are whole numbers >= 0 (those that pick points or directions >= 1), rates
+        and weights >= 0, the learning rates > 0.
+
+        Raises:
+            ConfigError: naming the field and its value.
+        """
+        at_least_one = {"points_per_view", "headings", "screen_points", "init_turns",
+                        "init_headings", "init_screen_points", "init_points_per_view"}
+        for name, value in vars(self).items():
+            if name == "up":
+                continue
+            least = 1 if name in at_least_one else 0
+            whole = isinstance(getattr(type(self), name), int)
+            if (whole and (isinstance(value, bool) or int(value) != value)) or not value >= least:
+                raise ConfigError(f"keypoints inverse setting {name}: "
+                                  f"{'a whole number ' if whole else ''}>= {least}, got {value!r}")
+        if self.lr <= 0 or self.warm_lr <= 0:
+            raise ConfigError(f"keypoints inverse settings lr and warm_lr: > 0, got {self.lr}, "
+                              f"{self.warm_lr}")
 
 
 @dataclass

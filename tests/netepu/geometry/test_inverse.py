@@ -40,6 +40,23 @@ class TestHelpers(BaseTester):
         assert points_per_step(InverseSettings(points_per_view=384, point_budget=0), 8) == 384
         assert points_per_step(InverseSettings(points_per_view=200, point_budget=600), 3) == 200
 
+    def test_settings_out_of_range_are_named(self):
+        """A negative count, a zero that would pick no points or directions, a fraction of a
+        step, a NaN margin or a zero learning rate stop with the field's name; the defaults
+        and zero steps (screening alone) are accepted."""
+        import pytest
+
+        from nsd.core.errors import ConfigError
+
+        InverseSettings()
+        InverseSettings(steps=0)
+        for bad, name in [({"init_poses": -1}, "init_poses"), ({"headings": 0}, "headings"),
+                          ({"steps": 2.5}, "steps"), ({"margin": float("nan")}, "margin"),
+                          ({"init_points_per_view": 0}, "init_points_per_view"),
+                          ({"lr": 0.0}, "lr")]:
+            with pytest.raises(ConfigError, match=name):
+                InverseSettings(**bad)
+
     def test_triangulate_known_point(self, random_cameras):
         """Masks centred on a point's projections (lens distortion included) give the point."""
         point = np.array([0.3, -0.2, 0.9])
