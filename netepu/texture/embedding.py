@@ -156,13 +156,16 @@ def within_class_whitening(
     if len(classes) < 2:
         raise ValueError(f"whitening: needs >= 2 identities, got {len(classes)}")
     means = np.stack([x[index == c].mean(0) for c in range(len(classes))])
-    centred = x - means[index]
+    # the product and eigen-decomposition in torch (float64): its pinned build, not NumPy's
+    # BLAS of whatever version, decides the rounding, so a retrained model is the same file
+    # (tools/train_species_models.py --check)
+    centred = torch.from_numpy(x - means[index])
     scatter = centred.T @ centred / len(x)
-    ev, vec = np.linalg.eigh(scatter)
-    ev = ev + shrinkage * max(float(np.trace(scatter)), 0.0) / x.shape[1]
-    if ev.min() <= 1e-12 * max(float(ev.max()), 1e-300):
+    ev, vec = torch.linalg.eigh(scatter)
+    ev = ev + shrinkage * max(float(torch.trace(scatter)), 0.0) / x.shape[1]
+    if float(ev.min()) <= 1e-12 * max(float(ev.max()), 1e-300):
         raise ValueError(
             "whitening: the within-class scatter is singular (too few codes per dimension); "
             "give a shrinkage > 0"
         )
-    return x.mean(0), vec / np.sqrt(ev)
+    return x.mean(0), (vec / ev.sqrt()).numpy()

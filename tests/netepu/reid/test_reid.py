@@ -317,6 +317,20 @@ def test_within_class_whitening_whitens_the_within_class_scatter(shrinkage):
         assert np.linalg.eigvalsh(within).max() < 1
 
 
+def test_within_class_whitening_does_not_depend_on_numpy_blas_threads():
+    """The fit is rounded by torch, not by NumPy's BLAS: one or two BLAS threads give the same
+    bits (a shipped model's file is reproduced by its recipe on the same torch build)."""
+    from threadpoolctl import threadpool_limits
+
+    rng = np.random.default_rng(0)
+    x, y = 3 * rng.normal(size=(4096, 134)), rng.integers(0, 16, 4096)
+    fits = []
+    for threads in (1, 2):
+        with threadpool_limits(threads, user_api="blas"):
+            fits.append(within_class_whitening(x, y, 0.01))
+    assert all(np.array_equal(a, b) for a, b in zip(*fits, strict=True))
+
+
 def test_within_class_whitening_rejects_bad_input():
     x = np.random.default_rng(0).normal(size=(10, 3))
     with pytest.raises(ValueError, match="2 identities"):
