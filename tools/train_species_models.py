@@ -158,6 +158,43 @@ def _pose_only(species: str, source: Path, manifest_path: Path, threads: int) ->
     return model, made
 
 
+def model_differences(made: dict, shipped: dict) -> list[str]:
+    """What tells two stripped checkpoints apart, in words (empty: the same tensors and
+    config): per module, the tensors that differ with their largest difference, those only in
+    one of them, and the config keys (flattened) that differ or exist in one only."""
+
+    def flat(tree: dict, prefix: str = "") -> dict[str, object]:
+        out: dict[str, object] = {}
+        for k, v in tree.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    lines = []
+    for part in sorted(set(made["modules"]) | set(shipped["modules"])):
+        a, b = made["modules"].get(part, {}), shipped["modules"].get(part, {})
+        for name in sorted(set(a) ^ set(b)):
+            lines.append(f"{part}.{name}: only in the {'retrained' if name in a else 'shipped'}")
+        for name in sorted(set(a) & set(b)):
+            x, y = a[name], b[name]
+            if x.shape != y.shape:
+                lines.append(f"{part}.{name}: shape {tuple(x.shape)} against {tuple(y.shape)}")
+            elif not torch.equal(x, y):
+                d = float((x.double() - y.double()).abs().max())
+                lines.append(f"{part}.{name}: largest difference {d:.3g} "
+                             f"(largest entry {float(y.double().abs().max()):.3g})")
+    ca, cb = flat(made["config"]), flat(shipped["config"])
+    for key in sorted(set(ca) | set(cb)):
+        if key not in cb:
+            lines.append(f"config {key}: only in the retrained ({ca[key]!r})")
+        elif key not in ca:
+            lines.append(f"config {key}: only in the shipped ({cb[key]!r})")
+        elif ca[key] != cb[key]:
+            lines.append(f"config {key}: {ca[key]!r} against {cb[key]!r}")
+    if made.get("step") != shipped.get("step"):
+        lines.append(f"step {made.get('step')} against {shipped.get('step')}")
+    return lines
+
+
 def _manifest(path: Path) -> dict:
     if path.is_file():
         return json.loads(path.read_text())
@@ -194,6 +231,11 @@ def main(argv: list[str] | None = None) -> int:
             same = digest == shipped
             print(f"{args.species}: retrained {digest}\n{'':>{len(args.species)}}  shipped  "
                   f"{shipped}\n{'bit for bit the same' if same else 'DIFFERENT'}")
+            ours = args.out / f"{args.species}.pt"
+            if not same and ours.is_file():  # say where: weights, or config keys added since
+                for line in model_differences(model, torch.load(ours, weights_only=True)) or [
+                        "the same tensors and config (another torch version wrote the file?)"]:
+                    print(f"  {line}")
             return 0 if same else 1
     ship_file(manifest_path, manifest, "models", args.species, target, digest, made)
     return 0

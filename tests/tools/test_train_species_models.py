@@ -96,3 +96,20 @@ def test_pose_stage_alone_refits_the_recorded_file_and_refuses_another(tmp_path,
         "file": "other.pt", "sha256": sha256_file(other), **made2}}}))
     with pytest.raises(SystemExit, match="refitted already"):
         tsm._pose_only("biped", other, manifest, threads=1)
+
+
+def test_check_says_what_differs():
+    """The same checkpoint: nothing; a changed tensor names its module, name and largest
+    difference; a key added to the config names the key (the text --check prints)."""
+    def model():
+        return {"modules": {"texture": {"w": torch.ones(3), "b": torch.zeros(2)}},
+                "config": {"netepu": {"texture": {"k": 20}}}, "step": 5}
+
+    a, b = model(), model()
+    assert tsm.model_differences(a, b) == []
+    a["modules"]["texture"]["w"][1] += 0.25
+    a["config"]["netepu"]["texture"]["new_key"] = False
+    assert tsm.model_differences(a, b) == [
+        "texture.w: largest difference 0.25 (largest entry 1)",
+        "config netepu.texture.new_key: only in the retrained (False)",
+    ]
