@@ -97,6 +97,9 @@ SCENES |= {
     # made after colour_model_separation became a rule between pairs of individuals
     "3 bipeds, a pair of one texture and another, 4 cameras, seed 8": (
         3, ["num_individuals=3", "texture_ids=[9,9,2]", "seed=8"]),
+    # made for issue 26's keypoints of three individuals: three quadrupeds that look different
+    "3 quadrupeds, 4 cameras, seed 9": (
+        3, ["num_individuals=3", "species=[quadruped]", "motion.area_radius=2.0", "seed=9"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
