@@ -158,7 +158,7 @@ def _pose_only(species: str, source: Path, manifest_path: Path, threads: int) ->
     return model, made
 
 
-def model_differences(made: dict, shipped: dict) -> list[str]:
+def model_differences(retrained: dict, shipped: dict) -> list[str]:
     """What tells two stripped checkpoints apart, in words (empty: the same tensors and
     config): per module, the tensors that differ with their largest difference, those only in
     one of them, and the config keys (flattened) that differ or exist in one only."""
@@ -170,8 +170,8 @@ def model_differences(made: dict, shipped: dict) -> list[str]:
         return out
 
     lines = []
-    for part in sorted(set(made["modules"]) | set(shipped["modules"])):
-        a, b = made["modules"].get(part, {}), shipped["modules"].get(part, {})
+    for part in sorted(set(retrained["modules"]) | set(shipped["modules"])):
+        a, b = retrained["modules"].get(part, {}), shipped["modules"].get(part, {})
         for name in sorted(set(a) ^ set(b)):
             lines.append(f"{part}.{name}: only in the {'retrained' if name in a else 'shipped'}")
         for name in sorted(set(a) & set(b)):
@@ -182,7 +182,7 @@ def model_differences(made: dict, shipped: dict) -> list[str]:
                 d = float((x.double() - y.double()).abs().max())
                 lines.append(f"{part}.{name}: largest difference {d:.3g} "
                              f"(largest entry {float(y.double().abs().max()):.3g})")
-    ca, cb = flat(made["config"]), flat(shipped["config"])
+    ca, cb = flat(retrained["config"]), flat(shipped["config"])
     for key in sorted(set(ca) | set(cb)):
         if key not in cb:
             lines.append(f"config {key}: only in the retrained ({ca[key]!r})")
@@ -190,8 +190,8 @@ def model_differences(made: dict, shipped: dict) -> list[str]:
             lines.append(f"config {key}: only in the shipped ({cb[key]!r})")
         elif ca[key] != cb[key]:
             lines.append(f"config {key}: {ca[key]!r} against {cb[key]!r}")
-    if made.get("step") != shipped.get("step"):
-        lines.append(f"step {made.get('step')} against {shipped.get('step')}")
+    if retrained.get("step") != shipped.get("step"):
+        lines.append(f"step {retrained.get('step')} against {shipped.get('step')}")
     return lines
 
 
