@@ -56,6 +56,7 @@ Warm starts (a subject followed over frames)
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -160,9 +161,18 @@ class InverseSettings:
                 continue
             least = 1 if name in at_least_one else 0
             whole = isinstance(getattr(type(self), name), int)
-            if (whole and (isinstance(value, bool) or int(value) != value)) or not value >= least:
+            number = isinstance(value, numbers.Real) and not isinstance(value, bool)
+            if not (number and value >= least  # NaN, a word or None fail here
+                    and (not whole or (math.isfinite(value) and int(value) == value))):
                 raise ConfigError(f"keypoints inverse setting {name}: "
-                                  f"{'a whole number ' if whole else ''}>= {least}, got {value!r}")
+                                  f"{'a whole number ' if whole else 'a number '}>= {least}, "
+                                  f"got {value!r}")
+        up = self.up
+        if (not isinstance(up, (tuple, list)) or len(up) != 3
+                or not all(isinstance(v, numbers.Real) and math.isfinite(v) for v in up)
+                or not any(v != 0 for v in up)):
+            raise ConfigError(f"keypoints inverse setting up: three finite numbers, not all "
+                              f"zero, got {up!r}")
         if self.lr <= 0 or self.warm_lr <= 0:
             raise ConfigError(f"keypoints inverse settings lr and warm_lr: > 0, got {self.lr}, "
                               f"{self.warm_lr}")

@@ -42,8 +42,9 @@ class TestHelpers(BaseTester):
 
     def test_settings_out_of_range_are_named(self):
         """A negative count, a zero that would pick no points or directions, a fraction of a
-        step, a NaN margin or a zero learning rate stop with the field's name; the defaults
-        and zero steps (screening alone) are accepted."""
+        step, a NaN margin, a word, an infinite count, None, a boolean, an up axis that is
+        zero, short or NaN, or a zero learning rate stop with the field's name (a ConfigError,
+        not a TypeError); the defaults and zero steps (screening alone) are accepted."""
         import pytest
 
         from nsd.core.errors import ConfigError
@@ -53,7 +54,10 @@ class TestHelpers(BaseTester):
         for bad, name in [({"init_poses": -1}, "init_poses"), ({"headings": 0}, "headings"),
                           ({"steps": 2.5}, "steps"), ({"margin": float("nan")}, "margin"),
                           ({"init_points_per_view": 0}, "init_points_per_view"),
-                          ({"lr": 0.0}, "lr")]:
+                          ({"lr": 0.0}, "lr"), ({"margin": "wide"}, "margin"),
+                          ({"steps": float("inf")}, "steps"), ({"warm_steps": None}, "warm_steps"),
+                          ({"screen_keep": True}, "screen_keep"), ({"up": (0, 0, 0)}, "up"),
+                          ({"up": (0.0, 1.0)}, "up"), ({"up": (0.0, float("nan"), 1.0)}, "up")]:
             with pytest.raises(ConfigError, match=name):
                 InverseSettings(**bad)
 
