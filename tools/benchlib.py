@@ -31,7 +31,10 @@ BENCH_DIR = ROOT / "docs" / "benchmarks"
 __all__ = ["BENCH_DIR", "machine_info", "median_time", "peak_rss_mb", "ship_file", "write_report"]
 
 
-def git_commit() -> str:
+def git_commit(ignore: Sequence[Path] = ()) -> str:
+    """The short hash of HEAD, with ``+dirty`` when a tracked file differs from it (the files
+    in ``ignore`` excepted: a tool that writes a tracked file, such as a shipped model and its
+    manifest, is not made dirty by its own output); ``unknown`` without git."""
     try:
         out = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"],
@@ -41,13 +44,16 @@ def git_commit() -> str:
             timeout=10,
         )
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            ["git", "status", "--porcelain", "--untracked-files=no", "--no-renames"],
             cwd=ROOT,
             capture_output=True,
             text=True,
             timeout=10,
         )
-        return out.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+        skip = {Path(p).resolve() for p in ignore}
+        changed = [line[3:] for line in dirty.stdout.splitlines() if line.strip()]
+        dirty_files = [f for f in changed if (ROOT / f).resolve() not in skip]
+        return out.stdout.strip() + ("+dirty" if dirty_files else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
@@ -81,11 +87,13 @@ def machine_info() -> dict[str, Any]:
 def ship_file(manifest_path: Path, manifest: dict, section: str, key: str, target: Path,
               digest: str, made: dict[str, Any]) -> None:
     """Record a shipped model file in ``manifest[section][key]`` (its name, SHA-256, size,
-    ``made``, the torch build, CPU, commit and date) and write the manifest atomically."""
+    ``made``, the torch build, CPU, commit and date) and write the manifest atomically. The
+    commit is not called dirty for ``target`` and the manifest, which the tool itself wrote."""
     manifest.setdefault(section, {})[key] = {
         "file": target.name, "sha256": digest, "bytes": target.stat().st_size, **made,
         "torch": machine_info()["torch"], "machine": machine_info()["cpu"],
-        "commit": git_commit(), "date": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "commit": git_commit(ignore=(target, manifest_path)),
+        "date": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
     }
     atomic_write_text(manifest_path, json.dumps(manifest, indent=2) + "\n")
     print(f"wrote {target} ({target.stat().st_size / 1e6:.1f} MB, sha256 {digest[:16]}...)")
