@@ -44,14 +44,14 @@ def git_commit(ignore: Sequence[Path] = ()) -> str:
             timeout=10,
         )
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no", "--no-renames"],
+            ["git", "status", "--porcelain", "-z", "--untracked-files=no", "--no-renames"],
             cwd=ROOT,
             capture_output=True,
             text=True,
             timeout=10,
         )
         skip = {Path(p).resolve() for p in ignore}
-        changed = [line[3:] for line in dirty.stdout.splitlines() if line.strip()]
+        changed = [entry[3:] for entry in dirty.stdout.split("\0") if entry]  # "XY path"
         dirty_files = [f for f in changed if (ROOT / f).resolve() not in skip]
         return out.stdout.strip() + ("+dirty" if dirty_files else "")
     except (OSError, subprocess.SubprocessError):
@@ -89,9 +89,10 @@ def ship_file(manifest_path: Path, manifest: dict, section: str, key: str, targe
     """Record a shipped model file in ``manifest[section][key]`` (its name, SHA-256, size,
     ``made``, the torch build, CPU, commit and date) and write the manifest atomically. The
     commit is not called dirty for ``target`` and the manifest, which the tool itself wrote."""
+    machine = machine_info()
     manifest.setdefault(section, {})[key] = {
         "file": target.name, "sha256": digest, "bytes": target.stat().st_size, **made,
-        "torch": machine_info()["torch"], "machine": machine_info()["cpu"],
+        "torch": machine["torch"], "machine": machine["cpu"],
         "commit": git_commit(ignore=(target, manifest_path)),
         "date": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
     }
