@@ -94,6 +94,9 @@ VARIANTS = [  # (name, masks, invert_export settings)
      "steps", "export", {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
                          "inverse": {"init_point_budget": 448, "init_poses": 16,
                                      "init_points_per_view": 384}}),
+    ("learned initialiser + 1 template screened cheaply from 8 poses, at most 288 points per "
+     "view, 40 steps (netepu.keypoints.init_templates=1)", "export",
+     {"initialiser": "builtin", "init_steps": 40, "init_templates": 1}),
     ("learned initialiser + 2 templates screened cheaply from 16 poses, point budget 576, 30 "
      "steps", "export", {"initialiser": "builtin", "init_steps": 30, "init_templates": 2,
                          "inverse": {"init_poses": 16, "init_points_per_view": 384}}),

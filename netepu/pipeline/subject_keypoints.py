@@ -148,6 +148,8 @@ def invert_export(
     point_budget: int = InverseSettings.point_budget,
     init_steps: int = InverseSettings.init_steps,
     init_templates: int | str = "auto",
+    init_poses: int = InverseSettings.init_poses,
+    init_points_per_view: int = InverseSettings.init_points_per_view,
     inverse: dict[str, Any] | None = None,
     workers: int = 1,
     initialiser: str | os.PathLike | None = None,
@@ -181,6 +183,10 @@ def invert_export(
             ``initialiser``).
         init_templates: screened template starts refined beside the initialiser's (``auto``:
             the species' :data:`AUTO`).
+        init_poses, init_points_per_view: the templates screened beside the initialiser's
+            start are the first ``init_poses`` (0: all), and a start beside it takes at most
+            ``init_points_per_view`` loss points per view (the
+            :class:`netepu.geometry.inverse.InverseSettings` fields).
         inverse: more :class:`netepu.geometry.inverse.InverseSettings` fields (e.g.
             ``points_per_view``; benchmarks vary them).
         initialiser: a learned initialiser's checkpoint (:mod:`netepu.geometry.initialiser`):
@@ -225,7 +231,9 @@ def invert_export(
     render = net.get("render") or MapSettings.default_mapping()  # checkpoints before it: defaults
     settings = InverseSettings(steps=steps, margin=float(render["margin"]), warm_steps=warm_steps,
                                **{"point_budget": point_budget, "init_steps": init_steps,
-                                  "init_templates": init_templates, **(inverse or {})})
+                                  "init_templates": init_templates, "init_poses": init_poses,
+                                  "init_points_per_view": init_points_per_view,
+                                  **(inverse or {})})
     rig = read_calibration(scene)
     cams = rig.stacked(torch.float32)
     images, groups, n_frames = subject_groups(

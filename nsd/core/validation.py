@@ -231,6 +231,8 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.keypoints.point_budget": _r("int", low=0),
         "netepu.keypoints.initialiser": NULL_TEXT, "netepu.keypoints.init_steps": POS,
         "netepu.keypoints.init_templates": _r("int", low=0, allow=("auto",)),
+        "netepu.keypoints.init_poses": _r("int", low=0),
+        "netepu.keypoints.init_points_per_view": POS,
         "netepu.keypoints.smooth_frames": _r("number", low=0),
         "netepu.keypoints.species_steps": _r("int", low=0),
         "netepu.keypoints.travel_speed": _r("number", low=0, allow=("auto",)),

@@ -187,7 +187,8 @@ def test_the_pipeline_defaults_are_the_inversions():
 
     conf = OmegaConf.load(Path(__file__).parents[3] / "conf" / "run.yaml").netepu.keypoints
     shared = [f for f in fields(InverseSettings)  # (warm_steps: 0 there turns warm starts off)
-              if f.name in ("steps", "point_budget", "init_steps")]
+              if f.name in ("steps", "point_budget", "init_steps", "init_poses",
+                            "init_points_per_view")]
     for f in shared:
         assert conf[f.name] == f.default, f.name
     assert conf.init_templates == conf.travel_speed == "auto"  # per species: AUTO

@@ -172,3 +172,39 @@ def test_every_built_in_species_has_its_automatic_settings():
         assert _auto("travel_speed", "auto", species) == values["travel_speed"]
         assert _auto("travel_speed", 1.5, species) == 1.5
     assert AUTO["biped"]["travel_speed"] > 0  # front and back from the travel: bipeds
+
+
+def test_the_template_settings_beside_a_learned_start_reach_the_inversions(tmp_path, monkeypatch):
+    """``init_poses`` and ``init_points_per_view`` (config keys of ``nsd-run``) are the
+    settings every inversion gets; and every ``netepu.keypoints`` key that names a parameter of
+    :func:`invert_export` is passed on by the stage (none silently dropped)."""
+    import inspect
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    import netepu.pipeline.subject_keypoints as sk
+    from netepu.geometry.model import load_geometry_model
+    from netepu.pipeline.species_models import MODELS
+    from netepu.pipeline.stages import _INVERSE_KEYS
+
+    model, config = load_geometry_model(MODELS / "biped.pt")
+    scene, export = _hand_made_export(tmp_path, model, config["netepu"])
+    seen = []
+    real = sk.invert_silhouettes
+
+    def spy(*args, **kwargs):
+        seen.append(args[4])  # (model, masks, camera, templates, settings, ...)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sk, "invert_silhouettes", spy)
+    sk.invert_export(export, scene, MODELS / "biped.pt", tmp_path / "out", frame_step=1,
+                     steps=2, templates=2, max_subject_frames=2, init_poses=16,
+                     init_points_per_view=384)
+    assert len(seen) == 2
+    assert all(s.init_poses == 16 and s.init_points_per_view == 384 for s in seen)
+    conf = OmegaConf.load(Path(__file__).parents[3] / "conf" / "run.yaml").netepu.keypoints
+    params = set(inspect.signature(sk.invert_export).parameters)
+    assert {"init_poses", "init_points_per_view"} <= set(_INVERSE_KEYS)
+    assert {key for key in conf if key in params} - {"workers", "initialiser"} == set(
+        _INVERSE_KEYS)
