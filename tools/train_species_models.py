@@ -3,13 +3,18 @@
     .venv/bin/python tools/train_species_models.py biped            # ~40 min on two cores
     .venv/bin/python tools/train_species_models.py biped --check    # retrain, compare SHA-256
     .venv/bin/python tools/train_species_models.py quadruped --pose-from OLD.pt  # last stage only
+    .venv/bin/python tools/train_species_models.py quadruped --geometry-from RUN  # skip stage 1
 
 For a species: ``netepu-train`` geometry on the synthetic world (``RECIPES``: overrides and
 steps), then the texture stage from that geometry, both with the trainer's fixed seed,
 on the recipe's CPU threads and with step budgets (never minutes, which depend on the
 machine); then, where the recipe has ``pose_steps``, the pose code refitted on fresh poses
 (:mod:`netepu.geometry.pose_code`, seeded). ``--pose-from`` runs that last stage alone on a
-file the first two made (its SHA-256 is recorded as ``pose_from_sha256``). The texture
+file the first two made (its SHA-256 is recorded as ``pose_from_sha256``); ``--geometry-from``
+starts at the texture stage from a geometry run of the recipe made earlier (an earlier
+``--work`` folder's ``geometry/``: its config and step count are checked against the recipe,
+its checkpoint's SHA-256 is recorded as ``geometry_from_sha256``; the same run gives the
+same file as training all stages). The texture
 checkpoint (which holds its geometry model) is stripped to its config and weights and
 written to ``netepu/pipeline/models/<species>.pt``; ``models.json`` records how it was made,
 its SHA-256 and the final held-out figures of the stages.
@@ -22,6 +27,7 @@ may round matrix products differently and give a different, equally good file).
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import sys
 import tempfile
@@ -32,6 +38,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from omegaconf import OmegaConf  # noqa: E402
 
 from netepu.cli.train import run  # noqa: E402
 from netepu.geometry.data import DataConfig  # noqa: E402
@@ -70,12 +78,53 @@ RECIPES = {
 FIGURES = ("heldout_poses", "heldout_cameras", "reid")  # final evaluations kept in the manifest
 
 
-def _train(overrides: list[str], steps: int, threads: int, out: Path) -> dict[str, float]:
-    cfg = compose_app("netepu_train", [
+def _config(overrides: list[str], steps: int, threads: int):
+    return compose_app("netepu_train", [
         *overrides, f"trainer.max_steps={steps}", "trainer.max_minutes=0",
         "trainer.progress=false", f"threads={threads}", "device=cpu",
     ])
-    return run(cfg, out)
+
+
+def _train(overrides: list[str], steps: int, threads: int, out: Path) -> dict[str, float]:
+    return run(_config(overrides, steps, threads), out)
+
+
+def _flat(tree: dict, prefix: str = "") -> dict[str, object]:
+    out: dict[str, object] = {}
+    for k, v in tree.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def _earlier_geometry(folder: Path, overrides: list[str], steps: int,
+                      threads: int) -> tuple[dict[str, float], float]:
+    """The final held-out figures and minutes of the geometry run in ``folder``, after checking
+    that it is this recipe's: its step count and every config value the recipe sets (values
+    left ``null`` to be filled in from the species excepted).
+
+    Raises:
+        SystemExit: naming the folder and what differs.
+    """
+    if not (folder / "checkpoint.pt").is_file() or not (folder / "metrics.csv").is_file():
+        raise SystemExit(f"--geometry-from {folder}: no checkpoint.pt and metrics.csv there "
+                         f"(give the geometry/ folder of an earlier --work)")
+    state = load_checkpoint(folder)
+    wanted = _flat(OmegaConf.to_container(_config(overrides, steps, threads), resolve=True))
+    have = _flat(state["config"])
+    differ = [f"{k} {have.get(k, 'missing')!r} (recipe {v!r})" for k, v in wanted.items()
+              if v is not None and have.get(k, "missing") != v]
+    if int(state["step"]) != steps:
+        differ.insert(0, f"step {state['step']} (recipe {steps})")
+    if differ:
+        raise SystemExit(f"--geometry-from {folder}: not this recipe's geometry run: "
+                         + "; ".join(differ[:5]) + ("; ..." if len(differ) > 5 else ""))
+    with (folder / "metrics.csv").open(newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("eval/heldout_poses/iou")]
+    if not rows or int(rows[-1]["step"]) != steps:
+        raise SystemExit(f"--geometry-from {folder}: metrics.csv holds no final evaluation")
+    final = {k.removeprefix("eval/"): float(v) for k, v in rows[-1].items()
+             if k.startswith("eval/") and v}
+    return final, float(rows[-1]["minutes"])
 
 
 def _figures(metrics: dict[str, float]) -> dict[str, float]:
@@ -103,18 +152,29 @@ def refit_pose(model: dict, made: dict, steps: int, threads: int) -> None:
 
 
 def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
-                  extra: list[str] | None = None) -> tuple[dict, dict]:
+                  extra: list[str] | None = None,
+                  geometry_from: Path | None = None) -> tuple[dict, dict]:
     """Train ``species``'s geometry then texture model in ``work``; returns (stripped
     checkpoint, recipe with the figures). ``scale`` shrinks the step budgets and ``extra``
-    adds overrides to both stages (tests: a tiny world)."""
+    adds overrides to both stages (tests: a tiny world). ``geometry_from``: the folder of an
+    earlier geometry run of this recipe, used instead of training the geometry again."""
     recipe = RECIPES[species]
     extra = list(extra or [])
     steps = {s: max(1, round(recipe[f"{s}_steps"] * scale)) for s in ("geometry", "texture")}
+    geometry_overrides = [*recipe["geometry"], *extra]
     t0 = time.perf_counter()
-    geo = _train([*recipe["geometry"], *extra], steps["geometry"], threads, work / "geometry")
+    if geometry_from is None:
+        geometry_from = work / "geometry"
+        geo = _train(geometry_overrides, steps["geometry"], threads, geometry_from)
+        geo_minutes = (time.perf_counter() - t0) / 60
+        earlier = {}
+    else:
+        geo, geo_minutes = _earlier_geometry(geometry_from, geometry_overrides,
+                                             steps["geometry"], threads)
+        earlier = {"geometry_from_sha256": sha256_file(geometry_from / "checkpoint.pt")}
     t1 = time.perf_counter()
     tex = _train([*recipe["texture"], *extra, "stage=texture",
-                  f"init_from={work / 'geometry' / 'checkpoint.pt'}"],
+                  f"init_from={geometry_from / 'checkpoint.pt'}"],
                  steps["texture"], threads, work / "texture")
     t2 = time.perf_counter()
     state = load_checkpoint(work / "texture")
@@ -126,8 +186,9 @@ def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
         "species": species, "threads": threads, "steps": steps,
         "overrides": {"geometry": [*recipe["geometry"], *extra],
                       "texture": [*recipe["texture"], *extra]},
-        "minutes": {"geometry": round((t1 - t0) / 60, 1), "texture": round((t2 - t1) / 60, 1)},
+        "minutes": {"geometry": round(geo_minutes, 1), "texture": round((t2 - t1) / 60, 1)},
         "figures": {"geometry": _figures(geo), "texture": _figures(tex)},
+        **earlier,
     }
     if recipe["pose_steps"]:
         refit_pose(model, made, max(1, round(recipe["pose_steps"] * scale)), threads)
@@ -163,12 +224,6 @@ def model_differences(retrained: dict, shipped: dict) -> list[str]:
     config): per module, the tensors that differ with their largest difference, those only in
     one of them, and the config keys (flattened) that differ or exist in one only."""
 
-    def flat(tree: dict, prefix: str = "") -> dict[str, object]:
-        out: dict[str, object] = {}
-        for k, v in tree.items():
-            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-        return out
-
     lines = []
     for part in sorted(set(retrained["modules"]) | set(shipped["modules"])):
         a, b = retrained["modules"].get(part, {}), shipped["modules"].get(part, {})
@@ -182,7 +237,7 @@ def model_differences(retrained: dict, shipped: dict) -> list[str]:
                 d = float((x.double() - y.double()).abs().max())
                 lines.append(f"{part}.{name}: largest difference {d:.3g} "
                              f"(largest entry {float(y.double().abs().max()):.3g})")
-    ca, cb = flat(retrained["config"]), flat(shipped["config"])
+    ca, cb = _flat(retrained["config"]), _flat(shipped["config"])
     for key in sorted(set(ca) | set(cb)):
         if key not in cb:
             lines.append(f"config {key}: only in the retrained ({ca[key]!r})")
@@ -214,14 +269,20 @@ def main(argv: list[str] | None = None) -> int:
                     help="keep the two training runs here (default: a temporary folder)")
     ap.add_argument("--pose-from", type=Path, default=None,
                     help="only refit the pose code of this file (made by the first two stages)")
+    ap.add_argument("--geometry-from", type=Path, default=None,
+                    help="start at the texture stage from this earlier geometry run of the "
+                         "recipe (an earlier --work folder's geometry/)")
     args = ap.parse_args(argv)
+    if args.pose_from is not None and args.geometry_from is not None:
+        ap.error("--pose-from and --geometry-from: one or the other")
     manifest_path = args.out / "models.json"
     with tempfile.TemporaryDirectory(prefix="species-models-") as tmp:
         threads = args.threads or RECIPES[args.species]["threads"]
         if args.pose_from is not None:
             model, made = _pose_only(args.species, args.pose_from, manifest_path, threads)
         else:
-            model, made = train_species(args.species, args.work or Path(tmp), threads)
+            model, made = train_species(args.species, args.work or Path(tmp), threads,
+                                        geometry_from=args.geometry_from)
         target = Path(tmp) / f"{args.species}.pt" if args.check else args.out / f"{args.species}.pt"
         atomic_save_torch(model, target)
         digest = sha256_file(target)

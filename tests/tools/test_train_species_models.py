@@ -64,6 +64,30 @@ def test_species_model_is_reproduced_bit_for_bit(tmp_path):
     for k, v in geo.state_dict().items():
         assert torch.equal(v, geo2.state_dict()[k])
     assert set(model) == {"format", "config", "modules", "step"}  # no optimiser, no RNG state
+    # the texture stage on run a's geometry run: the same file, the run's hash recorded
+    model_c, made_c = train_species("biped", tmp_path / "c", threads=1, scale=0.002,
+                                    extra=_tiny(tmp_path / "cache"),
+                                    geometry_from=tmp_path / "a" / "geometry")
+    atomic_save_torch(model_c, tmp_path / "c.pt")
+    assert sha256_file(tmp_path / "c.pt") == digests[0]
+    assert not (tmp_path / "c" / "geometry").exists()
+    # the geometry's figures read back from its metrics.csv (json: NaN, the tiny world's depth
+    # error, equals itself)
+    assert json.dumps(made_c["figures"], sort_keys=True) == json.dumps(made["figures"],
+                                                                       sort_keys=True)
+    assert made_c["geometry_from_sha256"] == sha256_file(tmp_path / "a" / "geometry" /
+                                                         "checkpoint.pt")
+    # a geometry run of another step count or config is refused, naming what differs
+    with pytest.raises(SystemExit, match=r"step 12 \(recipe 18\)"):
+        train_species("biped", tmp_path / "d", threads=1, scale=0.003,
+                      extra=_tiny(tmp_path / "cache"), geometry_from=tmp_path / "a" / "geometry")
+    with pytest.raises(SystemExit, match=r"netepu\.optim\.batch_size 2 \(recipe 3\)"):
+        train_species("biped", tmp_path / "d", threads=1, scale=0.002,
+                      extra=[*_tiny(tmp_path / "cache"), "netepu.optim.batch_size=3"],
+                      geometry_from=tmp_path / "a" / "geometry")
+    with pytest.raises(SystemExit, match=r"no checkpoint\.pt"):
+        train_species("biped", tmp_path / "d", threads=1, scale=0.002,
+                      extra=_tiny(tmp_path / "cache"), geometry_from=tmp_path / "a")
 
 
 def test_pose_stage_alone_refits_the_recorded_file_and_refuses_another(tmp_path, monkeypatch):
