@@ -48,6 +48,7 @@ from netepu.geometry.pose_code import PoseCodeSettings, refit_pose_code  # noqa:
 from netepu.pipeline.species_models import MODELS  # noqa: E402
 from nsd.core.atomic import atomic_save_torch  # noqa: E402
 from nsd.core.config import compose_app  # noqa: E402
+from nsd.core.errors import CheckpointError  # noqa: E402
 from nsd.core.trainer import CHECKPOINT_FORMAT, load_checkpoint  # noqa: E402
 from nsd.export.manifest import sha256_file  # noqa: E402
 from tools.benchlib import ship_file  # noqa: E402
@@ -108,7 +109,10 @@ def _earlier_geometry(folder: Path, overrides: list[str], steps: int,
     if not (folder / "checkpoint.pt").is_file() or not (folder / "metrics.csv").is_file():
         raise SystemExit(f"--geometry-from {folder}: no checkpoint.pt and metrics.csv there "
                          f"(give the geometry/ folder of an earlier --work)")
-    state = load_checkpoint(folder)
+    try:
+        state = load_checkpoint(folder)
+    except CheckpointError as e:
+        raise SystemExit(f"--geometry-from {folder}: {e}") from None
     wanted = _flat(OmegaConf.to_container(_config(overrides, steps, threads), resolve=True))
     have = _flat(state["config"])
     differ = [f"{k} {have.get(k, 'missing')!r} (recipe {v!r})" for k, v in wanted.items()

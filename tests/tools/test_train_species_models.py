@@ -85,6 +85,12 @@ def test_species_model_is_reproduced_bit_for_bit(tmp_path):
         train_species("biped", tmp_path / "d", threads=1, scale=0.002,
                       extra=[*_tiny(tmp_path / "cache"), "netepu.optim.batch_size=3"],
                       geometry_from=tmp_path / "a" / "geometry")
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    (tmp_path / "junk" / "metrics.csv").write_text("step\n")
+    with pytest.raises(SystemExit, match=r"--geometry-from .*junk: checkpoint "):
+        train_species("biped", tmp_path / "d", threads=1, scale=0.002,
+                      extra=_tiny(tmp_path / "cache"), geometry_from=tmp_path / "junk")
     with pytest.raises(SystemExit, match=r"no checkpoint\.pt"):
         train_species("biped", tmp_path / "d", threads=1, scale=0.002,
                       extra=_tiny(tmp_path / "cache"), geometry_from=tmp_path / "a")
