@@ -112,7 +112,10 @@ class InverseSettings:
             whatever the gradient, so a long warm chain random-walks at a high rate).
         init_steps: Adam steps of the one start a learned initialiser gives.
         init_templates: screened template starts optimised beside it (0: none); with more
-            than one start the worse half is dropped after half of ``init_steps``.
+            than one start the worse half is dropped after ``init_prune`` steps.
+        init_prune: steps after which the worse half of the starts beside a learned one is
+            dropped (and again every as many steps while more than one is left; 0: half of
+            ``init_steps``).
         init_turns: the learned start at this many headings about the up axis through its
             centre (1: as predicted; 2: also turned 180 degrees, the heading a silhouette tells
             worst), all optimised.
@@ -140,6 +143,7 @@ class InverseSettings:
     warm_lr: float = 0.05
     init_steps: int = 40
     init_templates: int = 2
+    init_prune: int = 0
     init_poses: int = 8
     init_turns: int = 1
     init_headings: int = 4
@@ -444,7 +448,8 @@ def invert_silhouettes(
             z0, c0 = _screen(model, masks, cams, regions, z0, c0, s, rng, ignored)
         elif start is None:
             steps = s.init_steps
-            run_s = replace(s, prune_every=max(1, steps // 2), headings=s.init_headings,
+            run_s = replace(s, prune_every=s.init_prune or max(1, steps // 2),
+                            headings=s.init_headings,
                             screen_points=s.init_screen_points,
                             point_budget=s.init_point_budget,
                             points_per_view=s.init_points_per_view)

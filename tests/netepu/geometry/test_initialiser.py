@@ -3,6 +3,8 @@ checkpoints, learning, and its use by inverse rendering."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -208,6 +210,11 @@ def test_screened_templates_beside_a_wrong_learned_start_win():
     res = invert_silhouettes(model, own, cam, code.keypoints[0][None], s, initialiser=wrong)
     assert res.start_steps == 30 and len(res.start_losses) == 1
     assert mpjpe(res.keypoints, code.keypoints[0]) < 0.05
+    # init_prune: the worse dropped after 5 steps (2 x 5 + 15 start-steps), the same winner
+    early = invert_silhouettes(model, own, cam, code.keypoints[0][None],
+                               replace(s, init_prune=5), initialiser=wrong)
+    assert early.start_steps == 25 and len(early.start_losses) == 1
+    assert mpjpe(early.keypoints, code.keypoints[0]) < 0.05
 
 
 def test_only_the_first_init_poses_templates_are_screened_beside_a_learned_start(monkeypatch):
