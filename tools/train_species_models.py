@@ -188,7 +188,7 @@ def train_species(species: str, work: Path, threads: int, scale: float = 1.0,
              "step": int(state["step"])}
     made = {
         "species": species, "threads": threads, "steps": steps,
-        "overrides": {"geometry": [*recipe["geometry"], *extra],
+        "overrides": {"geometry": geometry_overrides,
                       "texture": [*recipe["texture"], *extra]},
         "minutes": {"geometry": round(geo_minutes, 1), "texture": round((t2 - t1) / 60, 1)},
         "figures": {"geometry": _figures(geo), "texture": _figures(tex)},
