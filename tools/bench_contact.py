@@ -116,8 +116,8 @@ VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, 
                                        "prior_mask@train.prior_mask=hull",
                                        "train.prior_mask.weight=4"],
 }
-METRICS = ("detection_rate", "mask_miou", "depth_order_accuracy", "association_accuracy",
-           "merge_rate")
+METRICS = ("detection_rate", "mask_detection_rate", "mask_miou", "depth_order_accuracy",
+           "association_accuracy", "merge_rate")
 PARTS = ("", "_apart", "_touching")
 
 

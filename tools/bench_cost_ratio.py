@@ -25,7 +25,6 @@ ratio at equal IoU; training minutes exclude evaluations (the trainer's clock)::
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -35,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tools.benchlib import write_report  # noqa: E402
+from tools.benchlib import evaluations, write_report  # noqa: E402
 from tools.train_species_models import RECIPES  # noqa: E402
 
 WORK = ROOT / "runs" / "cost_ratio"
@@ -67,14 +66,9 @@ def train(name: str, minutes: float) -> None:
 
 def curve(name: str) -> list[dict]:
     """The run's evaluations: step, training minutes and :data:`METRICS`."""
-    with open(WORK / name / "metrics.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    out: list[dict] = []
-    for r in rows:  # the final evaluation repeats the last step's: kept once
-        if r.get(f"eval/{METRICS[0]}") and not (out and out[-1]["step"] == int(r["step"])):
-            out.append({"step": int(r["step"]), "minutes": float(r["minutes"]),
-                        **{m: float(r[f"eval/{m}"]) for m in METRICS}})  # fmt: skip
-    return out
+    return [{"step": int(r["step"]), "minutes": float(r["minutes"]),
+             **{m: float(r[f"eval/{m}"]) for m in METRICS}}
+            for r in evaluations(WORK / name, f"eval/{METRICS[0]}")]
 
 
 def minutes_to_reach(ours: list[dict], iou: float) -> tuple[float | None, bool]:

@@ -34,7 +34,6 @@ config this script would train, so a re-run only trains what is missing.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import subprocess
 import sys
@@ -59,7 +58,7 @@ from netepu.pipeline.species_models import MODELS  # noqa: E402
 from nsd.core.config import compose_app  # noqa: E402
 from nsd.synth import make_individual, make_rig, render_views, sample_pose  # noqa: E402
 from nsd.synth.raycast import camera_rays  # noqa: E402
-from tools.benchlib import write_report  # noqa: E402
+from tools.benchlib import evaluations, write_report  # noqa: E402
 from tools.train_species_models import RECIPES  # noqa: E402
 
 SPECIES = {  # each species' data and model overrides: the shipped recipes' without their
@@ -229,14 +228,7 @@ def _done(out: Path, overrides: list[str], steps: int) -> bool:
         compose_app("netepu_train", [o for o in overrides if not o.startswith("hydra.")]),
         resolve=True)
     return (OmegaConf.to_container(OmegaConf.load(saved), resolve=True) == want
-            and any(r["step"] == str(steps) for r in _curve(out)))
-
-
-def _curve(out: Path) -> list[dict]:
-    """The evaluations of a run, one per step (the final one is logged twice)."""
-    with (out / "metrics.csv").open() as f:
-        rows = {r["step"]: r for r in csv.DictReader(f) if r.get("eval/heldout_poses/iou")}
-    return list(rows.values())
+            and any(r["step"] == str(steps) for r in evaluations(out)))
 
 
 def ladder(species: list[str], steps: int, work: Path, train: list[str]) -> list[dict]:
@@ -278,7 +270,7 @@ def _rows(species: str, variant: str, out: Path, run: str) -> list[dict]:
         "depth MAE mm poses": float(r["eval/heldout_poses/depth_mae_mm"]),
         "depth MAE mm cameras": float(r["eval/heldout_cameras/depth_mae_mm"]),
         "run": run,
-    } for r in _curve(out)]
+    } for r in evaluations(out)]
 
 
 def _run_rows(label: str, out: Path) -> list[dict]:

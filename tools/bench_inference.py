@@ -4,14 +4,16 @@
         --key hole_share --values 0 0.02 0.04 0.08 --report holes
     .venv/bin/python tools/bench_inference.py RUN ... --key colour_model_separation \
         --values 0 0.1 0.2 0.3 --report colour_separation
+    .venv/bin/python tools/bench_inference.py RUN ... --report detection_by_mask
 
 For each run (an ``nsd-run`` folder with ``train/checkpoint.pt`` and the scene of its
 ``scene/stage.json``) and each of ``--values``, ``nsd-eval`` scores the trained checkpoint
 with ``inference.<--key>=<value>`` (conf/inference/default.yaml; the other settings as
-shipped) on ``--frames`` frames of the held-out tail: the learned decomposition and the
-hull-only row (:mod:`nsd.evaluation.hull_baseline`), split apart / touching. Nothing is
-trained; the runs' checkpoints are evaluated as they are, so a change of inference is
-measured on the same models.
+shipped; without ``--key``, the settings as shipped) on ``--frames`` frames of the
+held-out tail: the learned decomposition and the hull-only row
+(:mod:`nsd.evaluation.hull_baseline`), split apart / touching. Nothing is trained; the
+runs' checkpoints are evaluated as they are, so a change of inference is measured on the
+same models.
 
 Reports made with it: ``holes`` (``hole_share``: the small holes a visible mask encloses
 filled, :mod:`nsd.cues.holes`; made as ``tools/bench_holes.py``, this script's first
@@ -38,8 +40,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from tools.benchlib import write_report
 
 BIN = Path(sys.executable).parent
-KEYS = ("detection_rate", "mask_miou", "mask_miou_touching", "detection_rate_touching",
-        "merge_rate", "association_accuracy")
+KEYS = ("detection_rate", "mask_detection_rate", "mask_miou", "mask_miou_touching",
+        "detection_rate_touching", "mask_detection_rate_touching", "merge_rate",
+        "association_accuracy")
 
 
 NOTES = {  # what each setting does, for the report's notes
@@ -62,12 +65,14 @@ NOTES = {  # what each setting does, for the report's notes
 }
 
 
-def _evaluate(run: Path, key: str, value: str, frames: int, out: Path, hull: bool) -> dict:
+def _evaluate(run: Path, key: str | None, value: str, frames: int, out: Path,
+              hull: bool) -> dict:
     """``nsd-eval``'s metrics of ``run``'s checkpoint with ``inference.<key>=<value>`` (the
-    hull-only row's too where ``hull``)."""
+    settings as shipped where ``key`` is None; the hull-only row's too where ``hull``)."""
     scene = json.loads((run / "scene" / "stage.json").read_text())["summary"]["path"]
+    setting = [] if key is None else [f"inference.{key}={value}"]
     subprocess.run([str(BIN / "nsd-eval"), f"checkpoint={run / 'train' / 'checkpoint.pt'}",
-                    f"scene={scene}", f"max_frames={frames}", f"inference.{key}={value}",
+                    f"scene={scene}", f"max_frames={frames}", *setting,
                     f"out={out}", f"baseline={str(hull).lower()}"],
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return json.loads((out / "eval.json").read_text())
@@ -77,8 +82,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("runs", nargs="+", type=Path, help="nsd-run folders")
     ap.add_argument("--label", nargs="+", default=None, help="a name per run (default: its folder)")
-    ap.add_argument("--key", required=True, help="an inference setting (conf/inference)")
-    ap.add_argument("--values", nargs="+", required=True, help="its values, as nsd-eval reads them")
+    ap.add_argument("--key", default=None,
+                    help="an inference setting (conf/inference); none: score the settings as "
+                         "shipped, once per run")
+    ap.add_argument("--values", nargs="+", default=["shipped"],
+                    help="its values, as nsd-eval reads them")
     ap.add_argument("--hull-once", action="store_true",
                     help="the setting does not change the hull-only row: score it once per run")
     ap.add_argument("--frames", type=int, default=30, help="held-out frames scored per run")
@@ -95,23 +103,29 @@ def main() -> None:
                 m = _evaluate(run, args.key, value, args.frames,
                               Path(tmp) / f"{run.name}-{value}", hull)
                 for method, prefix in (("learned", ""), ("hull-only", "hull_"))[:1 + hull]:
-                    row = {"run": label, "method": method,
-                           args.key: value if method == "learned" or not args.hull_once
-                           else "any",
-                           "touching_share": m.get("touching_share")}
+                    row = {"run": label, "method": method}
+                    if args.key is not None:
+                        row[args.key] = (value if method == "learned" or not args.hull_once
+                                         else "any")
+                    row |= {"steps": m.get("step"), "touching_share": m.get("touching_share")}
                     row |= {key: m.get(prefix + key) for key in KEYS}
                     rows.append(row)
                     print(row, flush=True)
-    write_report(
-        args.report, f"inference.{args.key} on trained checkpoints, learned and hull-only", rows,
-        notes=(f"`tools/bench_inference.py --key {args.key}`: `nsd-eval` of each run's trained "
-               f"checkpoint on {args.frames} frames of its scene's held-out tail with "
-               f"`inference.{args.key}` = `{args.key}`: "
+    setting = ("with the inference settings as shipped at the commit" if args.key is None else
+               f"with `inference.{args.key}` = `{args.key}`: "
                f"{NOTES.get(args.key, 'conf/inference/default.yaml')}. The other settings as "
-               "shipped at the commit. `learned`: the trained decomposition (multi-view "
-               "inference); `hull-only`: the visual hull of the residuals alone. Metrics as "
+               "shipped at the commit")
+    title = ("the shipped inference" if args.key is None else f"inference.{args.key}")
+    write_report(
+        args.report, f"{title} on trained checkpoints, learned and hull-only", rows,
+        notes=(f"`tools/bench_inference.py{'' if args.key is None else ' --key ' + args.key}`: "
+               f"`nsd-eval` of each run's trained checkpoint (`steps`: its training steps) on "
+               f"{args.frames} frames of its scene's held-out tail {setting}. `learned`: the "
+               "trained decomposition (multi-view inference); `hull-only`: the visual hull of "
+               "the residuals alone. Metrics as "
                "nsd-eval's (nsd/evaluation/decomposition.py): detection by box IoU >= 0.5 "
-               "after matching on mask IoU, visible-mask mIoU, split apart / touching by "
+               "after matching on mask IoU (`detection_rate`), detection by mask IoU >= 0.5 "
+               "(`mask_detection_rate`), visible-mask mIoU, split apart / touching by "
                "nsd/evaluation/contact.py."))
 
 

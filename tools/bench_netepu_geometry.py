@@ -23,7 +23,6 @@ Usage (on an otherwise idle machine; takes ~10 minutes)::
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
 import sys
@@ -42,7 +41,13 @@ from netepu.geometry.data import build_geometry_data, sample_batch  # noqa: E402
 from netepu.geometry.evaluation import body_length, evaluate_views  # noqa: E402
 from netepu.geometry.maps import MapSettings, render_maps  # noqa: E402
 from netepu.geometry.model import build_geometry_model, load_geometry_model  # noqa: E402
-from tools.benchlib import markdown_table, median_time, peak_rss_mb, write_report  # noqa: E402
+from tools.benchlib import (  # noqa: E402
+    evaluations,
+    markdown_table,
+    median_time,
+    peak_rss_mb,
+    write_report,
+)
 
 PAPER = {"nnopcs_mse": 1.6e-4, "depth_mae_mm": 17.8, "body_length_m": 2.2}
 REFERENCE_NOTES = {"mflops_per_pixel": 12.2, "ms_128": 3100.0}
@@ -102,19 +107,12 @@ def accuracy(
                     }
                 )
                 print(rows[-1], flush=True)
-        csv_path = run / "metrics.csv"
-        if csv_path.is_file():
-            with csv_path.open() as f:
-                curves[name] = [
-                    {
-                        k: v
-                        for k, v in r.items()
-                        if v not in ("", None)
-                        and (k in ("step", "minutes") or k.startswith("eval/"))
-                    }
-                    for r in csv.DictReader(f)
-                    if r.get("eval/heldout_poses/iou")
-                ]
+        if (run / "metrics.csv").is_file():
+            curves[name] = [
+                {k: v for k, v in r.items()
+                 if v not in ("", None) and (k in ("step", "minutes") or k.startswith("eval/"))}
+                for r in evaluations(run)
+            ]
     return rows, {"body_length_m": body, "curves": curves}
 
 

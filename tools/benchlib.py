@@ -9,6 +9,7 @@ on a noisy machine.
 
 from __future__ import annotations
 
+import csv
 import datetime as _dt
 import json
 import os
@@ -28,7 +29,8 @@ from nsd.core.memory import peak_rss_mb  # one reader of VmHWM, re-exported for 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_DIR = ROOT / "docs" / "benchmarks"
 
-__all__ = ["BENCH_DIR", "machine_info", "median_time", "peak_rss_mb", "ship_file", "write_report"]
+__all__ = ["BENCH_DIR", "evaluations", "machine_info", "median_time", "peak_rss_mb", "ship_file",
+           "write_report"]
 
 
 def git_commit(ignore: Sequence[Path] = ()) -> str:
@@ -98,6 +100,16 @@ def ship_file(manifest_path: Path, manifest: dict, section: str, key: str, targe
     }
     atomic_write_text(manifest_path, json.dumps(manifest, indent=2) + "\n")
     print(f"wrote {target} ({target.stat().st_size / 1e6:.1f} MB, sha256 {digest[:16]}...)")
+
+
+def evaluations(run: Path, key: str = "eval/heldout_poses/iou") -> list[dict[str, str]]:
+    """The evaluation rows of the ``metrics.csv`` in the run folder ``run`` (``netepu-train``
+    writes one), the rows where ``key`` is logged, one per step in the order logged: the final
+    evaluation, which repeats the last step's, is kept once. Values are the file's strings
+    ("" where a column was not logged)."""
+    with (run / "metrics.csv").open(newline="") as f:
+        rows = {r["step"]: r for r in csv.DictReader(f) if r.get(key)}
+    return list(rows.values())
 
 
 def median_time(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> float:

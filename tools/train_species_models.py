@@ -27,7 +27,6 @@ may round matrix products differently and give a different, equally good file).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import tempfile
@@ -51,7 +50,7 @@ from nsd.core.config import compose_app  # noqa: E402
 from nsd.core.errors import CheckpointError  # noqa: E402
 from nsd.core.trainer import CHECKPOINT_FORMAT, load_checkpoint  # noqa: E402
 from nsd.export.manifest import sha256_file  # noqa: E402
-from tools.benchlib import ship_file  # noqa: E402
+from tools.benchlib import evaluations, ship_file  # noqa: E402
 
 # netepu-train overrides, step budgets and threads per species (docs/netepu.md, "Built-in
 # models"; the biped's 6,000 geometry steps on two threads are the 30 minutes of issue 26,
@@ -122,8 +121,7 @@ def _earlier_geometry(folder: Path, overrides: list[str], steps: int,
     if differ:
         raise SystemExit(f"--geometry-from {folder}: not this recipe's geometry run: "
                          + "; ".join(differ[:5]) + ("; ..." if len(differ) > 5 else ""))
-    with (folder / "metrics.csv").open(newline="") as f:
-        rows = [r for r in csv.DictReader(f) if r.get("eval/heldout_poses/iou")]
+    rows = evaluations(folder)
     if not rows or int(rows[-1]["step"]) != steps:
         raise SystemExit(f"--geometry-from {folder}: metrics.csv holds no final evaluation")
     final = {k.removeprefix("eval/"): float(v) for k, v in rows[-1].items()

@@ -22,7 +22,8 @@ __all__ = ["METRICS", "evaluate_checkpoint", "markdown_table"]
 
 
 METRICS = [
-    ("detection_rate", "detection rate (IoU >= 0.5)"),
+    ("detection_rate", "detection rate (box IoU >= 0.5)"),
+    ("mask_detection_rate", "detection rate by visible mask (mask IoU >= 0.5)"),
     ("mask_miou", "visible-mask mIoU"),
     ("mask_miou_raw", "visible-mask mIoU, raw compositor masks"),
     ("fg_ari", "foreground ARI"),

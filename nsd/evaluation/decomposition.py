@@ -8,6 +8,10 @@ matching on visible-mask IoU). Then:
   (the tight box of its visible mask; a focal window is larger than its
   subject, so the window itself is not the detection) has IoU >= 0.5 with the
   GT visible box;
+* **mask detection rate**: fraction of GT individuals whose matched prediction's
+  visible mask has IoU >= 0.5 with the GT visible mask (the stricter of the two: a
+  box can reach 0.5 around a mask that covers another body, and a split body's
+  mask can miss it by its box alone);
 * **mask mIoU**: mean visible-mask IoU over GT individuals (0 when unmatched);
 * **foreground ARI**: adjusted Rand index (scikit-learn) between GT and
   predicted instance labels over GT foreground pixels;
@@ -84,6 +88,7 @@ class FrameScore:
 
     n_gt: int = 0
     detected: int = 0
+    mask_detected: int = 0  # matched with visible-mask IoU >= 0.5
     iou_sum: float = 0.0
     order_total: int = 0
     order_correct: int = 0
@@ -98,6 +103,7 @@ class FrameScore:
         """Add ``other``'s counts to these (``matches`` are per camera-frame, not summed)."""
         self.n_gt += other.n_gt
         self.detected += other.detected
+        self.mask_detected += other.mask_detected
         self.iou_sum += other.iou_sum
         self.order_total += other.order_total
         self.order_correct += other.order_correct
@@ -141,6 +147,7 @@ def score_frame(
     matched_gt = {}
     for p, g in pairs:
         s.iou_sum += iou[p, g]
+        s.mask_detected += int(iou[p, g] >= 0.5)
         if box_iou_xywh(pboxes[p : p + 1], gt_boxes[g : g + 1])[0, 0] >= 0.5:
             s.detected += 1
         matched_gt[g] = int(win[p])
@@ -296,6 +303,7 @@ class Counts:
         total = self.total
         return {
             "detection_rate": _ratio(total.detected, total.n_gt),
+            "mask_detection_rate": _ratio(total.mask_detected, total.n_gt),
             "mask_miou": _ratio(total.iou_sum, total.n_gt),
             "mask_miou_raw": _ratio(self.raw_iou, total.n_gt),
             "fg_ari": float(np.nanmean(total.ari)) if total.ari else float("nan"),
@@ -309,6 +317,7 @@ class Counts:
 
 SPLIT_METRICS = (
     "detection_rate",
+    "mask_detection_rate",
     "mask_miou",
     "mask_miou_raw",
     "depth_order_accuracy",

@@ -71,6 +71,25 @@ def test_score_frame_perfect_and_depth_order():
     assert missing.detected == 1 and missing.order_total == 0
 
 
+def test_mask_detection_is_stricter_than_box_detection():
+    """A ring inside the GT's box has the GT's box (box IoU 1, detected by box): at half
+    the GT's pixels it is detected by mask too (IoU 0.5 counts), two pixels fewer and it is
+    not. The GT's own mask is detected by both."""
+    H = W = 20
+    gt = _rect(H, W, 2, 2, 14, 18)  # 12 x 16 = 192 px
+    outline = gt & ~_rect(H, W, 4, 4, 12, 16)  # 192 - 8 * 12 = 96 px, box 12 x 16
+    args = (gt[None], gt[None], np.array([[2, 2, 12, 16]], float), [3])
+    hollow = score_frame(outline[None].astype(float), np.zeros(1), np.ones(1, bool), *args)
+    assert hollow.iou_sum == pytest.approx(96 / 192)
+    assert (hollow.detected, hollow.mask_detected) == (1, 1)  # IoU exactly 0.5 counts
+    thin = outline.copy()
+    thin[8:10, 2] = False  # 94 px; the box is unchanged
+    s = score_frame(thin[None].astype(float), np.zeros(1), np.ones(1, bool), *args)
+    assert s.iou_sum < 0.5 and (s.detected, s.mask_detected) == (1, 0)
+    full = score_frame(gt[None].astype(float), np.zeros(1), np.ones(1, bool), *args)
+    assert (full.detected, full.mask_detected) == (1, 1)
+
+
 def test_merge_rate_and_overlap_ownership():
     """One window covering both subjects is a merge; the overlap's visible pixels are
     owned by the front subject's window, and a blend that gives them to the back
