@@ -100,6 +100,9 @@ SCENES |= {
     # made for issue 26's keypoints of three individuals: three quadrupeds that look different
     "3 quadrupeds, 4 cameras, seed 9": (
         3, ["num_individuals=3", "species=[quadruped]", "motion.area_radius=2.0", "seed=9"]),
+    # made on 2026-11-30 after every setting of today's defaults was chosen: blind checks
+    "4 (bipeds, quadrupeds), 8 cameras, seed 23": _mixed(4, "biped,quadruped", 2.0, 23),
+    "3 bipeds, 4 cameras, seed 24": (3, ["num_individuals=3", "seed=24"]),
 }
 BI_NVS = ["train.model.mode=bi_nvs"]  # the default training until 2026-11-27
 VARIANTS = {  # name -> nsd-run overrides (the ablations of tools/bench_nsd.py, on nsd-run)
