@@ -111,6 +111,11 @@ VARIANTS = [  # (name, masks, invert_export settings)
      "most 288 points per view, 40 steps, the worse starts dropped after 10 steps", "export",
      {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
       "inverse": {"init_prune": 10}}),
+    ("the bipeds' default + warm starts (20 steps)", "export",
+     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2, "warm_steps": 20}),
+    ("the bipeds' default + warm starts (20 steps at warm_lr 0.01)", "export",
+     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2, "warm_steps": 20,
+      "inverse": {"warm_lr": 0.01}}),
     ("ground-truth visible masks + occluders", "visible", {}),
     ("ground-truth amodal masks", "amodal", {"occlusion": False}),
 ]
