@@ -92,6 +92,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30, help="held-out frames scored per run")
     ap.add_argument("--report", required=True, help="docs/benchmarks/<report>.{md,json}")
     args = ap.parse_args()
+    if args.key is None and args.values != ["shipped"]:
+        raise SystemExit("--values needs --key (without it the settings as shipped are scored)")
     labels = args.label or [r.name for r in args.runs]
     if len(labels) != len(args.runs):
         raise SystemExit("--label: one name per run")

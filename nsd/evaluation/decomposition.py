@@ -9,9 +9,9 @@ matching on visible-mask IoU). Then:
   subject, so the window itself is not the detection) has IoU >= 0.5 with the
   GT visible box;
 * **mask detection rate**: fraction of GT individuals whose matched prediction's
-  visible mask has IoU >= 0.5 with the GT visible mask (the stricter of the two: a
-  box can reach 0.5 around a mask that covers another body, and a split body's
-  mask can miss it by its box alone);
+  visible mask has IoU >= 0.5 with the GT visible mask (neither count is the
+  stricter: a box can reach 0.5 around a mask that lies on another body, and the
+  box of a body seen in pieces can miss it while the mask holds most of it);
 * **mask mIoU**: mean visible-mask IoU over GT individuals (0 when unmatched);
 * **foreground ARI**: adjusted Rand index (scikit-learn) between GT and
   predicted instance labels over GT foreground pixels;
