@@ -128,8 +128,9 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "3 (2 quadrupeds, 1 biped) huddling, 6-camera ring, seed 35": _huddle(
         3, "quadruped,biped", 2.0, 35, "rig.kind=ring", "rig.count=6"),
 }
-METRICS = ("detection_rate", "mask_miou", "depth_order_accuracy", "association_accuracy",
-           "merge_rate", "detection_rate_touching", "mask_miou_touching", "touching_share")
+METRICS = ("detection_rate", "mask_detection_rate", "mask_miou", "depth_order_accuracy",
+           "association_accuracy", "merge_rate", "detection_rate_touching",
+           "mask_detection_rate_touching", "mask_miou_touching", "touching_share")
 # an older checkout's hull-only scores, with its own code and defaults (its grid knows no
 # min_views; its evaluate_hull takes the same arguments)
 BEFORE = """
