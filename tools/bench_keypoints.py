@@ -59,6 +59,8 @@ s["seconds"] = time.perf_counter() - t
 print(json.dumps(s))
 """
 
+# the bipeds' cold start in nsd-run: the learned initialiser and two screened templates
+BIPEDS = {"initialiser": "builtin", "init_steps": 40, "init_templates": 2}
 VARIANTS = [  # (name, masks, invert_export settings)
     ("baseline: cold starts, no occluders", "export", {"occlusion": False}),
     ("occluders, screened template starts", "export", {}),
@@ -87,11 +89,11 @@ VARIANTS = [  # (name, masks, invert_export settings)
                   "init_poses": 16, "init_points_per_view": 384}}),
     ("learned initialiser + 2 templates screened cheaply (4 headings, 64 points) from 16 "
      "poses, point budget 576, 40 steps (the bipeds' default before 2026-11-30)", "export",
-     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
+     {**BIPEDS,
       "inverse": {"init_headings": 4, "init_screen_points": 64, "init_point_budget": 576,
                   "init_poses": 16, "init_points_per_view": 384}}),
     ("learned initialiser + 2 templates screened cheaply from 16 poses, point budget 448, 40 "
-     "steps", "export", {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
+     "steps", "export", {**BIPEDS,
                          "inverse": {"init_point_budget": 448, "init_poses": 16,
                                      "init_points_per_view": 384}}),
     ("learned initialiser + 1 template screened cheaply from 8 poses, at most 288 points per "
@@ -102,19 +104,19 @@ VARIANTS = [  # (name, masks, invert_export settings)
                          "inverse": {"init_poses": 16, "init_points_per_view": 384}}),
     ("learned initialiser + 2 templates screened cheaply from 8 poses, point budget 576, 40 "
      "steps, 384 points per view", "export",
-     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
+     {**BIPEDS,
       "inverse": {"init_points_per_view": 384}}),
     ("learned initialiser + 2 templates screened cheaply from 8 poses, point budget 576, at "
      "most 288 points per view, 40 steps (the bipeds' default)", "export",
-     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2}),
+     BIPEDS),
     ("learned initialiser + 2 templates screened cheaply from 8 poses, point budget 576, at "
      "most 288 points per view, 40 steps, the worse starts dropped after 10 steps", "export",
-     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2,
+     {**BIPEDS,
       "inverse": {"init_prune": 10}}),
     ("the bipeds' default + warm starts (20 steps)", "export",
-     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2, "warm_steps": 20}),
+     {**BIPEDS, "warm_steps": 20}),
     ("the bipeds' default + warm starts (20 steps at warm_lr 0.01)", "export",
-     {"initialiser": "builtin", "init_steps": 40, "init_templates": 2, "warm_steps": 20,
+     {**BIPEDS, "warm_steps": 20,
       "inverse": {"warm_lr": 0.01}}),
     ("ground-truth visible masks + occluders", "visible", {}),
     ("ground-truth amodal masks", "amodal", {"occlusion": False}),
