@@ -3,7 +3,8 @@
 The voxels that :mod:`nsd.cues.occupancy` carves are counted per column on the horizontal
 plane. With the count known, a seeded k-means of the columns cuts them into individuals;
 where bodies of unequal size touch (a long, low quadruped beside an upright biped), a
-Gaussian mixture of the voxels in 3D replaces it. As an upper bound, the heaviest connected
+Gaussian mixture of the voxels in 3D replaces it, penalised for joining blobs the hull keeps
+apart. As an upper bound, the heaviest connected
 components are the individuals (:func:`cluster_individuals`). Through a sequence, a
 :class:`ClusterTrack` hands each frame's Gaussians to the next as one more start of its
 mixture (bodies move little between frames), and says whether the scene wants the mixture
@@ -57,6 +58,13 @@ MIXTURE_ITERATIONS = 100
 # stopping tolerance, sklearn's default); -inf: every frame (docs/nsd.md, "A cheaper hull
 # for groups")
 RESTART_TOLERANCE = 1e-3
+# every voxel a Gaussian holds outside its heaviest blob costs its mixture BLOB_PENALTY nats,
+# spread over the voxels: two small bodies apart cost one Gaussian little likelihood, a big
+# body in two gains much. Hull-only detection over the whole recording of a pair of bipeds
+# beside two quadrupeds (seed 23) 0.635 -> 0.768, +0.005-0.041 on four scenes made after the
+# choice, none of 25 scenes lower by more than 0.001 (docs/benchmarks/hull_blob_penalty.md);
+# 3 lost 0.06 on one; 0: off
+BLOB_PENALTY = 2.0
 
 
 @dataclass(frozen=True)
@@ -251,6 +259,35 @@ def _partition_loglik(x: np.ndarray, labels: np.ndarray, k: int, reg: float) -> 
     return float(np.logaddexp.reduce(np.stack(logp), axis=0).mean()) if logp else -np.inf
 
 
+def _spanning_share(labels: np.ndarray, blobs: np.ndarray | None, k: int) -> float:
+    """The share of the points whose label (P,) in [0, k) holds more points in another of
+    the ``blobs`` (P,) >= 0 than in theirs: what a partition joins that the hull keeps
+    apart (0 without blobs)."""
+    if blobs is None or not len(labels):
+        return 0.0
+    held = np.zeros((k, int(blobs.max()) + 1))
+    np.add.at(held, (labels, blobs), 1)
+    return 1.0 - float(held.max(1).sum()) / len(labels)
+
+
+def _blob_means(x: np.ndarray, blobs: np.ndarray, k: int) -> np.ndarray:
+    """(k, D) starts of a mixture of ``x`` (P, D): the means of the ``k`` heaviest of the
+    ``blobs`` (P,) >= 0; while fewer, the heaviest part cut in two across its principal axis
+    at its mean."""
+    count = np.bincount(blobs)
+    parts = [x[blobs == b] for b in np.argsort(-count, kind="stable")[:k] if count[b]]
+    while len(parts) < k:
+        j = int(np.argmax([len(p) for p in parts]))
+        part = parts.pop(j)
+        if len(part) < 2:  # nothing to cut: the same start twice
+            parts += [part, part]
+            continue
+        axis = np.linalg.eigh(np.cov(part.T))[1][:, -1]
+        side = (part - part.mean(0)) @ axis > 0
+        parts += [part[side], part[~side]] if side.any() and (~side).any() else [part, part]
+    return np.stack([p.mean(0) for p in parts])
+
+
 def _hand_partition(track: ClusterTrack, x: np.ndarray, labels: np.ndarray, k: int,
                     reg: float) -> None:
     """Hand the ``track`` the Gaussians of the partition ``labels`` (P,) in [0, k) or -1 of
@@ -265,18 +302,23 @@ def _hand_partition(track: ClusterTrack, x: np.ndarray, labels: np.ndarray, k: i
 
 
 def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain: float,
-                    track: ClusterTrack) -> np.ndarray | None:
+                    track: ClusterTrack, blobs: np.ndarray | None = None) -> np.ndarray | None:
     """Labels (P,) in [0, k) of ``x`` (P, D) by a Gaussian mixture (full covariances,
     ``reg`` added to them), or None where it does not explain ``x`` better than the
     partition ``labels`` (P,) in [0, k) does (:func:`_partition_loglik`).
 
-    The best of the mixtures started from the partition, from ``MIXTURE_RESTARTS``
+    The best of the mixtures started from the partition, from the ``blobs`` (P,) >= 0 (one
+    Gaussian per blob, :func:`_blob_means`; None: no blobs), from ``MIXTURE_RESTARTS``
     k-means++ seeds and from the ``track``'s Gaussians (kept unless another is better by
     more than its rules' ``mixture_slack``) must gain ``gain`` nats per point; the gain is
-    added to the ``track``'s. The ``track`` is handed the kept mixture, or the partition's
-    Gaussians where the mixture is not kept. Where the track's start is as likely as the
-    partition's (within ``RESTART_TOLERANCE``) or more, the bodies are where the last frame
-    left them and the restarts are not run (docs/nsd.md, "A cheaper hull for groups").
+    added to the ``track``'s. Every fit, and the partition, is scored by its log-likelihood
+    less ``BLOB_PENALTY`` times the share of points its labels hold outside their heaviest
+    blob (:func:`_spanning_share`): two small bodies the hull keeps apart are not one
+    Gaussian so that a big body can take two. The ``track`` is handed the kept mixture, or
+    the partition's Gaussians where the mixture is not kept. Where the track's start is as
+    likely as the partition's and the blobs' (within ``RESTART_TOLERANCE``) or more, the
+    bodies are where the last frame left them and the restarts are not run (docs/nsd.md,
+    "A cheaper hull for groups").
     """
     # lazy: scikit-learn (1.9 s to import) only where the hull's k-means may have cut a body
     from sklearn.mixture import GaussianMixture
@@ -285,24 +327,31 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
         return GaussianMixture(k, covariance_type="full", reg_covar=reg,
                                max_iter=MIXTURE_ITERATIONS, **start).fit(x)
 
+    def score(g: GaussianMixture) -> float:  # nats per point, the blob penalty taken off
+        return g.score(x) - BLOB_PENALTY * _spanning_share(g.predict(x), blobs, k)
+
     # one BLAS thread: on these small matrices, threads contending with torch's idle ones
     # made a held-out frame of the default scene's hull 0.10 s instead of 0.04
     with threadpool_limits(1):
-        base = _partition_loglik(x, labels, k, reg)
+        base = (_partition_loglik(x, labels, k, reg)
+                - BLOB_PENALTY * _spanning_share(labels, blobs, k))
         means = np.stack([x[labels == j].mean(0) if (labels == j).any() else x.mean(0)
                           for j in range(k)])
         fits = [fit(means_init=means, random_state=0)]
-        scores = [fits[0].score(x)]
+        if blobs is not None:  # one more start: a Gaussian per blob, the heaviest split
+            fits.append(fit(means_init=_blob_means(x, blobs, k), random_state=0))
+        scores = [score(g) for g in fits]
         carried = None
         if track.weights is not None:
             carried = fit(weights_init=track.weights, means_init=track.means,
                           precisions_init=track.precisions, random_state=0)
-            carried_score = carried.score(x)
+            carried_score = score(carried)
         # no track, or it may have lost a body
-        if carried is None or carried_score < scores[0] - RESTART_TOLERANCE:
-            fits += [fit(init_params="k-means++", random_state=s)
-                     for s in range(MIXTURE_RESTARTS)]
-            scores += [g.score(x) for g in fits[1:]]
+        if carried is None or carried_score < max(scores) - RESTART_TOLERANCE:
+            restarts = [fit(init_params="k-means++", random_state=s)
+                        for s in range(MIXTURE_RESTARTS)]
+            fits += restarts
+            scores += [score(g) for g in restarts]
         best = int(np.argmax(scores))
         if carried is not None:
             fits.append(carried)
@@ -319,7 +368,8 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
 
 
 def _mixture_relabelled(x: np.ndarray, plane: np.ndarray, labels: np.ndarray, k: int,
-                        reg: float, gain: float, track: ClusterTrack) -> np.ndarray:
+                        reg: float, gain: float, track: ClusterTrack,
+                        blobs: np.ndarray | None = None) -> np.ndarray:
     """``labels`` (P,) in [0, k) or -1 of the points ``x`` (P, 3) (``plane`` (P, 2): their
     ground-plane coordinates) with the kept ones (>= 0) replaced by the mixture's
     (:func:`_mixture_labels`, which updates the ``track``), ranked along the first plane
@@ -328,7 +378,8 @@ def _mixture_relabelled(x: np.ndarray, plane: np.ndarray, labels: np.ndarray, k:
     keep = labels >= 0
     if len(np.unique(labels[keep])) < k or keep.sum() <= 4 * k:
         return labels
-    mixed = _mixture_labels(x[keep], labels[keep], k, reg, gain, track)
+    mixed = _mixture_labels(x[keep], labels[keep], k, reg, gain, track,
+                            None if blobs is None else blobs[keep])
     if mixed is None:
         return labels
     kept = plane[keep]
@@ -374,11 +425,13 @@ def cluster_individuals(
     (individuals apart), where a Gaussian mixture of the kept voxels in 3D explains them
     better by ``mixture_gain`` nats per voxel (None: the ``track``'s rules', or the shipped
     default without a track; ``inf``: never; ``-inf``: always), its labels replace the
-    k-means': a long quadruped is not cut at the midpoint to an upright neighbour. A
-    ``track`` carried through a sequence of frames starts one more mixture from the
-    previous frame's Gaussians and prefers it unless another start is better by more than
-    its rules' ``mixture_slack``; it is handed this frame's
-    Gaussians (the kept mixture's, or the k-means partition's) and its gain. A track whose
+    k-means': a long quadruped is not cut at the midpoint to an upright neighbour. The
+    mixture pays for every voxel a Gaussian holds outside its heaviest blob
+    (``BLOB_PENALTY``): it does not join two small bodies the hull keeps apart to cut a
+    big one in two. A ``track`` carried through a sequence of frames starts one more
+    mixture from the previous frame's Gaussians and prefers it unless another start is
+    better by more than its rules' ``mixture_slack``; it is handed this frame's Gaussians
+    (the kept mixture's, or the k-means partition's) and its gain. A track whose
     ``mixture`` is False (a scene of bodies of one size, :func:`scene_wants_mixture`)
     keeps the k-means and fits nothing, unless ``mixture_gain`` is ``-inf``.
 
@@ -403,6 +456,8 @@ def cluster_individuals(
         column = np.full(shape, -1, np.int64)
         blob = (ndimage.label(ndimage.binary_dilation(kept, iterations=BLOB_GAP))[0][kept] - 1
                 if BLOB_GAP else None)
+        blob_of = np.zeros(shape, np.int64)  # each kept column's blob (components: no gap)
+        blob_of[kept] = comp[kept] - 1 if blob is None else blob
         column[kept] = _seeded_columns((np.argwhere(kept) + 0.5) * cell, counts[kept] ** 2,
                                        comp[kept] - 1, n, k, cell, blob)
         labels = column[ij[:, 0].numpy(), ij[:, 1].numpy()]
@@ -415,7 +470,7 @@ def cluster_individuals(
         tried = track is None or track.mixture or gain == -np.inf
         if gain < np.inf and (not whole or gain == -np.inf) and tried:
             labels = _mixture_relabelled(x, xy.double().numpy(), labels, k, cell**2, gain,
-                                         carried)
+                                         carried, blob_of[ij[:, 0].numpy(), ij[:, 1].numpy()])
         elif track is not None:  # nothing fitted: the partition's Gaussians, for the next
             _hand_partition(track, x, labels, k, cell**2)
         return torch.as_tensor(labels)

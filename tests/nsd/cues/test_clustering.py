@@ -12,9 +12,11 @@ from nsd.cues import clustering, occupancy
 from nsd.cues.clustering import (
     ClusterTrack,
     MixtureRules,
+    _blob_means,
     _mixture_labels,
     _partition_gaussians,
     _partition_loglik,
+    _spanning_share,
     cluster_individuals,
 )
 
@@ -349,13 +351,66 @@ def test_the_restarts_run_only_where_the_track_may_have_lost_a_body(monkeypatch)
     pts, n = _long_beside_round(cell)
     track = ClusterTrack()
     first = cluster_individuals(pts, up, cell, 2, track=track)
-    assert fitted == ["given"] + ["k-means++"] * clustering.MIXTURE_RESTARTS
+    # the partition's start, the blobs' start, the restarts
+    assert fitted == ["given"] * 2 + ["k-means++"] * clustering.MIXTURE_RESTARTS
     fitted.clear()
     assert torch.equal(cluster_individuals(pts, up, cell, 2, track=track), first)
-    assert fitted == ["given", "given"]
+    assert fitted == ["given"] * 3  # and the track's
     fitted.clear()
     moved = pts + torch.tensor([0.0, 6.0, 0.0])
     labels = cluster_individuals(moved, up, cell, 2, track=track)
-    assert fitted == ["given", "given"] + ["k-means++"] * clustering.MIXTURE_RESTARTS
+    assert fitted == ["given"] * 3 + ["k-means++"] * clustering.MIXTURE_RESTARTS
     assert len(set(labels[:n].tolist())) == 1 and len(set(labels[n:].tolist())) == 1
     assert labels[0] != labels[-1]
+
+
+def test_spanning_share_known_values():
+    """Label 0 holds two points of blob 0 and one of blob 1: that one is outside its
+    label's heaviest blob; labels 1 and 2 each lie in one blob. 1 of 6 points."""
+    labels = np.array([0, 0, 0, 1, 1, 2])
+    blobs = np.array([0, 0, 1, 1, 1, 2])
+    assert _spanning_share(labels, blobs, 3) == pytest.approx(1 / 6)
+    assert _spanning_share(blobs, blobs, 3) == 0.0
+    assert _spanning_share(labels, None, 3) == 0.0
+
+
+def test_blob_means_known_values():
+    """The means of the k heaviest blobs; with more individuals than blobs, the heaviest
+    part cut across its principal axis at its mean (a row of five points: 0, 1, 2 | 3, 4)."""
+    row = np.array([[float(i), 0.0, 0.0] for i in range(5)])
+    x = np.concatenate([row, [[0.0, 9.0, 0.0]] * 3, [[9.0, 9.0, 0.0]] * 2])
+    blobs = np.repeat([0, 1, 2], [5, 3, 2])
+    assert np.allclose(_blob_means(x, blobs, 2), [[2.0, 0.0, 0.0], [0.0, 9.0, 0.0]])
+    four = _blob_means(x, blobs, 4)
+    assert np.allclose(four[:2], [[0.0, 9.0, 0.0], [9.0, 9.0, 0.0]])
+    assert np.allclose(np.sort(four[2:, 0]), [1.0, 3.5]) and np.allclose(four[2:, 1:], 0.0)
+
+
+def _box(lo, hi, cell: float) -> np.ndarray:
+    """Voxel centres (P, 3) filling the box from corner ``lo`` to ``hi``."""
+    axes = [np.arange(a, b - 1e-9, cell) + cell / 2 for a, b in zip(lo, hi, strict=True)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_two_small_bodies_apart_are_not_one_gaussian_where_a_big_one_splits_better(
+        monkeypatch):
+    """A big body of two lumps joined by a neck, and two small upright bodies 0.6 apart
+    (three blobs). Two Gaussians fit the big body far better than one, and the two small
+    ones cost one Gaussian little: by likelihood alone the partition that cuts the big
+    body and joins the small ones (the k-means' here) is the better one, and it stands.
+    A Gaussian that holds voxels of two blobs pays ``BLOB_PENALTY`` nats per voxel
+    outside its heaviest blob: the mixture then keeps each blob one individual."""
+    cell = 0.1
+    big = np.concatenate([_box((0, 0, 0), (0.8, 0.6, 0.6), cell),
+                          _box((0.8, 0.1, 0.1), (1.2, 0.5, 0.5), cell),
+                          _box((1.2, 0, 0), (2.0, 0.6, 0.6), cell)])
+    small = [_box((0, 1.5, 0), (0.2, 1.7, 1.0), cell), _box((0.8, 1.5, 0), (1.0, 1.7, 1.0), cell)]
+    x = np.concatenate([big, *small])
+    blobs = np.repeat([0, 1, 2], [len(big), len(small[0]), len(small[1])])
+    cut = np.where(blobs == 0, (x[:, 0] > 1.0).astype(int), 2)
+    assert _partition_loglik(x, cut, 3, cell**2) > _partition_loglik(x, blobs, 3, cell**2)
+    assert clustering.BLOB_PENALTY > 0
+    labels = _mixture_labels(x, cut, 3, cell**2, 0.02, ClusterTrack(), blobs)
+    assert labels is not None and _same_partition(labels, blobs)
+    monkeypatch.setattr(clustering, "BLOB_PENALTY", 0.0)
+    assert _mixture_labels(x, cut, 3, cell**2, 0.02, ClusterTrack(), blobs) is None
