@@ -60,10 +60,10 @@ MIXTURE_ITERATIONS = 100
 RESTART_TOLERANCE = 1e-3
 # every voxel a Gaussian holds outside its heaviest blob costs its mixture BLOB_PENALTY nats,
 # spread over the voxels: two small bodies apart cost one Gaussian little likelihood, a big
-# body in two gains much. Hull-only detection over the whole recording of a pair of bipeds
-# beside two quadrupeds (seed 23) 0.635 -> 0.768, +0.005-0.041 on four scenes made after the
-# choice, none of 25 scenes lower by more than 0.001 (docs/benchmarks/hull_blob_penalty.md);
-# 3 lost 0.06 on one; 0: off
+# body in two gains much. Hull-only detection over the whole recording: +0.031-0.051 on four
+# huddles of both species, +0.005-0.041 on four scenes made after the choice, none of 25
+# scenes lower by more than 0.001 (docs/benchmarks/hull_blob_penalty.md); 3 lost 0.06 on one
+# scene; 0: off
 BLOB_PENALTY = 2.0
 
 
