@@ -327,8 +327,11 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
         return GaussianMixture(k, covariance_type="full", reg_covar=reg,
                                max_iter=MIXTURE_ITERATIONS, **start).fit(x)
 
+    predicted: dict[int, np.ndarray] = {}  # each fit's labels, computed once
+
     def score(g: GaussianMixture) -> float:  # nats per point, the blob penalty taken off
-        return g.score(x) - BLOB_PENALTY * _spanning_share(g.predict(x), blobs, k)
+        predicted[id(g)] = g.predict(x)
+        return g.score(x) - BLOB_PENALTY * _spanning_share(predicted[id(g)], blobs, k)
 
     # one BLAS thread: on these small matrices, threads contending with torch's idle ones
     # made a held-out frame of the default scene's hull 0.10 s instead of 0.04
@@ -364,7 +367,7 @@ def _mixture_labels(x: np.ndarray, labels: np.ndarray, k: int, reg: float, gain:
             return None
         kept = fits[best]
         track.keep(kept.weights_, kept.means_, kept.precisions_)
-        return kept.predict(x)
+        return predicted[id(kept)]
 
 
 def _mixture_relabelled(x: np.ndarray, plane: np.ndarray, labels: np.ndarray, k: int,
