@@ -9,6 +9,8 @@
         --scenes <the five scenes of seeds 31-35> --rules now "now, seeds by components (no blobs)"
     .venv/bin/python tools/bench_hull.py --whole --frames 60 --before /tmp/hull-before \
         --root /tmp/hull-scenes --report hull_blob_penalty --rules now "now, no blob penalty"
+    .venv/bin/python tools/bench_hull.py --whole --frames 60 --before /tmp/hull-before \
+        --root /tmp/hull-scenes --report hull_cores --rules now "now, cores first on every rig"
 
 The visual hull of the background residuals (:mod:`nsd.cues.occupancy`) places NSD's
 windows, gives their depths and links the views at inference, and makes the training
@@ -35,7 +37,9 @@ gain); these are the ``inference.mixture_*`` keys (:class:`nsd.cues.clustering.M
 or with the mixture's restarts run at every frame of a track (``RESTART_TOLERANCE=-inf``),
 not only where the track's start is less likely than the partition's, or the k-means seeded
 by components alone (``BLOB_GAP=0``: no blob seeds first) or by every blob, ghosts too
-(``BLOB_SHARE=0``), or the mixture free to join blobs (``BLOB_PENALTY=0``).
+(``BLOB_SHARE=0``), or the mixture free to join blobs (``BLOB_PENALTY=0``), or the pixels
+given to the front-most voxel whatever its place in its individual (``CORE_MAX_VIEWS=0``:
+no cores first) or to the cores first on rigs of any size (``CORE_MAX_VIEWS`` unbounded).
 ``--whole`` scores frames spread over the whole recording instead of the held-out tail (the
 hull needs no training).
 ``--rules`` keeps only the named rows; ``--root`` keeps the scenes (generated there once,
@@ -148,6 +152,20 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
         3, ["num_individuals=3", "species=[quadruped,biped]", "rig.kind=ring", "rig.count=6",
             "motion.area_radius=2.0", "seed=43"]),
     "4 quadrupeds huddling, 8 cameras, seed 44": _huddle(4, "quadruped", 2.5, 44),
+    # tools/bench_contact.py's scenes of one texture and of quadrupeds on 4 cameras (the same
+    # nsd-synth overrides): the scenes where the per-scene gate's decision was looked at again
+    "3 bipeds of one texture huddling, 4 cameras": (
+        3, ["num_individuals=3", "texture_ids=[1,1,1]", "motion.interaction=huddle",
+            "seed=1"]),
+    "4 bipeds of one texture huddling, 4 cameras, seed 2": (
+        4, ["num_individuals=4", "texture_ids=[7,7,7,7]", "motion.interaction=huddle",
+            "seed=2"]),
+    "2 quadrupeds of one texture huddling, 4 cameras, seed 4": (
+        2, ["num_individuals=2", "species=[quadruped]", "texture_ids=[6,6]",
+            "motion.interaction=huddle", "seed=4"]),
+    "3 quadrupeds of one texture huddling, 4 cameras, seed 5": _huddle(
+        3, "quadruped", 2.0, 5, "texture_ids=[6,6,6]"),
+    "3 quadrupeds huddling, 4 cameras, seed 9": _huddle(3, "quadruped", 2.0, 9, "rig.count=4"),
 }
 METRICS = ("detection_rate", "mask_detection_rate", "mask_miou", "depth_order_accuracy",
            "association_accuracy", "merge_rate", "detection_rate_touching",
@@ -205,7 +223,7 @@ def main() -> None:
     root = args.root or Path(tempfile.mkdtemp(prefix="bench-hull-"))
     home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering,
             "RESTART_TOLERANCE": clustering, "BLOB_GAP": clustering, "BLOB_SHARE": clustering,
-            "BLOB_PENALTY": clustering}
+            "BLOB_PENALTY": clustering, "CORE_MAX_VIEWS": occupancy}
     shipped = clustering.MixtureRules.defaults()
     defaults = {key: getattr(module, key) for key, module in home.items()}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
@@ -239,7 +257,9 @@ def main() -> None:
                     ("now, restarts every frame", "auto", {"RESTART_TOLERANCE": -np.inf}),
                     ("now, seeds by components (no blobs)", "auto", {"BLOB_GAP": 0}),
                     ("now, every blob a seed", "auto", {"BLOB_SHARE": 0.0}),
-                    ("now, no blob penalty", "auto", {"BLOB_PENALTY": 0.0})]
+                    ("now, no blob penalty", "auto", {"BLOB_PENALTY": 0.0}),
+                    ("now, no cores first", "auto", {"CORE_MAX_VIEWS": 0}),
+                    ("now, cores first on every rig", "auto", {"CORE_MAX_VIEWS": 10**6})]
         for rule, views, changed in variants:
             if args.rules is not None and rule not in args.rules:
                 continue
@@ -280,13 +300,18 @@ def main() -> None:
                f"spread over the scored frames reaches {shipped.mixture_scene_gain} (the "
                "`inference.mixture_*` keys), each fit paying "
                f"{clustering.BLOB_PENALTY} nats per voxel its labels hold outside their "
-               "Gaussian's heaviest blob "
+               "Gaussian's heaviest blob, and with at most "
+               f"{occupancy.CORE_MAX_VIEWS} cameras a pixel given to the front-most voxel "
+               "of the individuals' cores near it where there is one (voxels within "
+               f"{occupancy.CORE_SPREAD} squared Mahalanobis distances of their "
+               "individual's Gaussian) "
                "(nsd/cues/occupancy.py, nsd/cues/clustering.py), its 10 restarts run "
                "only where the carried start is less likely than the partition's by "
                f"more than {clustering.RESTART_TOLERANCE}; the other rows put one "
                "rule back, take the mixture never or always, each frame alone, no gate "
                "per scene, the restarts at every frame, seeds by components alone or by "
-               "every blob, or no blob penalty. Touching "
+               "every blob, no blob penalty, no cores first, or the cores first on "
+               "every rig. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "

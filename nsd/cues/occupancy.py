@@ -18,7 +18,8 @@ cluster, projected into each view, gives
 
 * a proposal window: the extent of the foreground pixels the individual owns
   in that view (each foreground pixel goes to the nearest-in-depth individual
-  whose voxels project close to it, see :func:`owned_pixels`), divided by
+  whose voxels project close to it, see :func:`owned_pixels`; with few cameras the
+  voxels of the individuals' cores first, :func:`outer_voxels`), divided by
   ``fill`` as in :mod:`nsd.cues.proposals`,
 * its camera-space depth (mean over its voxels),
 * an identity that is the same in every view of the frame (the cluster index), and
@@ -67,6 +68,7 @@ __all__ = [
     "hull_min_views",
     "multiview_proposals",
     "occupied_voxels",
+    "outer_voxels",
     "owned_pixels",
     "scene_track",
     "voxel_grid",
@@ -234,6 +236,20 @@ OWNER_REACH = 4.5
 # hull's owner is right for 71 % of the pixels and the trained auto-encoder's ownership for
 # 81 %, elsewhere for 96 % and 93 % (docs/nsd.md, "Where the hull cannot settle").
 CONTEST_BAND = 1.5
+# With few cameras the hull holds *excess*: voxels that every camera sees as foreground
+# because other bodies lie behind or in front of them along each ray (ghosts between
+# touching bodies, and each body's hull fat along the rays no camera carves). A ghost
+# labelled with the body beside it took, as the front-most voxel of a pixel, the pixels
+# of the body behind it. On 4 cameras a pixel now goes to the front-most voxel of the
+# individuals' *cores* near it, where there is one: the voxels within CORE_SPREAD squared
+# Mahalanobis distances of the Gaussian (mean, covariance) of their individual's voxels in
+# that frame (4: about three in four voxels of a Gaussian are core); else to the front-most
+# voxel as before. Hull-only mask mIoU on all ten scenes of 4 cameras +0.012 to +0.035;
+# on the 20 of 6 and 8 cameras, where the hull is carved closer, -0.013 to -0.002: the
+# cores own first up to CORE_MAX_VIEWS cameras (docs/nsd.md, "The hull's excess";
+# docs/benchmarks/hull_cores.md). Rigs of 5 cameras were not measured.
+CORE_SPREAD = 4.0
+CORE_MAX_VIEWS = 4
 
 
 class _PixelVoxels(NamedTuple):
@@ -276,17 +292,47 @@ def _pixel_voxels(fg: Tensor, uv: Tensor, band: float, reach: float) -> _PixelVo
                         pairs["j"].astype(np.int64), pairs["v"])
 
 
+def outer_voxels(x: Tensor, labels: Tensor, k: int, spread: float = CORE_SPREAD) -> Tensor:
+    """The voxels outside their individual's core: (P,) bool, True where the squared
+    Mahalanobis distance of voxel centre ``x`` (P, 3) to the Gaussian (mean, covariance) of
+    the voxels of its label (``labels`` (P,) in [0, ``k``), -1 none) exceeds ``spread``.
+    Labels of fewer than 8 voxels (too few for a covariance) and voxels without a label
+    are never outer.
+
+    Example:
+        >>> cube = torch.tensor([-1.0, 0.0, 1.0])
+        >>> x = torch.stack(torch.meshgrid(cube, cube, cube, indexing="ij"), -1).reshape(-1, 3)
+        >>> x = torch.cat([x, torch.tensor([[8.0, 0.0, 0.0]])])  # 27 voxels and a far one
+        >>> outer_voxels(x, torch.zeros(28, dtype=torch.long), 1).nonzero().flatten().tolist()
+        [27]
+    """
+    out = torch.zeros(len(labels), dtype=torch.bool)
+    xs, lab = x.double().numpy(), labels.numpy()
+    for j in range(k):
+        own = np.flatnonzero(lab == j)
+        if len(own) < 8:
+            continue
+        d = xs[own] - xs[own].mean(0)
+        cov = d.T @ d / len(own) + 1e-9 * np.eye(3)
+        m2 = np.einsum("ni,ij,nj->n", d, np.linalg.inv(cov), d)
+        out[torch.from_numpy(own[m2 > spread])] = True
+    return out
+
+
 def _owners(shape: tuple[int, int], near: _PixelVoxels, depth: Tensor, labels: Tensor,
-            radius: float, reach: float) -> Tensor:
+            radius: float, reach: float, outer: Tensor | None = None) -> Tensor:
     """:func:`owned_pixels` from :func:`_pixel_voxels` (its band >= ``radius``, its reach
-    >= ``reach``)."""
+    >= ``reach``); ``outer`` (P,) bool: voxels that own a pixel only where no other voxel
+    within the radius is not outer (None: none outer)."""
     owner = torch.full(shape, -1, dtype=torch.long)
     if len(near.ys) == 0 or len(labels) == 0:
         return owner
     close = near.pair_distance <= radius
     pi, pj = near.pair_pixel[close], near.pair_voxel[close]
-    # each pixel's front-most voxel within the radius (the lowest index of equal depths)
-    order = np.lexsort((pj, depth.numpy().astype(np.float64)[pj], pi))
+    # each pixel's front-most voxel within the radius (the lowest index of equal depths),
+    # of the cores first
+    rank = np.zeros(len(labels)) if outer is None else outer.numpy().astype(np.float64)
+    order = np.lexsort((pj, depth.numpy().astype(np.float64)[pj], rank[pj], pi))
     pi, pj = pi[order], pj[order]
     first = np.ones(len(pi), bool)
     first[1:] = pi[1:] != pi[:-1]
@@ -318,24 +364,28 @@ def owned_pixels(
     k: int,
     radius: float,
     reach: float,
+    outer: Tensor | None = None,
 ) -> Tensor:
     """Give each foreground pixel of one view to an individual.
 
     A pixel goes to the nearest-in-depth individual among the voxels projecting
-    within ``radius`` pixels of it, else to the individual of the nearest voxel
-    within ``reach`` pixels (limbs the coarse hull lost), else to nobody.
+    within ``radius`` pixels of it (among those not ``outer``, where there is one),
+    else to the individual of the nearest voxel within ``reach`` pixels (limbs the
+    coarse hull lost), else to nobody.
 
     Args:
         fg: foreground (H, W) bool.
         uv: projections of the individuals' voxels (P, 2); depth (P,); labels (P,).
         k: number of individuals.
         radius, reach: pixels.
+        outer: (P,) bool, voxels outside their individual's core (:func:`outer_voxels`);
+            None: none.
 
     Returns:
         owner map (H, W) int64 in [-1, k).
     """
     return _owners(fg.shape, _pixel_voxels(fg, uv, radius, reach), depth, labels, radius,
-                   reach)
+                   reach, outer)
 
 
 def candidate_individuals(fg: Tensor, uv: Tensor, labels: Tensor, k: int,
@@ -461,6 +511,8 @@ def multiview_proposals(
     if not keep.any():
         return MultiviewProposals(boxes, depths, valid, owners, candidates)
     idx, labels = idx[keep], labels[keep]
+    # few cameras: the cores own first (CORE_SPREAD)
+    outer = outer_voxels(grid.centres[idx], labels, k) if V <= CORE_MAX_VIEWS else None
     f = grid.uv.new_tensor([W, H]) / 2  # pixels per normalised unit
     for v in range(V):
         vis = grid.inside[v, idx]
@@ -470,7 +522,8 @@ def multiview_proposals(
                                contest * voxel_px)
         near = _pixel_voxels(evidence[v] > 0.5, grid.uv[v, idx[vis]], max(radius, band),
                              reach)  # once for both
-        owners[v] = _owners((H, W), near, z, labels[vis], radius, reach)
+        owners[v] = _owners((H, W), near, z, labels[vis], radius, reach,
+                            None if outer is None else outer[vis])
         if contest > 0:
             candidates[v] = _candidates((H, W), near, labels[vis], k, band)
         for j in range(k):

@@ -7,13 +7,16 @@ import pytest
 import torch
 
 from nsd.core.errors import ConfigError
+from nsd.cues import occupancy
 from nsd.cues.clustering import cluster_individuals
 from nsd.cues.occupancy import (
     candidate_individuals,
     contested_pixels,
+    hull_individuals,
     hull_min_views,
     multiview_proposals,
     occupied_voxels,
+    outer_voxels,
     owned_pixels,
     voxel_grid,
     working_volume,
@@ -100,18 +103,81 @@ def test_owned_pixels_front_wins():
     assert owner[0].tolist() == [0, 0, 1, 1, 1]
 
 
+def test_owned_pixels_cores_first():
+    """A voxel outside its individual's core (a ghost in front of another body) gives way
+    to a core voxel behind it, and still owns the pixels no core voxel reaches."""
+    fg = torch.tensor([[True, True, True, True, False, True]])
+    uv = torch.tensor([[1.0, 0.0], [3.0, 0.0], [2.0, 0.0], [2.0, 0.0], [5.0, 0.0]])
+    depth = torch.tensor([2.0, 2.0, 5.0, 1.0, 1.0])
+    labels = torch.tensor([0, 1, 0, 1, 1])
+    outer = torch.tensor([False, False, False, True, True])
+    front = owned_pixels(fg, uv, depth, labels, 2, radius=0.6, reach=1.5)
+    cores = owned_pixels(fg, uv, depth, labels, 2, radius=0.6, reach=1.5, outer=outer)
+    assert front[0].tolist() == [0, 0, 1, 1, -1, 1]
+    assert cores[0].tolist() == [0, 0, 0, 1, -1, 1]
+
+
+@pytest.mark.parametrize("count", [4, 8])
+def test_cores_first_only_on_few_cameras(monkeypatch, count):
+    """Up to CORE_MAX_VIEWS cameras each view's owners are :func:`owned_pixels` with the
+    frame's :func:`outer_voxels`; above it, the front-most voxel's as before."""
+    rig = corner_rig(count, size=(64, 64))
+    rng = np.random.default_rng(3)
+    people = [make_individual("biped", identity=i, seed=i) for i in range(2)]
+    poses = [sample_pose(p, rng, position=pos)
+             for p, pos in zip(people, [(-0.2, 0.0), (0.2, 0.0)], strict=True)]
+    ev = render_views(people, poses, rig, background=False)["instance"].ge(0).float()
+    grid = voxel_grid(rig, ev.shape[-2:], 32)
+    idx, labels = hull_individuals(ev, grid, 2)
+    shipped = multiview_proposals(ev, grid, 2, clustered=(idx, labels)).owners
+    monkeypatch.setattr(occupancy, "CORE_MAX_VIEWS", 0)
+    front = multiview_proposals(ev, grid, 2, clustered=(idx, labels)).owners
+    idx, labels = idx[labels >= 0], labels[labels >= 0]
+    outer = outer_voxels(grid.centres[idx], labels, 2)
+    assert outer.any() and not outer.all()
+    cores = torch.zeros_like(front)
+    for v in range(count):
+        vis = grid.inside[v, idx]
+        z = grid.depth[v, idx[vis]]
+        px = float(grid.size * grid.focal[v] / z.median())
+        cores[v] = owned_pixels(ev[v] > 0.5, grid.uv[v, idx[vis]], z, labels[vis], 2,
+                                occupancy.OWNER_RADIUS * px, occupancy.OWNER_REACH * px,
+                                outer[vis])
+    assert not torch.equal(cores, front)  # the case tells the two rules apart
+    assert torch.equal(shipped, cores if count <= 4 else front)
+
+
+def test_outer_voxels_known_values():
+    """A cube of 27 voxels and a far one per individual: the far ones are outer (squared
+    Mahalanobis distance ~22; the cube's corners ~3.2), nothing of an individual of fewer
+    than 8 voxels is, nor a voxel without a label."""
+    side = torch.tensor([-1.0, 0.0, 1.0])
+    cube = torch.stack(torch.meshgrid(side, side, side, indexing="ij"), -1).reshape(-1, 3)
+    far = torch.tensor([[8.0, 0, 0]])
+    x = torch.cat([cube, far, cube + 20, far + 20, cube[:5] - 20, far - 20, far * 3])
+    labels = torch.tensor([0] * 28 + [1] * 28 + [2] * 6 + [-1])
+    got = outer_voxels(x, labels, 3)
+    assert got.nonzero().flatten().tolist() == [27, 55]
+    # a looser spread keeps the far one in its core
+    assert not outer_voxels(x, labels, 3, spread=100.0).any()
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_owned_pixels_match_a_slow_reference(seed):
+@pytest.mark.parametrize("with_outer", [False, True])
+def test_owned_pixels_match_a_slow_reference(seed, with_outer):
     """Each foreground pixel goes to the front-most individual among the voxels projecting
-    within ``radius`` of it, else to the nearest voxel's within ``reach``, else to nobody:
-    the k-d trees against every distance written out, pixel by pixel."""
+    within ``radius`` of it (of those not outer first), else to the nearest voxel's within
+    ``reach``, else to nobody: the k-d trees against every distance written out, pixel by
+    pixel."""
     gen = torch.Generator().manual_seed(seed)
     fg = torch.rand(13, 17, generator=gen) > 0.3
     uv = torch.rand(60, 2, generator=gen) * torch.tensor([21.0, 17.0]) - 2.0
     depth = torch.rand(60, generator=gen) * 5 + 1
     labels = torch.randint(0, 4, (60,), generator=gen)
-    got = owned_pixels(fg, uv, depth, labels, 4, radius=1.2, reach=2.5)
+    outer = torch.rand(60, generator=gen) < 0.3 if with_outer else None
+    got = owned_pixels(fg, uv, depth, labels, 4, radius=1.2, reach=2.5, outer=outer)
     want = torch.full_like(got, -1)
+    rank = [0 if outer is None else int(outer[j]) for j in range(60)]
     for y in range(13):
         for x in range(17):
             if not fg[y, x]:
@@ -119,7 +185,7 @@ def test_owned_pixels_match_a_slow_reference(seed):
             d = [float(np.hypot(float(u) - x, float(v) - y)) for u, v in uv]
             near = [j for j in range(60) if d[j] <= 1.2]
             if near:
-                want[y, x] = labels[min(near, key=lambda j: (float(depth[j]), j))]
+                want[y, x] = labels[min(near, key=lambda j: (rank[j], float(depth[j]), j))]
             elif min(d) <= 2.5:
                 want[y, x] = labels[int(np.argmin(d))]
     assert torch.equal(got, want)

@@ -127,8 +127,8 @@ def test_window_compatibility_from_kappa():
 def test_decompose_changes_owners_not_the_foreground(tiny_scene):
     data = SceneData(tiny_scene, (32, 24), val_fraction=0.25)
     model = build_model(tiny_cfg().model)
-    views = torch.cat([data.views(t)[0] for t in (0, 1)])
-    bgs = torch.cat([data.views(t)[1] for t in (0, 1)])
+    views = torch.cat([data.views(t)[0] for t in range(4)])
+    bgs = torch.cat([data.views(t)[1] for t in range(4)])
     for colour in (None, ColourModels(4.0, 8, 0.0)):
         off = decompose(model, views, bgs, min_weight=0.0, colour_models=colour)
         on = decompose(model, views, bgs, min_weight=0.0, colour_models=colour,
