@@ -39,9 +39,10 @@ not only where the track's start is less likely than the partition's, or the k-m
 by components alone (``BLOB_GAP=0``: no blob seeds first) or by every blob, ghosts too
 (``BLOB_SHARE=0``), or the mixture free to join blobs (``BLOB_PENALTY=0``), or the pixels
 given to the front-most voxel whatever its place in its individual (``CORE_MAX_VIEWS=0``:
-no cores first) or to the cores first on rigs of any size (``CORE_MAX_VIEWS`` unbounded).
+no cores first) or to the cores first on rigs of any size (``CORE_MAX_VIEWS`` unbounded),
+or the gate per scene at its bound before 2026-11-30 (``mixture_scene_gain=0.03``).
 ``--whole`` scores frames spread over the whole recording instead of the held-out tail (the
-hull needs no training).
+hull needs no training); ``--every N`` every N-th frame of it.
 ``--rules`` keeps only the named rows; ``--root`` keeps the scenes (generated there once,
 read again by later runs). Synthetic scenes of 2-6 individuals, 4-8 cameras,
 apart and in contact (``nsd-synth``, seeds fixed), 30 held-out frames each, 128 x 128,
@@ -189,8 +190,11 @@ print(json.dumps(m))
 """
 
 
-def _frames(data: SceneData, n: int, whole: bool = False) -> np.ndarray:
-    """``n`` frames spread evenly over the held-out tail, or over the whole recording."""
+def _frames(data: SceneData, n: int, whole: bool = False, every: int = 0) -> np.ndarray:
+    """``n`` frames spread evenly over the held-out tail, or over the whole recording; or
+    every ``every``-th frame of the recording (``every`` > 0)."""
+    if every > 0:
+        return np.arange(0, len(data.frames), every)
     idx = np.asarray(data.heldout_frames if not whole else range(len(data.frames)))
     return idx[np.linspace(0, len(idx) - 1, n).round().astype(int)]
 
@@ -208,6 +212,9 @@ def main() -> None:
     ap.add_argument("--whole", action="store_true",
                     help="score frames spread over the whole recording instead of the "
                          "held-out tail (the hull needs no training)")
+    ap.add_argument("--every", type=int, default=0,
+                    help="score every N-th frame of the whole recording instead (N > 0; "
+                         "--frames and --whole are then not read)")
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES),
                     help="scene names to run")
     ap.add_argument("--report", default="hull", help="docs/benchmarks/<report>.{md,json}")
@@ -237,7 +244,7 @@ def main() -> None:
                            capture_output=True)
         data = SceneData(scene, (128, 128), background=background)
         gt = GroundTruth.load(scene)
-        idx = _frames(data, args.frames, args.whole)
+        idx = _frames(data, args.frames, args.whole, args.every)
         V = data.num_views
         if args.before:
             t0 = time.perf_counter()
@@ -259,7 +266,8 @@ def main() -> None:
                     ("now, every blob a seed", "auto", {"BLOB_SHARE": 0.0}),
                     ("now, no blob penalty", "auto", {"BLOB_PENALTY": 0.0}),
                     ("now, no cores first", "auto", {"CORE_MAX_VIEWS": 0}),
-                    ("now, cores first on every rig", "auto", {"CORE_MAX_VIEWS": 10**6})]
+                    ("now, cores first on every rig", "auto", {"CORE_MAX_VIEWS": 10**6}),
+                    ("now, gate at 0.03", "auto", {"mixture_scene_gain": 0.03})]
         for rule, views, changed in variants:
             if args.rules is not None and rule not in args.rules:
                 continue
@@ -275,7 +283,9 @@ def main() -> None:
             print(rows[-1], flush=True)
         for key, value in defaults.items():
             setattr(home[key], key, value)
-    span = "frames spread over the whole recording" if args.whole else "held-out frames"
+    span = ("frames spread over the whole recording" if args.whole else "held-out frames")
+    span = (f"{args.frames} {span}" if args.every <= 0
+            else f"one frame in {args.every} over the whole recording")
     before = ""
     if args.before:
         commit = subprocess.run(["git", "-C", str(args.before), "rev-parse", "--short", "HEAD"],
@@ -284,7 +294,7 @@ def main() -> None:
     write_report(
         args.report, "The hull-only decomposition: before, now, and each rule put back", rows,
         notes=("Hull-only decomposition (nsd/evaluation/hull_baseline.py, no learning) of "
-               f"{args.frames} {span} per scene at 128 x 128, 48^3 voxels, "
+               f"{span} per scene at 128 x 128, 48^3 voxels, "
                f"background `{background}` (the shipped `data.background`). "
                f"`before`: the commit before the change{before}, its own code; `now`: a voxel kept "
                "when a majority of the cameras see it (`min_views`), a pixel owned by the "
@@ -311,7 +321,7 @@ def main() -> None:
                "rule back, take the mixture never or always, each frame alone, no gate "
                "per scene, the restarts at every frame, seeds by components alone or by "
                "every blob, no blob penalty, no cores first, or the cores first on "
-               "every rig. Touching "
+               "every rig, or the gate at 0.03. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "

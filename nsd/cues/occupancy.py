@@ -70,6 +70,7 @@ __all__ = [
     "occupied_voxels",
     "outer_voxels",
     "owned_pixels",
+    "scene_gains",
     "scene_track",
     "voxel_grid",
     "working_volume",
@@ -451,13 +452,29 @@ def scene_track(
     track = ClusterTrack(rules=rules)
     if not split or not len(instants):
         return track
+    gains = scene_gains(evidence, instants, grid, k, min_views, track.rules)
+    return ClusterTrack(mixture=scene_wants_mixture(gains, track.rules.mixture_scene_gain),
+                        rules=track.rules)
+
+
+def scene_gains(
+    evidence: Callable[[int], Tensor],
+    instants: Sequence[int],
+    grid: VoxelGrid,
+    k: int,
+    min_views: int | None = None,
+    rules: MixtureRules | None = None,
+) -> list[float]:
+    """The 3D mixture's gains over the k-means (nats per voxel) that :func:`scene_track`
+    decides from: the hulls of ``rules.mixture_scene_sample`` of ``instants`` spread
+    evenly, clustered in turn with one track carried through them (``rules``: None, the
+    shipped defaults); instants whose bodies stand apart give none."""
+    track = ClusterTrack(rules=rules)
     spread = np.linspace(0, len(instants) - 1, track.rules.mixture_scene_sample)
     for i in np.unique(spread.round().astype(int)):
         hull_individuals(evidence(int(instants[i])), grid, k, min_views=min_views,
                          track=track)
-    return ClusterTrack(mixture=scene_wants_mixture(track.gains,
-                                                    track.rules.mixture_scene_gain),
-                        rules=track.rules)
+    return list(track.gains)
 
 
 def multiview_proposals(

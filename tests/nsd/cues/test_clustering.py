@@ -290,6 +290,10 @@ def test_scene_track_decides_from_instants_spread_over_the_scene(monkeypatch):
     assert len(read) == track.rules.mixture_scene_sample == 12
     assert read[0] == 100 and read[-1] == 397
     assert np.all(np.diff(read) > 0) and not track.mixture and track.gains == []
+    # what it decided from: the gains of the instants read, in order
+    gains, read = iter([0.0, 0.2, -0.01, 0.01] * 10), []
+    assert occupancy.scene_gains(torch.tensor, instants, None, 2) == [0.0, 0.2, -0.01, 0.01] * 3
+    assert len(read) == 12
     gains = iter([0.05, 0.2, 0.01] * 10)
     assert occupancy.scene_track(torch.tensor, instants, None, 2).mixture
     read.clear()
