@@ -323,8 +323,8 @@ def outer_voxels(x: Tensor, labels: Tensor, k: int, spread: float = CORE_SPREAD)
 def _owners(shape: tuple[int, int], near: _PixelVoxels, depth: Tensor, labels: Tensor,
             radius: float, reach: float, outer: Tensor | None = None) -> Tensor:
     """:func:`owned_pixels` from :func:`_pixel_voxels` (its band >= ``radius``, its reach
-    >= ``reach``); ``outer`` (P,) bool: voxels that own a pixel only where no other voxel
-    within the radius is not outer (None: none outer)."""
+    >= ``reach``); ``outer`` (P,) bool: voxels that own a pixel only where no core voxel
+    (not outer) lies within the radius (None: every voxel is core)."""
     owner = torch.full(shape, -1, dtype=torch.long)
     if len(near.ys) == 0 or len(labels) == 0:
         return owner
