@@ -19,7 +19,6 @@ Writes ``docs/benchmarks/<--report>.{md,json}`` (default ``hull_gate_gains``).
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -35,8 +34,7 @@ from nsd.cues.clustering import MixtureRules, scene_wants_mixture  # noqa: E402
 from nsd.cues.evidence import foreground_evidence  # noqa: E402
 from nsd.cues.occupancy import scene_gains, voxel_grid  # noqa: E402
 from nsd.io.scene_data import SceneData  # noqa: E402
-from nsd.synth.scene import default_scene  # noqa: E402
-from tools.bench_hull import BIN, SCENES  # noqa: E402
+from tools.bench_hull import SCENES, scene_folder  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 SAMPLES = ("whole recording", "held-out tail", "every fifth frame")
@@ -63,13 +61,8 @@ def main() -> None:
     rules = MixtureRules.defaults()
     rows = []
     for name in args.scenes:
-        i = list(SCENES).index(name)  # scene<i>: the same folder as tools/bench_hull.py's
-        k, synth = SCENES[name]
-        scene = default_scene() if synth is None else root / f"scene{i}"
-        if synth is not None and not (scene / "calibration.toml").exists():
-            subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", *synth], check=True,
-                           capture_output=True)
-        data = SceneData(scene, (128, 128), background=background)
+        k = SCENES[name][0]
+        data = SceneData(scene_folder(root, name), (128, 128), background=background)
         grid = voxel_grid(data.rig, (128, 128), 48)
         n = len(data.frames)
         evidence = _evidence(data)

@@ -190,6 +190,20 @@ print(json.dumps(m))
 """
 
 
+def scene_folder(root: Path, name: str) -> Path:
+    """The folder of scene ``name`` of ``SCENES``: ``root/scene<i>`` (``i`` its place in
+    ``SCENES``, the same whichever scenes are run), written by ``nsd-synth`` unless it is
+    there already; the default scene is ``nsd-run``'s built-in one."""
+    synth = SCENES[name][1]
+    if synth is None:
+        return default_scene()
+    scene = root / f"scene{list(SCENES).index(name)}"
+    if not (scene / "calibration.toml").exists():
+        subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", *synth], check=True,
+                       capture_output=True)
+    return scene
+
+
 def _frames(data: SceneData, n: int, whole: bool = False, every: int = 0) -> np.ndarray:
     """``n`` frames spread evenly over the held-out tail, or over the whole recording; or
     every ``every``-th frame of the recording (``every`` > 0)."""
@@ -236,12 +250,8 @@ def main() -> None:
     background = str(compose_app("train").data.background)  # as training and nsd-eval
     rows = []
     for name in args.scenes:
-        i = list(SCENES).index(name)  # scene<i> is the same scene whichever --scenes are run
-        k, synth = SCENES[name]
-        scene = default_scene() if synth is None else root / f"scene{i}"
-        if synth is not None and not (scene / "calibration.toml").exists():
-            subprocess.run([str(BIN / "nsd-synth"), f"out={scene}", *synth], check=True,
-                           capture_output=True)
+        k = SCENES[name][0]
+        scene = scene_folder(root, name)
         data = SceneData(scene, (128, 128), background=background)
         gt = GroundTruth.load(scene)
         idx = _frames(data, args.frames, args.whole, args.every)

@@ -447,8 +447,9 @@ def cluster_individuals(
     xy = points @ up_frame(up)[:, :2]  # (P, 2): coordinates in the plane orthogonal to up
     ij = torch.floor((xy - xy.min(0).values) / cell).long()
     shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    cols = (ij[:, 0].numpy(), ij[:, 1].numpy())  # each point's column
     counts = np.zeros(shape)
-    np.add.at(counts, (ij[:, 0].numpy(), ij[:, 1].numpy()), 1)
+    np.add.at(counts, cols, 1)
     # thin columns (one voxel) are hull noise and bridge neighbours: drop them
     kept = counts >= min_column
     comp, n = ndimage.label(kept)
@@ -463,7 +464,7 @@ def cluster_individuals(
         blob_of[kept] = comp[kept] - 1 if blob is None else blob
         column[kept] = _seeded_columns((np.argwhere(kept) + 0.5) * cell, counts[kept] ** 2,
                                        comp[kept] - 1, n, k, cell, blob)
-        labels = column[ij[:, 0].numpy(), ij[:, 1].numpy()]
+        labels = column[cols]
         carried = ClusterTrack() if track is None else track
         gain = carried.rules.mixture_gain if mixture_gain is None else mixture_gain
         pairs = np.unique(np.stack([comp[kept], column[kept]], 1)[column[kept] >= 0], axis=0)
@@ -473,11 +474,11 @@ def cluster_individuals(
         tried = track is None or track.mixture or gain == -np.inf
         if gain < np.inf and (not whole or gain == -np.inf) and tried:
             labels = _mixture_relabelled(x, xy.double().numpy(), labels, k, cell**2, gain,
-                                         carried, blob_of[ij[:, 0].numpy(), ij[:, 1].numpy()])
+                                         carried, blob_of[cols])
         elif track is not None:  # nothing fitted: the partition's Gaussians, for the next
             _hand_partition(track, x, labels, k, cell**2)
         return torch.as_tensor(labels)
-    point_comp = torch.as_tensor(comp[ij[:, 0].numpy(), ij[:, 1].numpy()]) - 1  # (P,)
+    point_comp = torch.as_tensor(comp[cols]) - 1  # (P,)
     groups = [torch.nonzero(point_comp == c).flatten() for c in range(n)]
     # rank by sum of squared column heights: people are tall, ghosts are low and flat
     score = [float((counts[comp == c + 1] ** 2).sum()) for c in range(n)]
