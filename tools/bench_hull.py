@@ -11,6 +11,12 @@
         --root /tmp/hull-scenes --report hull_blob_penalty --rules now "now, no blob penalty"
     .venv/bin/python tools/bench_hull.py --whole --frames 60 --before /tmp/hull-before \
         --root /tmp/hull-scenes --report hull_cores --rules now "now, cores first on every rig"
+    .venv/bin/python tools/bench_hull.py --whole --frames 60 --root /tmp/hull-scenes \
+        --report hull_core_refits --scenes <the 12 scenes of 4 cameras> \
+        --rules now "now, cores not refitted" "now, cores refitted twice"
+    .venv/bin/python tools/bench_hull.py --whole --frames 60 --root /tmp/hull-scenes \
+        --report hull_cores_rings --scenes <the 8 ring scenes of seeds 51-58> \
+        --rules now "now, no cores first" "now, cores first on every rig"
 
 The visual hull of the background residuals (:mod:`nsd.cues.occupancy`) places NSD's
 windows, gives their depths and links the views at inference, and makes the training
@@ -40,6 +46,8 @@ by components alone (``BLOB_GAP=0``: no blob seeds first) or by every blob, ghos
 (``BLOB_SHARE=0``), or the mixture free to join blobs (``BLOB_PENALTY=0``), or the pixels
 given to the front-most voxel whatever its place in its individual (``CORE_MAX_VIEWS=0``:
 no cores first) or to the cores first on rigs of any size (``CORE_MAX_VIEWS`` unbounded),
+with the cores cut from the Gaussian of all an individual's voxels (``CORE_REFITS=0``) or
+from one estimated twice more from its core (``CORE_REFITS=2``),
 or the gate per scene at its bound before 2026-11-30 (``mixture_scene_gain=0.03``).
 ``--whole`` scores frames spread over the whole recording instead of the held-out tail (the
 hull needs no training); ``--every N`` every N-th frame of it.
@@ -167,6 +175,28 @@ SCENES = {  # name -> (individuals, nsd-synth overrides)
     "3 quadrupeds of one texture huddling, 4 cameras, seed 5": _huddle(
         3, "quadruped", 2.0, 5, "texture_ids=[6,6,6]"),
     "3 quadrupeds huddling, 4 cameras, seed 9": _huddle(3, "quadruped", 2.0, 9, "rig.count=4"),
+    # rings of 5 cameras, where the cores' camera bound had not been measured, and rings of 4
+    # and 6 beside them (the rigs above of 4 and 8 cameras are all corner rigs, of 6 rings)
+    "3 bipeds huddling, 5-camera ring, seed 51": (
+        3, ["num_individuals=3", "motion.interaction=huddle", "rig.kind=ring", "rig.count=5",
+            "seed=51"]),
+    "4 bipeds of one texture huddling, 5-camera ring, seed 52": (
+        4, ["num_individuals=4", "texture_ids=[7,7,7,7]", "motion.interaction=huddle",
+            "rig.kind=ring", "rig.count=5", "seed=52"]),
+    "3 quadrupeds of one texture huddling, 5-camera ring, seed 53": _huddle(
+        3, "quadruped", 2.0, 53, "texture_ids=[6,6,6]", "rig.kind=ring", "rig.count=5"),
+    "4 (bipeds, quadrupeds) huddling, 5-camera ring, seed 54": _huddle(
+        4, "biped,quadruped", 2.0, 54, "rig.kind=ring", "rig.count=5"),
+    "3 quadrupeds huddling, 5-camera ring, seed 55": _huddle(
+        3, "quadruped", 2.0, 55, "rig.kind=ring", "rig.count=5"),
+    "3 bipeds huddling, 4-camera ring, seed 56": (
+        3, ["num_individuals=3", "motion.interaction=huddle", "rig.kind=ring", "rig.count=4",
+            "seed=56"]),
+    "3 quadrupeds of one texture huddling, 4-camera ring, seed 57": _huddle(
+        3, "quadruped", 2.0, 57, "texture_ids=[6,6,6]", "rig.kind=ring", "rig.count=4"),
+    "4 bipeds of one texture huddling, 6-camera ring, seed 58": (
+        4, ["num_individuals=4", "texture_ids=[7,7,7,7]", "motion.interaction=huddle",
+            "rig.kind=ring", "rig.count=6", "seed=58"]),
 }
 METRICS = ("detection_rate", "mask_detection_rate", "mask_miou", "depth_order_accuracy",
            "association_accuracy", "merge_rate", "detection_rate_touching",
@@ -244,7 +274,8 @@ def main() -> None:
     root = args.root or Path(tempfile.mkdtemp(prefix="bench-hull-"))
     home = {"OWNER_RADIUS": occupancy, "SEED_SPREAD": clustering,
             "RESTART_TOLERANCE": clustering, "BLOB_GAP": clustering, "BLOB_SHARE": clustering,
-            "BLOB_PENALTY": clustering, "CORE_MAX_VIEWS": occupancy}
+            "BLOB_PENALTY": clustering, "CORE_MAX_VIEWS": occupancy,
+            "CORE_REFITS": occupancy}
     shipped = clustering.MixtureRules.defaults()
     defaults = {key: getattr(module, key) for key, module in home.items()}
     background = str(compose_app("train").data.background)  # as training and nsd-eval
@@ -277,6 +308,8 @@ def main() -> None:
                     ("now, no blob penalty", "auto", {"BLOB_PENALTY": 0.0}),
                     ("now, no cores first", "auto", {"CORE_MAX_VIEWS": 0}),
                     ("now, cores first on every rig", "auto", {"CORE_MAX_VIEWS": 10**6}),
+                    ("now, cores not refitted", "auto", {"CORE_REFITS": 0}),
+                    ("now, cores refitted twice", "auto", {"CORE_REFITS": 2}),
                     ("now, gate at 0.03", "auto", {"mixture_scene_gain": 0.03})]
         for rule, views, changed in variants:
             if args.rules is not None and rule not in args.rules:
@@ -324,14 +357,16 @@ def main() -> None:
                f"{occupancy.CORE_MAX_VIEWS} cameras a pixel given to the front-most voxel "
                "of the individuals' cores near it where there is one (voxels within "
                f"{occupancy.CORE_SPREAD} squared Mahalanobis distances of their "
-               "individual's Gaussian) "
+               f"individual's Gaussian, estimated {occupancy.CORE_REFITS} more time(s) "
+               "from its core) "
                "(nsd/cues/occupancy.py, nsd/cues/clustering.py), its 10 restarts run "
                "only where the carried start is less likely than the partition's by "
                f"more than {clustering.RESTART_TOLERANCE}; the other rows put one "
                "rule back, take the mixture never or always, each frame alone, no gate "
                "per scene, the restarts at every frame, seeds by components alone or by "
                "every blob, no blob penalty, no cores first, or the cores first on "
-               "every rig, or the gate at 0.03. Touching "
+               "every rig, the cores from the Gaussian of all the voxels or refitted "
+               "twice, or the gate at 0.03. Touching "
                "columns: instants where two individuals' amodal masks overlap in most "
                "cameras that see both (nsd/evaluation/contact.py). Scenes: `nsd-synth` with "
                "the overrides in tools/bench_hull.py (the default scene is `nsd-run`'s "

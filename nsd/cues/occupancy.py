@@ -248,9 +248,15 @@ CONTEST_BAND = 1.5
 # voxel as before. Hull-only mask mIoU on all ten scenes of 4 cameras +0.012 to +0.035;
 # on the 20 of 6 and 8 cameras, where the hull is carved closer, -0.013 to -0.002: the
 # cores own first up to CORE_MAX_VIEWS cameras (docs/nsd.md, "The hull's excess";
-# docs/benchmarks/hull_cores.md). Rigs of 5 cameras were not measured.
+# docs/benchmarks/hull_cores.md). On five rings of 5 cameras the cores first moved mask mIoU
+# -0.002 to +0.006, on two rings of 4 +0.019 and +0.020 (docs/benchmarks/hull_cores_rings.md).
 CORE_SPREAD = 4.0
 CORE_MAX_VIEWS = 4
+# The excess inflates the Gaussian of all an individual's voxels; estimated again once from
+# the voxels it left inside (the core) before the final cut, hull-only mask mIoU on 11 of
+# 12 scenes of 4 cameras +0.0004 to +0.007, on one -0.004; twice, no better
+# (docs/nsd.md, "The cores from their own Gaussian"; docs/benchmarks/hull_core_refits.md).
+CORE_REFITS = 1
 
 
 class _PixelVoxels(NamedTuple):
@@ -293,30 +299,43 @@ def _pixel_voxels(fg: Tensor, uv: Tensor, band: float, reach: float) -> _PixelVo
                         pairs["j"].astype(np.int64), pairs["v"])
 
 
-def outer_voxels(x: Tensor, labels: Tensor, k: int, spread: float = CORE_SPREAD) -> Tensor:
+def outer_voxels(x: Tensor, labels: Tensor, k: int, spread: float = CORE_SPREAD,
+                 refits: int | None = None) -> Tensor:
     """The voxels outside their individual's core: (P,) bool, True where the squared
     Mahalanobis distance of voxel centre ``x`` (P, 3) to the Gaussian (mean, covariance) of
     the voxels of its label (``labels`` (P,) in [0, ``k``), -1 none) exceeds ``spread``.
     Labels of fewer than 8 voxels (too few for a covariance) and voxels without a label
-    are never outer.
+    are never outer. With ``refits`` (None: ``CORE_REFITS``) the Gaussian is estimated
+    again that many times from the voxels it left inside (its core) and the cut made again
+    (while at least 8 remain).
 
     Example:
         >>> cube = torch.tensor([-1.0, 0.0, 1.0])
         >>> x = torch.stack(torch.meshgrid(cube, cube, cube, indexing="ij"), -1).reshape(-1, 3)
         >>> x = torch.cat([x, torch.tensor([[8.0, 0.0, 0.0]])])  # 27 voxels and a far one
-        >>> outer_voxels(x, torch.zeros(28, dtype=torch.long), 1).nonzero().flatten().tolist()
+        >>> one = torch.zeros(28, dtype=torch.long)
+        >>> outer_voxels(x, one, 1, refits=0).nonzero().flatten().tolist()
         [27]
+        >>> len(outer_voxels(x, one, 1).nonzero())  # refitted: the cube's 8 corners too (4.5)
+        9
     """
+    refits = CORE_REFITS if refits is None else refits
     out = torch.zeros(len(labels), dtype=torch.bool)
     xs, lab = x.double().numpy(), labels.numpy()
     for j in range(k):
         own = np.flatnonzero(lab == j)
         if len(own) < 8:
             continue
-        d = xs[own] - xs[own].mean(0)
-        cov = d.T @ d / len(own) + 1e-9 * np.eye(3)
-        m2 = np.einsum("ni,ij,nj->n", d, np.linalg.inv(cov), d)
-        out[torch.from_numpy(own[m2 > spread])] = True
+        core = np.ones(len(own), bool)
+        for _ in range(refits + 1):
+            if core.sum() < 8:  # too few for a covariance: the last cut stands
+                break
+            mean = xs[own[core]].mean(0)
+            d = xs[own[core]] - mean
+            cov = d.T @ d / len(d) + 1e-9 * np.eye(3)
+            e = xs[own] - mean
+            core = np.einsum("ni,ij,nj->n", e, np.linalg.inv(cov), e) <= spread
+        out[torch.from_numpy(own[~core])] = True
     return out
 
 

@@ -156,10 +156,34 @@ def test_outer_voxels_known_values():
     far = torch.tensor([[8.0, 0, 0]])
     x = torch.cat([cube, far, cube + 20, far + 20, cube[:5] - 20, far - 20, far * 3])
     labels = torch.tensor([0] * 28 + [1] * 28 + [2] * 6 + [-1])
-    got = outer_voxels(x, labels, 3)
+    got = outer_voxels(x, labels, 3, refits=0)
     assert got.nonzero().flatten().tolist() == [27, 55]
     # a looser spread keeps the far one in its core
-    assert not outer_voxels(x, labels, 3, spread=100.0).any()
+    assert not outer_voxels(x, labels, 3, spread=100.0, refits=0).any()
+
+
+def test_outer_voxels_refitted_from_the_core():
+    """A cube of 27 voxels with a slab of 4 beside it (at x = 2 and 3), as the hull's excess
+    lies against a body: the Gaussian of all 31 is pulled towards the slab and stretched
+    along x, so the slab's nearest voxel (2, 0, 0) stays core (squared distance 2.5) and the
+    four corners away from the slab are outer (4.7). Estimated again from those 24 core
+    voxels, every slab voxel is outer ((2, 0, 0) now at 4.5) and so are the four corners on
+    the slab's side (4.3); a second refit changes nothing more. The shipped default refits
+    once."""
+    side = torch.tensor([-1.0, 0.0, 1.0])
+    cube = torch.stack(torch.meshgrid(side, side, side, indexing="ij"), -1).reshape(-1, 3)
+    slab = torch.tensor([[2.0, 0, 0], [3.0, 0, 0], [2.0, 1, 0], [2.0, -1, 0]])
+    x = torch.cat([cube, slab])
+    labels = torch.zeros(31, dtype=torch.long)
+    far_corners = [0, 2, 6, 8]  # x = -1, y = +-1, z = +-1
+    near_corners = [18, 20, 24, 26]  # x = +1
+    slab_ids = [27, 28, 29, 30]
+    assert outer_voxels(x, labels, 1, refits=0).nonzero().flatten().tolist() == (
+        far_corners + slab_ids[1:])
+    once = outer_voxels(x, labels, 1, refits=1).nonzero().flatten().tolist()
+    assert once == far_corners + near_corners + slab_ids
+    assert outer_voxels(x, labels, 1, refits=2).nonzero().flatten().tolist() == once
+    assert torch.equal(outer_voxels(x, labels, 1), outer_voxels(x, labels, 1, refits=1))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
