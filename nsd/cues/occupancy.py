@@ -249,12 +249,12 @@ CONTEST_BAND = 1.5
 # on the 20 of 6 and 8 cameras, where the hull is carved closer, -0.013 to -0.002: the
 # cores own first up to CORE_MAX_VIEWS cameras (docs/nsd.md, "The hull's excess";
 # docs/benchmarks/hull_cores.md). On five rings of 5 cameras the cores first moved mask mIoU
-# -0.002 to +0.006, on two rings of 4 +0.019 and +0.020 (docs/benchmarks/hull_cores_rings.md).
+# -0.003 to +0.002, on two rings of 4 +0.025 and +0.019 (docs/benchmarks/hull_cores_rings.md).
 CORE_SPREAD = 4.0
 CORE_MAX_VIEWS = 4
 # The excess inflates the Gaussian of all an individual's voxels; estimated again once from
 # the voxels it left inside (the core) before the final cut, hull-only mask mIoU on 11 of
-# 12 scenes of 4 cameras +0.0004 to +0.007, on one -0.004; twice, no better
+# 12 scenes of 4 cameras +0.0003 to +0.007, on one -0.004; twice, no better
 # (docs/nsd.md, "The cores from their own Gaussian"; docs/benchmarks/hull_core_refits.md).
 CORE_REFITS = 1
 
