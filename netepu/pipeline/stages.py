@@ -705,6 +705,8 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
     moving foreground the masks explain, whether the other cameras confirm them, how stable
     the identities are, with image grids of the worst frames; its warnings go to the log."""
     q = cfg.quality
+    model = cfg.train.model
+    known = None if model.detector.presence else int(model.num_windows)  # else a bound
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         export, scene = up["export"].folder, up["scene"].summary["path"]
@@ -713,7 +715,7 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
         w, h = cfg.train.data.image_size
         report = quality_report(export, scene, (int(w), int(h)), ids,
                                 str(cfg.train.data.background), str(cfg.train.data.units),
-                                int(q.max_frames))
+                                int(q.max_frames), known)
         alike = look_alike(up["identities"].summary) if have_identities else {}
         if alike:  # the identity figures cannot see swaps of individuals the codes confuse
             report.warnings.append(
@@ -735,7 +737,7 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
                 "files": [f.name for f in files]}
 
     return Stage("quality", run, {**_container(q), "identities": have_identities,
-                                  "grid_size": cfg.grids.size},
+                                  "grid_size": cfg.grids.size, "individuals": known},
                  needs=("scene", "export", "identities"), enabled=bool(q.enabled),
                  why_disabled="quality.enabled=false")
 

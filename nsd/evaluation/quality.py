@@ -20,6 +20,11 @@ training size, over up to ``max_frames`` frames spread evenly over the export:
   cross-view association, so disagreement is an association or identity error).
 * **count changes**: share of frames whose number of subjects (distinct identities, or
   subject ids without identities) differs from the previous analysed frame's.
+* **individuals**: the distinct identities over the analysed frames (with identities). Fewer
+  than the run was told there are (``model.num_windows`` with a fixed count) warns: a window
+  then holds two bodies that touch, or two windows share one body, on every camera alike,
+  which none of the figures above can see (2 bipeds beside 2 cows on 5 cameras: 3
+  individuals named, every other figure within its limit; docs/nsd.md, "Found, not mended").
 
 Frames are ranked by ``badness`` = (1 - explained) + spill + (1 - consistency), each the
 mean over the frame's cameras; the worst ones are worth a look (``worst``).
@@ -184,6 +189,8 @@ def _identity_figures(coco: dict, identity: dict[int, int] | None,
         "view_agreement": float(np.mean(agree)) if agree else float("nan"),
         "count_changes": changes / (len(counts) - 1) if len(counts) > 1 else float("nan"),
         "subjects_median": float(np.median(counts)) if counts else float("nan"),
+        "individuals": (float(len(set().union(*per_frame.values())) if per_frame else 0)
+                        if identity is not None else float("nan")),
     }
 
 
@@ -195,6 +202,7 @@ def quality_report(
     background: str = "median",
     units: str = "auto",
     max_frames: int = 100,
+    individuals: int | None = None,
 ) -> QualityReport:
     """The label-free quality of an ``nsd-export`` folder (module docstring).
 
@@ -206,6 +214,8 @@ def quality_report(
         background: the run's background method (``data.background``).
         units: the calibration's length unit (``data.units``).
         max_frames: frames analysed, spread evenly over the export (0: all).
+        individuals: how many individuals the run was told the scene holds (None: not
+            known, e.g. ``num_windows`` an upper bound); fewer identities warn.
     """
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())
     by_key, images = _rows(coco)
@@ -253,11 +263,16 @@ def quality_report(
     for c, v in enumerate(cams):
         summary[f"explained/{v}"] = _mean([f.explained[c] for f in frames])
         summary[f"consistency/{v}"] = _mean([f.consistency[c] for f in frames])
-    return QualityReport(cams, frames, summary, _warnings(summary, cams))
+    return QualityReport(cams, frames, summary, _warnings(summary, cams, individuals))
 
 
-def _warnings(s: dict[str, float], cams: list[str]) -> list[str]:
+def _warnings(s: dict[str, float], cams: list[str], individuals: int | None = None) -> list[str]:
     lim, out = TRUST_LIMITS, []
+    if individuals is not None and s["individuals"] < individuals:  # NaN: no identities
+        out.append(f"the identities name {int(s['individuals'])} individuals where the run was "
+                   f"told of {individuals} (model.num_windows): a window holds two bodies that "
+                   "touch, or two windows share one body, in every camera alike; look at the "
+                   "worst frames and at grids/")
     if s["explained"] < lim["explained"]:
         low = [c for c in cams if s[f"explained/{c}"] < lim["explained"]]
         out.append(f"only {s['explained']:.0%} of the moving pixels are in some subject's mask "

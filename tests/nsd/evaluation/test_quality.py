@@ -9,7 +9,7 @@ import torch
 from nsd.cameras.calibration import CameraRig
 from nsd.cameras.projection import project_points
 from nsd.cues.occupancy import voxel_grid
-from nsd.evaluation.quality import _identity_figures, reprojected_hulls
+from nsd.evaluation.quality import _identity_figures, _warnings, reprojected_hulls
 from tests.conftest import look_at_camera
 
 SIZE = (64, 64)
@@ -74,6 +74,7 @@ def test_identity_figures_known_values():
     fig = _identity_figures({"annotations": anns}, ident, [0, 1, 2, 3])
     assert fig["identity_switches"] == 0 and fig["view_agreement"] == 1
     assert fig["count_changes"] == 0 and fig["subjects_median"] == 2
+    assert fig["individuals"] == 2
     # camera b's track of subject 1 takes identity 1 at frame 2 only: two switches along its
     # 3 steps (of 4 tracks x 3 steps), and the two cameras disagree on that subject then
     swap = next(a["id"] for a in anns if (a["camera"], a["frame"], a["subject_id"]) == ("b", 2, 1))
@@ -89,4 +90,20 @@ def test_identity_figures_known_values():
     fig = _identity_figures({"annotations": anns}, ident, [0, 1, 2, 3])
     assert fig["count_changes"] == pytest.approx(1 / 3)
     # without identities the tracks' own ids are used: nothing switches
-    assert _identity_figures({"annotations": anns}, None, [0, 1, 2, 3])["identity_switches"] == 0
+    fig = _identity_figures({"annotations": anns}, None, [0, 1, 2, 3])
+    assert fig["identity_switches"] == 0 and np.isnan(fig["individuals"])
+    # both subjects named as one (two bodies in one identity): one individual
+    ident = {a["id"]: 0 for a in anns}
+    assert _identity_figures({"annotations": anns}, ident, [0, 1, 2, 3])["individuals"] == 1
+
+
+def test_fewer_individuals_than_told_warn():
+    """The identities naming fewer individuals than the run was told of warn, naming both
+    counts; as many, or no count told (an upper bound), or no identities (NaN), do not."""
+    fine = {"explained": 1.0, "spill": 0.0, "consistency": 1.0, "identity_switches": 0.0,
+            "view_agreement": 1.0, "count_changes": 0.0, "explained/a": 1.0}
+    got = _warnings({**fine, "individuals": 3.0}, ["a"], 4)
+    assert len(got) == 1 and "name 3 individuals" in got[0] and "told of 4" in got[0]
+    assert _warnings({**fine, "individuals": 4.0}, ["a"], 4) == []
+    assert _warnings({**fine, "individuals": 3.0}, ["a"], None) == []
+    assert _warnings({**fine, "individuals": float("nan")}, ["a"], 4) == []
