@@ -469,11 +469,10 @@ def scene_track(
     instants gain little). Without ``split`` (``k`` an upper bound) no mixture is fitted
     and nothing is read."""
     track = ClusterTrack(rules=rules)
-    if not split or not len(instants):
-        return track
-    gains = scene_gains(evidence, instants, grid, k, min_views, track.rules)
-    return ClusterTrack(mixture=scene_wants_mixture(gains, track.rules.mixture_scene_gain),
-                        rules=track.rules)
+    if split and len(instants):
+        gains = scene_gains(evidence, instants, grid, k, min_views, track.rules)
+        track.mixture = scene_wants_mixture(gains, track.rules.mixture_scene_gain)
+    return track
 
 
 def scene_gains(

@@ -189,8 +189,8 @@ def _identity_figures(coco: dict, identity: dict[int, int] | None,
         "view_agreement": float(np.mean(agree)) if agree else float("nan"),
         "count_changes": changes / (len(counts) - 1) if len(counts) > 1 else float("nan"),
         "subjects_median": float(np.median(counts)) if counts else float("nan"),
-        "individuals": (float(len(set().union(*per_frame.values())) if per_frame else 0)
-                        if identity is not None else float("nan")),
+        "individuals": (float(len(set().union(*per_frame.values()))) if identity is not None
+                        else float("nan")),
     }
 
 
