@@ -2,6 +2,7 @@
 
     .venv/bin/python tools/bench_threads.py        # ~9 minutes, nothing else running
     .venv/bin/python tools/bench_threads.py --spread 6   # ~6 minutes: threads_spread.md
+    .venv/bin/python tools/bench_threads.py --report threads_xeon   # another machine's report
 
 Each row runs in a fresh process (``threads`` as a command's ``threads=`` sets them) with
 its CPU affinity cut to that many cores (``taskset`` as a scheduler would), on the default
@@ -256,10 +257,10 @@ def child(threads: int, cpus: str, checkpoint: str, tmp: str, *mode: str) -> dic
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def spread(pairs: int) -> None:
+def spread(pairs: int, report: str = "threads_spread") -> None:
     """``pairs`` alternating fresh processes of 1 and of every core, the default training step
     and the gemm only: how far one pair's speed-up is from another's. Writes
-    ``threads_spread.{md,json}``."""
+    ``<report>.{md,json}`` (default ``threads_spread``)."""
     cores = sorted(os.sched_getaffinity(0))
     n = len(cores)
     rows = []
@@ -283,7 +284,7 @@ def spread(pairs: int) -> None:
     pooled = float(np.median([r["train_step_ms_1"] for r in rows])
                    / np.median([r[f"train_step_ms_{n}"] for r in rows]))
     write_report(
-        "threads_spread", f"Training on 1 and {n} threads: the spread between processes", rows,
+        report, f"Training on 1 and {n} threads: the spread between processes", rows,
         extra={**summary, "train_speed_up_of_medians": pooled, "pairs": pairs},
         notes=(f"`tools/bench_threads.py --spread {pairs}`: {pairs} pairs of fresh processes, "
                f"one on 1 core and one on {n} (taskset, that many torch threads), which of "
@@ -301,9 +302,12 @@ def main() -> None:
     ap.add_argument("--spread", type=int, default=0, metavar="K",
                     help="only K alternating pairs of 1- and n-core processes of the default "
                          "training step (threads_spread.md)")
+    ap.add_argument("--report", default=None,
+                    help="the report's name under docs/benchmarks/ (default: threads, or "
+                         "threads_spread with --spread), e.g. to keep another machine's")
     args = ap.parse_args()
     if args.spread:
-        spread(args.spread)
+        spread(args.spread, args.report or "threads_spread")
         return
     cores = sorted(os.sched_getaffinity(0))
     rows = []
@@ -326,7 +330,7 @@ def main() -> None:
             r[f"{k}_speed_up"] = r[k] / first[k] if larger else first[k] / r[k]
     last = rows[-1]
     write_report(
-        "threads", "Speed against CPU threads", rows,
+        args.report or "threads", "Speed against CPU threads", rows,
         extra={
             "train_ssim_gain_1_thread": first["train_step_ms_kornia_ssim"] / first["train_step_ms"],
             "train_fused_adam_gain_1_thread": (first["train_step_ms_unfused_adam"]
