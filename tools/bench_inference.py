@@ -21,7 +21,8 @@ name), ``colour_separation`` (``colour_model_separation``: the colour models onl
 instants whose individuals they tell apart, :mod:`nsd.inference.colour_models`),
 ``islands`` (``island_share``: a subject's small islands inside another subject given to
 it, :mod:`nsd.cues.holes`), ``neighbours`` (``neighbour_weight``: neighbouring pixels of one
-colour drawn to one owner, :mod:`nsd.inference.neighbours`).
+colour drawn to one owner, :mod:`nsd.inference.neighbours`), ``slot_bonus`` (the hull
+individual's weight in the cross-view association, :mod:`nsd.inference.association_scores`).
 
 Writes ``docs/benchmarks/<--report>.{md,json}``.
 """
@@ -58,6 +59,10 @@ NOTES = {  # what each setting does, for the report's notes
                         "as far as the colour models tell them apart (0: off; "
                         "nsd/inference/neighbours.py); the hull-only row has no ownership "
                         "scores and is unchanged",
+    "slot_bonus": "association score added for the windows of two views fused with the same "
+                  "visual-hull individual (0: appearance and geometry alone; "
+                  "nsd/inference/association_scores.py); the hull-only row links views by the "
+                  "hull individual itself and is unchanged",
     "colour_model_separation": "the individuals' colour models are used in an instant only "
                                "where their leave-one-out kappa reaches it (0: everywhere; "
                                "nsd/inference/colour_models.py); the hull-only row has no "
