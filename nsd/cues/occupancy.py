@@ -330,8 +330,9 @@ def outer_voxels(x: Tensor, labels: Tensor, k: int, spread: float = CORE_SPREAD,
         for _ in range(refits + 1):
             if core.sum() < 8:  # too few for a covariance: the last cut stands
                 break
-            mean = xs[own[core]].mean(0)
-            d = xs[own[core]] - mean
+            inside = xs[own[core]]
+            mean = inside.mean(0)
+            d = inside - mean
             cov = d.T @ d / len(d) + 1e-9 * np.eye(3)
             e = xs[own] - mean
             core = np.einsum("ni,ij,nj->n", e, np.linalg.inv(cov), e) <= spread
