@@ -20,9 +20,31 @@ from nsd.io.scenes import resolve_scene
 from nsd.training.pose_task import PoseTask
 from nsd.training.task import NSDTask
 
-__all__ = ["train"]
+__all__ = ["train", "window_count_warning"]
 
 log = logging.getLogger(__name__)
+
+
+def window_count_warning(num_windows: int, presence: bool, individuals: int) -> str | None:
+    """What is wrong with ``model.num_windows`` for a scene that declares how many
+    individuals it holds (``gt/scene.json`` of an ``nsd-synth`` scene), or None.
+
+    A fixed count (``presence`` off) must be the number of individuals: fewer windows each
+    hold several bodies, more cut bodies in pieces, in every camera alike, which no
+    label-free figure of the run can see. An upper bound (presence on) must not be below it.
+
+        >>> window_count_warning(2, False, 2) is None, window_count_warning(6, True, 5) is None
+        (True, True)
+        >>> window_count_warning(2, False, 5)[:62]
+        'model.num_windows=2 but the scene declares 5 individuals (gt/s'
+    """
+    if num_windows == individuals or (presence and num_windows > individuals):
+        return None
+    what = ("each window will hold several bodies" if num_windows < individuals else
+            "the visual hull's clusters will cut bodies in pieces")
+    return (f"model.num_windows={num_windows} but the scene declares {individuals} "
+            f"individual{'s' * (individuals != 1)} (gt/scene.json): {what}; set model.num_windows={individuals} "
+            "(nsd-run: train.model.num_windows)")
 
 
 def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
@@ -37,6 +59,12 @@ def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     )
 
     gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
+    if gt is not None and cfg.stage == "decomposition":
+        problem = window_count_warning(int(cfg.model.num_windows),
+                                       bool(cfg.model.detector.presence),
+                                       len(gt.scene.individuals))
+        if problem:
+            log.warning("scene %s: %s", Path(scene).name, problem)
     if cfg.stage == "pose" and cfg.pose.get("labels"):  # a user's labels, in the rig's unit
         unit = file_units(read_calibration(scene, "m"), cfg.data.units)
         gt = read_pose_labels(cfg.pose.labels, data.footage.native_rig, unit)

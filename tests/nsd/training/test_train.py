@@ -218,3 +218,24 @@ def test_hull_proposals_cluster_by_the_inference_mixture_keys(tiny_data, monkeyp
     with pytest.raises(ConfigError, match=r"inference\.mixture_scene_sample"):
         NSDTask(tiny_cfg("inference.mixture_scene_sample=0"), tiny_data)
     assert len(seen) == 1
+
+
+@pytest.mark.parametrize(("overrides", "warned"), [
+    (["model.num_windows=2"], True),  # a fixed count above the scene's one individual
+    (["model.num_windows=1"], False),
+    (["model.num_windows=3", "model.detector.presence=true"], False),  # an upper bound
+])
+def test_a_window_count_other_than_the_declared_individuals_warns_before_training(
+        overrides, warned, tmp_path, caplog):
+    from nsd.synth import tiny_config, write_scene
+    from nsd.training.train import train
+
+    scene = write_scene(tiny_config(num_individuals=1), tmp_path / "scene")
+    cfg = tiny_cfg(f"data.scene={scene}", "trainer.max_steps=1", "trainer.progress=false",
+                   "trainer.checkpoint_every=0", "data.image_size=[48,48]", *overrides)
+    with caplog.at_level("WARNING", logger="nsd.training.train"):
+        train(cfg, tmp_path / "run")
+    said = [r.getMessage() for r in caplog.records if "declares 1 individual " in r.getMessage()]
+    assert bool(said) == warned, said
+    if warned:
+        assert "model.num_windows=2" in said[0] and "set model.num_windows=1" in said[0]
