@@ -43,8 +43,8 @@ def window_count_warning(num_windows: int, presence: bool, individuals: int) -> 
     what = ("each window will hold several bodies" if num_windows < individuals else
             "the visual hull's clusters will cut bodies in pieces")
     return (f"model.num_windows={num_windows} but the scene declares {individuals} "
-            f"individual{'s' * (individuals != 1)} (gt/scene.json): {what}; set model.num_windows={individuals} "
-            "(nsd-run: train.model.num_windows)")
+            f"individual{'s' * (individuals != 1)} (gt/scene.json): {what}; set "
+            f"model.num_windows={individuals} (nsd-run: train.model.num_windows)")
 
 
 def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
