@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from nsd.cameras.calibration_io import read_calibration
@@ -13,6 +14,7 @@ from nsd.core.device import resolve_device
 from nsd.core.errors import ConfigError
 from nsd.core.threads import set_threads
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
+from nsd.cues.count import MIN_FRAMES
 from nsd.io.ground_truth import GroundTruth
 from nsd.io.labels import read_pose_labels
 from nsd.io.scene_data import SceneData
@@ -20,7 +22,7 @@ from nsd.io.scenes import resolve_scene
 from nsd.training.pose_task import PoseTask
 from nsd.training.task import NSDTask
 
-__all__ = ["train", "window_count_warning"]
+__all__ = ["hull_count_warning", "train", "window_count_warning"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +49,45 @@ def window_count_warning(num_windows: int, presence: bool, individuals: int) -> 
             f"model.num_windows={individuals} (nsd-run: train.model.num_windows)")
 
 
+def hull_count_warning(num_windows: int, bodies: int, counts: np.ndarray) -> str | None:
+    """What is wrong with ``model.num_windows`` for footage whose visual hull shows
+    ``bodies`` separate bodies (:func:`nsd.cues.count.scene_bodies`, a lower bound on the
+    individuals; ``counts`` per frame looked at), or None: more bodies than windows warn,
+    fixed count or upper bound.
+
+        >>> hull_count_warning(2, 2, np.array([1, 2, 2])) is None
+        True
+        >>> hull_count_warning(2, 4, np.array([2, 4, 4, 5]))[:62]
+        'the visual hull shows 4 separate bodies in more than a tenth of'
+    """
+    if bodies <= num_windows:
+        return None
+    share = float(np.mean(counts > num_windows))
+    return (f"the visual hull shows {bodies} separate bodies in more than a tenth of the "
+            f"{len(counts)} frames looked at (more than {num_windows} in {share:.0%} of them), "
+            f"more than model.num_windows={num_windows}: each window will hold several "
+            f"bodies; set model.num_windows to the number of individuals, at least {bodies} "
+            "(nsd-run: train.model.num_windows)")
+
+
+def _check_window_count(cfg: DictConfig, data: SceneData, gt: GroundTruth | None,
+                        scene: Path) -> None:
+    """Warn before training when ``model.num_windows`` cannot fit the scene: against the
+    individuals a synthetic scene declares, else against the bodies its visual hull shows
+    (footage of at least :data:`nsd.cues.count.MIN_FRAMES` frames)."""
+    k, presence = int(cfg.model.num_windows), bool(cfg.model.detector.presence)
+    if gt is not None:
+        problem = window_count_warning(k, presence, len(gt.scene.individuals))
+    elif data.frames.shape[0] < MIN_FRAMES:  # too short for the hull to count
+        return
+    else:
+        problem = hull_count_warning(k, *data.hull_bodies(
+            cfg.loss.evidence_threshold, cfg.loss.evidence_softness,
+            cfg.prior_proposal.resolution, cfg.prior_proposal.min_views))
+    if problem:
+        log.warning("scene %s: %s", scene.name, problem)
+
+
 def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     """Train according to ``cfg`` into ``out_dir``; returns the final metrics."""
     log.info("torch uses %d CPU threads", set_threads(int(cfg.threads)))
@@ -59,12 +100,8 @@ def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     )
 
     gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None
-    if gt is not None and cfg.stage == "decomposition":
-        problem = window_count_warning(int(cfg.model.num_windows),
-                                       bool(cfg.model.detector.presence),
-                                       len(gt.scene.individuals))
-        if problem:
-            log.warning("scene %s: %s", Path(scene).name, problem)
+    if cfg.stage == "decomposition":
+        _check_window_count(cfg, data, gt, Path(scene))
     if cfg.stage == "pose" and cfg.pose.get("labels"):  # a user's labels, in the rig's unit
         unit = file_units(read_calibration(scene, "m"), cfg.data.units)
         gt = read_pose_labels(cfg.pose.labels, data.footage.native_rig, unit)

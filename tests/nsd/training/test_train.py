@@ -239,3 +239,30 @@ def test_a_window_count_other_than_the_declared_individuals_warns_before_trainin
     assert bool(said) == warned, said
     if warned:
         assert "model.num_windows=2" in said[0] and "set model.num_windows=1" in said[0]
+
+
+@pytest.mark.parametrize(("windows", "warned"), [(2, True), (3, False)])
+def test_footage_whose_hull_shows_more_bodies_than_windows_warns_before_training(
+        windows, warned, tmp_path, caplog):
+    """Three individuals walking apart, 4 cameras, 80 frames, the ground truth removed (as
+    footage): the hull shows 3 bodies (nsd.cues.count)."""
+    import shutil
+
+    from nsd.synth import tiny_config, write_scene
+    from nsd.training.train import train
+
+    scene = write_scene(tiny_config(
+        num_individuals=3, num_frames=80, image_size=[64, 64],
+        rig={"kind": "ring", "count": 4, "radius": 4.0, "height": 2.0, "fov_deg": 50.0,
+             "start_deg": 30.0},
+        motion={"interaction": "free", "area_radius": 1.5}), tmp_path / "scene")
+    shutil.rmtree(scene / "gt")
+    cfg = tiny_cfg(f"data.scene={scene}", "trainer.max_steps=1", "trainer.progress=false",
+                   "trainer.checkpoint_every=0", "data.image_size=[64,64]", "eval_frames=0",
+                   f"model.num_windows={windows}")
+    with caplog.at_level("WARNING", logger="nsd.training.train"):
+        train(cfg, tmp_path / "run")
+    said = [r.getMessage() for r in caplog.records if "separate bodies" in r.getMessage()]
+    assert bool(said) == warned, said
+    if warned:
+        assert "shows 3 separate bodies" in said[0] and "model.num_windows=2" in said[0]
