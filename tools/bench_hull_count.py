@@ -30,6 +30,7 @@ from tools.benchlib import write_report  # noqa: E402
 
 EVIDENCE = (0.02, 0.04)  # conf/loss/default.yaml: evidence_threshold, evidence_softness
 RESOLUTION = 48  # conf/prior_proposal/multiview.yaml
+BACKGROUND = "modes"  # conf/data/default.yaml
 
 
 def _made(scene: Path) -> dict[str, object]:
@@ -59,7 +60,7 @@ def main() -> None:
     torch.set_num_threads(1)
     rows = []
     for scene in args.scenes:
-        data = SceneData(scene, (128, 128), val_fraction=0.0)
+        data = SceneData(scene, (128, 128), val_fraction=0.0, background=BACKGROUND)
         n, per = data.hull_bodies(*EVIDENCE, RESOLUTION)
         made = _made(scene)
         rows.append({"scene": scene.name, **made, "counted": n,
