@@ -19,12 +19,12 @@ Bodies that touch are one blob, so an instant undercounts where bodies touch; th
 count is the ``QUANTILE`` of the instants' counts, the most the hull shows in more than a
 tenth of them. Footage of fewer than ``MIN_FRAMES`` frames is not counted.
 
-Measured on 20 synthetic scenes of 2-5 individuals, 4-6 cameras (docs/nsd.md, "How many
-individuals the hull shows"): the right count on 18, one fewer on two (three cows of one
-texture huddling most of the time; five individuals of whom one lingers in the background),
-never more; without the top's test, one to two more on three scenes of 5 cameras. Made
-after the choice: 1, 2 and 6 individuals counted right, 8 (on 8 cameras) as 5. At 64 x 64
-pixels the hull's pieces can count one more.
+Measured on 24 synthetic scenes of 1-8 individuals, 4-8 cameras
+(docs/benchmarks/hull_count.md; the rule chosen on 20 of them): the right count on 21, fewer
+on three (three cows of one texture huddling most of the time: 2; five individuals of whom
+one lingers in the background: 4; eight walking freely on 8 cameras: 5), never more; without
+the top's test three scenes of 5 and 6 cameras count one or two more. At 64 x 64 pixels the
+hull's pieces can count one more.
 """
 
 from __future__ import annotations
@@ -44,9 +44,9 @@ __all__ = ["BODY_SHARE", "MIN_FRAMES", "QUANTILE", "TOP_DROP", "blobs", "body_co
            "scene_bodies"]
 
 MIN_COLUMN = 2  # voxels a column needs to count (one-voxel columns are hull noise)
-BODY_SHARE = 0.4  # a blob's fullest column against the scene's typical one (0.5: 17 of 20)
+BODY_SHARE = 0.4  # a blob's fullest column against the scene's typical one (0.5: 19 of 24)
 TOP_DROP = 0.5  # typical fullest columns a body's top may lie below the typical top (0.3-0.7)
-QUANTILE = 0.9  # of the instants' counts (0.75 undercounts huddles: 10 of 20 right)
+QUANTILE = 0.9  # of the instants' counts (0.75 undercounts huddles: 10 of the first 20)
 # shorter footage is not counted: its background holds its subjects and the hull falls into
 # pieces (80-frame scenes at 64 x 64: two individuals counted as three)
 MIN_FRAMES = 60
