@@ -17,7 +17,7 @@ is a *body* when
 
 Bodies that touch are one blob, so an instant undercounts where bodies touch; the scene's
 count is the ``QUANTILE`` of the instants' counts, the most the hull shows in more than a
-tenth of them. Footage of fewer than ``MIN_FRAMES`` frames is not counted.
+tenth of them. Footage of fewer than ``MIN_FRAMES`` frames or ``MIN_VIEWS`` cameras is not counted.
 
 Measured on 24 synthetic scenes of 1-8 individuals, 4-8 cameras
 (docs/benchmarks/hull_count.md; the rule chosen on 20 of them): the right count on 21, fewer
@@ -40,7 +40,7 @@ from nsd.cues.clustering import BLOB_GAP
 from nsd.cues.occupancy import VoxelGrid, occupied_voxels
 from nsd.ops.vectors import up_frame
 
-__all__ = ["BODY_SHARE", "MIN_FRAMES", "QUANTILE", "TOP_DROP", "blobs", "body_counts",
+__all__ = ["BODY_SHARE", "MIN_FRAMES", "MIN_VIEWS", "QUANTILE", "TOP_DROP", "blobs", "body_counts",
            "scene_bodies"]
 
 MIN_COLUMN = 2  # voxels a column needs to count (one-voxel columns are hull noise)
@@ -50,6 +50,9 @@ QUANTILE = 0.9  # of the instants' counts (0.75 undercounts huddles: 10 of the f
 # shorter footage is not counted: its background holds its subjects and the hull falls into
 # pieces (80-frame scenes at 64 x 64: two individuals counted as three)
 MIN_FRAMES = 60
+# nor footage of fewer cameras: two or three views carve full-height ghosts where their
+# cones of two bodies cross (measured on 4-8 cameras only)
+MIN_VIEWS = 4
 
 
 def blobs(points: Tensor, up: Tensor, cell: float) -> np.ndarray:

@@ -14,7 +14,7 @@ from nsd.core.device import resolve_device
 from nsd.core.errors import ConfigError
 from nsd.core.threads import set_threads
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
-from nsd.cues.count import MIN_FRAMES
+from nsd.cues.count import MIN_FRAMES, MIN_VIEWS
 from nsd.io.ground_truth import GroundTruth
 from nsd.io.labels import read_pose_labels
 from nsd.io.scene_data import SceneData
@@ -57,7 +57,7 @@ def hull_count_warning(num_windows: int, bodies: int, counts: np.ndarray) -> str
 
         >>> hull_count_warning(2, 2, np.array([1, 2, 2])) is None
         True
-        >>> hull_count_warning(2, 4, np.array([2, 4, 4, 5]))[:62]
+        >>> hull_count_warning(2, 4, np.array([2, 4, 4, 5]))[:63]
         'the visual hull shows 4 separate bodies in more than a tenth of'
     """
     if bodies <= num_windows:
@@ -74,12 +74,13 @@ def _check_window_count(cfg: DictConfig, data: SceneData, gt: GroundTruth | None
                         scene: Path) -> None:
     """Warn before training when ``model.num_windows`` cannot fit the scene: against the
     individuals a synthetic scene declares, else against the bodies its visual hull shows
-    (footage of at least :data:`nsd.cues.count.MIN_FRAMES` frames)."""
+    (footage of at least :data:`nsd.cues.count.MIN_FRAMES` frames and
+    :data:`nsd.cues.count.MIN_VIEWS` cameras)."""
     k, presence = int(cfg.model.num_windows), bool(cfg.model.detector.presence)
     if gt is not None:
         problem = window_count_warning(k, presence, len(gt.scene.individuals))
-    elif data.frames.shape[0] < MIN_FRAMES:  # too short for the hull to count
-        return
+    elif data.frames.shape[0] < MIN_FRAMES or data.num_views < MIN_VIEWS:
+        return  # too short, or too few cameras, for the hull to count
     else:
         problem = hull_count_warning(k, *data.hull_bodies(
             cfg.loss.evidence_threshold, cfg.loss.evidence_softness,
