@@ -713,9 +713,10 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
         ids = identity_by_row(up["identities"].folder / "identities.csv") if have_identities \
             else None
         w, h = cfg.train.data.image_size
+        pp = cfg.train.prior_proposal
         report = quality_report(export, scene, (int(w), int(h)), ids,
                                 str(cfg.train.data.background), str(cfg.train.data.units),
-                                int(q.max_frames), known)
+                                int(q.max_frames), known, int(pp.resolution), pp.min_views)
         alike = look_alike(up["identities"].summary) if have_identities else {}
         if alike:  # the identity figures cannot see swaps of individuals the codes confuse
             report.warnings.append(
@@ -737,7 +738,9 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
                 "files": [f.name for f in files]}
 
     return Stage("quality", run, {**_container(q), "identities": have_identities,
-                                  "grid_size": cfg.grids.size, "individuals": known},
+                                  "grid_size": cfg.grids.size, "individuals": known,
+                                  "hull": [int(cfg.train.prior_proposal.resolution),
+                                           _container(cfg.train.prior_proposal.min_views)]},
                  needs=("scene", "export", "identities"), enabled=bool(q.enabled),
                  why_disabled="quality.enabled=false")
 

@@ -25,6 +25,12 @@ training size, over up to ``max_frames`` frames spread evenly over the export:
   then holds two bodies that touch, or two windows share one body, on every camera alike,
   which none of the figures above can see (2 bipeds beside 2 cows on 5 cameras: 3
   individuals named, every other figure within its limit; docs/nsd.md, "Found, not mended").
+* **hull_bodies**: the separate bodies the visual hull shows in 60 frames spread over the
+  footage (:func:`nsd.cues.count.scene_bodies`, a lower bound on the individuals; NaN for
+  footage of fewer than ``MIN_FRAMES`` frames or ``MIN_VIEWS`` cameras). Fewer identities
+  than that warns too, whatever the run was told: five individuals run with two windows
+  named 2, every figure above within its limit (docs/nsd.md, "How many individuals the hull
+  shows").
 
 Frames are ranked by ``badness`` = (1 - explained) + spill + (1 - consistency), each the
 mean over the frame's cameras; the worst ones are worth a look (``worst``).
@@ -45,6 +51,7 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
+from nsd.cues.count import MIN_FRAMES, MIN_VIEWS, scene_bodies
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import voxel_grid
 from nsd.io.footage import MultiViewFootage
@@ -53,6 +60,7 @@ __all__ = ["TRUST_LIMITS", "FrameQuality", "QualityReport", "quality_markdown", 
            "reprojected_hulls"]
 
 HULL_RESOLUTION = 96  # voxels per side of the working volume (48: limbs fall between voxels)
+COUNT_FRAMES = 60  # frames spread over the footage in which the hull's bodies are counted
 MIN_OTHER_VIEWS = 2  # the hull of the other cameras needs this many of them to see a voxel
 # limits past which the report warns (each a share): the run is then not to be trusted blind.
 # Set between the good and the bad runs of docs/benchmarks/quality.md (a run with identity
@@ -203,6 +211,8 @@ def quality_report(
     units: str = "auto",
     max_frames: int = 100,
     individuals: int | None = None,
+    resolution: int = 48,
+    min_views: int | str = "auto",
 ) -> QualityReport:
     """The label-free quality of an ``nsd-export`` folder (module docstring).
 
@@ -216,6 +226,8 @@ def quality_report(
         max_frames: frames analysed, spread evenly over the export (0: all).
         individuals: how many individuals the run was told the scene holds (None: not
             known, e.g. ``num_windows`` an upper bound); fewer identities warn.
+        resolution, min_views: the voxel grid in which the hull's bodies are counted (the
+            run's ``prior_proposal.resolution`` and ``prior_proposal.min_views``).
     """
     coco = json.loads((Path(export) / "subjects.coco.json").read_text())
     by_key, images = _rows(coco)
@@ -255,6 +267,7 @@ def quality_report(
         frames.append(FrameQuality(t, explained, spill, consistency, subjects))
     summary = {
         "frames": float(len(frames)),
+        "hull_bodies": _hull_bodies(footage, bgs, resolution, min_views),
         "explained": _mean([_mean(f.explained) for f in frames]),
         "spill": _mean([_mean(f.spill) for f in frames]),
         "consistency": _mean([_mean(f.consistency) for f in frames]),
@@ -266,6 +279,22 @@ def quality_report(
     return QualityReport(cams, frames, summary, _warnings(summary, cams, individuals))
 
 
+def _hull_bodies(footage: MultiViewFootage, backgrounds: torch.Tensor, resolution: int,
+                 min_views: int | str) -> float:
+    """The bodies the visual hull shows in ``COUNT_FRAMES`` frames spread over the footage
+    (module docstring), NaN where the footage is too short or has too few cameras."""
+    T, V = footage.num_frames, footage.num_views
+    if T < MIN_FRAMES or V < MIN_VIEWS:
+        return float("nan")
+    W, H = footage.rig[0].size
+    grid = voxel_grid(footage.rig, (H, W), resolution, min_views=min_views,
+                      key="prior_proposal.min_views")
+    instants = np.unique(np.linspace(0, T - 1, min(COUNT_FRAMES, T)).round().astype(int))
+    return float(scene_bodies(lambda t: foreground_evidence(
+        torch.from_numpy(footage.frame(int(t))).permute(0, 3, 1, 2).float() / 255,
+        backgrounds), instants, grid)[0])
+
+
 def _warnings(s: dict[str, float], cams: list[str], individuals: int | None = None) -> list[str]:
     lim, out = TRUST_LIMITS, []
     if individuals is not None and s["individuals"] < individuals:  # NaN: no identities
@@ -273,6 +302,11 @@ def _warnings(s: dict[str, float], cams: list[str], individuals: int | None = No
                    f"told of {individuals} (model.num_windows): a window holds two bodies that "
                    "touch, or two windows share one body, in every camera alike; look at the "
                    "worst frames and at grids/")
+    elif s["individuals"] < s.get("hull_bodies", float("nan")):  # NaN either: no warning
+        out.append(f"the identities name {int(s['individuals'])} individuals where the visual "
+                   f"hull shows at least {int(s['hull_bodies'])} separate bodies: a window "
+                   "holds several bodies, in every camera alike (too few windows: set "
+                   "model.num_windows to the number of individuals); look at grids/")
     if s["explained"] < lim["explained"]:
         low = [c for c in cams if s[f"explained/{c}"] < lim["explained"]]
         out.append(f"only {s['explained']:.0%} of the moving pixels are in some subject's mask "
@@ -305,7 +339,10 @@ def quality_markdown(report: QualityReport, worst: list[int]) -> str:
         side = "<" if key in ("explained", "consistency", "view_agreement") else ">"
         value = s.get(key, float("nan"))
         lines.append(f"| {key} | {value:.3f} | {side} {limit} |")
-    lines += ["", "| camera | explained | consistency |", "|---|---|---|"]
+    lines += ["", f"The visual hull shows at least {s.get('hull_bodies', float('nan')):.0f} "
+              f"separate bodies; the identities name {s.get('individuals', float('nan')):.0f} "
+              "individuals (nan: not counted).",
+              "", "| camera | explained | consistency |", "|---|---|---|"]
     lines += [f"| {c} | {s[f'explained/{c}']:.3f} | {s[f'consistency/{c}']:.3f} |"
               for c in report.cameras]
     lines += ["", "## Warnings", ""]

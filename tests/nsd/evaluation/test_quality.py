@@ -107,3 +107,29 @@ def test_fewer_individuals_than_told_warn():
     assert _warnings({**fine, "individuals": 4.0}, ["a"], 4) == []
     assert _warnings({**fine, "individuals": 3.0}, ["a"], None) == []
     assert _warnings({**fine, "individuals": float("nan")}, ["a"], 4) == []
+
+
+def test_fewer_individuals_than_the_hull_shows_warn():
+    """Fewer identities than the visual hull's separate bodies warn, whatever the run was told
+    (five individuals run with two windows name 2); as many or more, a hull not counted (NaN)
+    or no identities (NaN) do not; the warning of a told count comes first, alone."""
+    fine = {"explained": 1.0, "spill": 0.0, "consistency": 1.0, "identity_switches": 0.0,
+            "view_agreement": 1.0, "count_changes": 0.0, "explained/a": 1.0}
+    got = _warnings({**fine, "individuals": 2.0, "hull_bodies": 4.0}, ["a"], 2)
+    assert len(got) == 1 and "name 2 individuals" in got[0] and "at least 4" in got[0]
+    assert _warnings({**fine, "individuals": 2.0, "hull_bodies": 4.0}, ["a"], None) == got
+    assert _warnings({**fine, "individuals": 4.0, "hull_bodies": 4.0}, ["a"], None) == []
+    assert _warnings({**fine, "individuals": 5.0, "hull_bodies": 4.0}, ["a"], None) == []
+    assert _warnings({**fine, "individuals": 2.0, "hull_bodies": float("nan")}, ["a"], 2) == []
+    assert _warnings({**fine, "individuals": float("nan"), "hull_bodies": 4.0}, ["a"], 2) == []
+    told = _warnings({**fine, "individuals": 2.0, "hull_bodies": 4.0}, ["a"], 3)
+    assert len(told) == 1 and "told of 3" in told[0]
+
+
+def test_short_footage_is_not_counted(tiny_scene):
+    """The tiny scene (2 cameras, a few frames): the hull's bodies are not counted (NaN)."""
+    from nsd.evaluation.quality import _hull_bodies
+    from nsd.io.footage import MultiViewFootage
+
+    footage = MultiViewFootage(tiny_scene, None, (32, 24))
+    assert np.isnan(_hull_bodies(footage, torch.zeros(2, 3, 24, 32), 48, "auto"))
