@@ -96,3 +96,22 @@ def test_colour_owners_needs_a_core_for_every_subject():
     owner = prior.argmax(0)
     claimed = prior.max(0) > 0
     assert np.array_equal(colour_owners(view, prior, owner, claimed), owner)
+
+
+def test_a_patch_of_a_neighbours_colour_inside_a_body_stays_with_that_body():
+    """The second subject wears a patch of the first's colour in the middle of its body, 20
+    native pixels from where they meet: colour alone would give the patch to the first
+    subject; detached from its spatial share, it stays with the second, while the boundary
+    still moves to where the colours meet."""
+    view, background, truth, coarse = _touching(((200, 40, 40), (40, 200, 60)))
+    view[50:60, 88:96] = (200, 40, 40)  # the patch, inside the second subject's body
+    got = native_masks(coarse, view, background)
+    assert got[1][50:60, 88:96].all() and not got[0][50:60, 88:96].any()
+    assert _iou(got[0], truth[0]) > 0.97  # the boundary moved as before
+    from nsd.cues.native import anchored_owners, colour_owners
+
+    prior = np.stack([cv2.GaussianBlur(cv2.resize(c, (128, 128)), (0, 0), 8) for c in coarse])
+    spatial, claimed = prior.argmax(0), (truth[0] | truth[1])
+    by_colour = colour_owners(view, prior, spatial, claimed)
+    assert (by_colour[50:60, 88:96] == 0).all()  # what anchoring undoes
+    assert (anchored_owners(by_colour, spatial, claimed, 2)[50:60, 88:96] == 1).all()
