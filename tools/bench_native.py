@@ -38,6 +38,21 @@ from nsd.evaluation.export_masks import export_mask_scores  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
 
 
+def _made(info: dict) -> str:
+    """The ``nsd-synth`` settings of a scene that differ from the default scene's, from its
+    ``gt/scene.json``."""
+    c = info.get("config", {})
+    keys = ("seed", "num_frames", "image_size", "num_individuals", "species", "texture_ids",
+            "video")
+    out = [f"{k}={json.dumps(c[k]).replace(' ', '')}" for k in keys if k in c]
+    rig, motion = c.get("rig", {}), c.get("motion", {})
+    out += [f"rig.{k}={json.dumps(rig[k]).replace(' ', '')}" for k in ("kind", "count",
+                                                                        "distortion")
+            if rig.get(k) is not None]
+    out += [f"motion.{k}={motion[k]}" for k in ("interaction", "linger") if k in motion]
+    return " ".join(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoint", required=True)
@@ -45,6 +60,8 @@ def main() -> None:
     ap.add_argument("--step", type=int, default=3, help="every this many held-out frames")
     ap.add_argument("--name", default="native",
                     help="report name: docs/benchmarks/<name>.{md,json} (native_hd for HD)")
+    ap.add_argument("--trained", default="`nsd-run train.trainer.max_steps=1000` on it",
+                    help="how the checkpoint was made, for the report's note")
     args = ap.parse_args()
     scene = Path(args.scene)
     info = json.loads((scene / "gt" / "scene.json").read_text())
@@ -88,10 +105,9 @@ def main() -> None:
                "boundary F (2 px) at native resolution against the ground-truth visible "
                "masks, each instance matched one-to-one (unmatched: 0; "
                "nsd/evaluation/export_masks.py). export_s: the whole nsd-export run "
-               f"(decoding, model, files). The scene: `nsd-synth image_size=[{w},{h}]` (the "
-               f"default scene's settings otherwise: 2 bipeds, 4 cameras, {n} frames); the "
-               "checkpoint: `nsd-run train.trainer.max_steps=1000` on it (training at 128 x "
-               "128). `native_refine=auto`, the export's default, redraws the masks at native "
+               f"(decoding, model, files). The scene: `nsd-synth {_made(info)}`; the "
+               f"checkpoint: {args.trained} (training at the checkpoint's size). "
+               "`native_refine=auto`, the export's default, redraws the masks at native "
                "resolution whenever the footage is larger than the training frames."),
     )
 
