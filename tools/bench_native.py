@@ -49,7 +49,8 @@ def _made(info: dict) -> str:
     out += [f"rig.{k}={json.dumps(rig[k]).replace(' ', '')}" for k in ("kind", "count",
                                                                         "distortion")
             if rig.get(k) is not None]
-    out += [f"motion.{k}={motion[k]}" for k in ("interaction", "linger") if k in motion]
+    out += [f"motion.{k}={motion[k]}" for k in ("interaction", "linger", "area_radius")
+            if k in motion]
     return " ".join(out)
 
 
