@@ -40,8 +40,8 @@ from nsd.cues.clustering import BLOB_GAP
 from nsd.cues.occupancy import VoxelGrid, occupied_voxels
 from nsd.ops.vectors import up_frame
 
-__all__ = ["BODY_SHARE", "MIN_FRAMES", "MIN_VIEWS", "QUANTILE", "TOP_DROP", "blobs", "body_counts",
-           "scene_bodies"]
+__all__ = ["BODY_SHARE", "MIN_FRAMES", "MIN_VIEWS", "QUANTILE", "SAMPLE", "TOP_DROP", "blobs",
+           "body_counts", "countable", "instants", "scene_bodies"]
 
 MIN_COLUMN = 2  # voxels a column needs to count (one-voxel columns are hull noise)
 BODY_SHARE = 0.4  # a blob's fullest column against the scene's typical one (0.5: 19 of 24)
@@ -53,6 +53,25 @@ MIN_FRAMES = 60
 # nor footage of fewer cameras: two or three views carve full-height ghosts where their
 # cones of two bodies cross (measured on 4-8 cameras only)
 MIN_VIEWS = 4
+SAMPLE = 60  # frames spread over the footage in which the bodies are counted
+
+
+def countable(frames: int, views: int) -> bool:
+    """Footage of ``frames`` frames and ``views`` cameras is long and wide enough to count.
+
+        >>> countable(300, 4), countable(59, 8), countable(300, 3)
+        (True, False, False)
+    """
+    return frames >= MIN_FRAMES and views >= MIN_VIEWS
+
+
+def instants(frames: int, sample: int = SAMPLE) -> np.ndarray:
+    """``sample`` frame indices spread evenly over ``frames`` (all of them if fewer).
+
+        >>> instants(5, 3).tolist(), instants(2).tolist()
+        ([0, 2, 4], [0, 1])
+    """
+    return np.unique(np.linspace(0, frames - 1, min(sample, frames)).round().astype(int))
 
 
 def blobs(points: Tensor, up: Tensor, cell: float) -> np.ndarray:

@@ -25,9 +25,9 @@ training size, over up to ``max_frames`` frames spread evenly over the export:
   then holds two bodies that touch, or two windows share one body, on every camera alike,
   which none of the figures above can see (2 bipeds beside 2 cows on 5 cameras: 3
   individuals named, every other figure within its limit; docs/nsd.md, "Found, not mended").
-* **hull_bodies**: the separate bodies the visual hull shows in 60 frames spread over the
+* **hull_bodies**: the separate bodies the visual hull shows in frames spread over the
   footage (:func:`nsd.cues.count.scene_bodies`, a lower bound on the individuals; NaN for
-  footage of fewer than ``MIN_FRAMES`` frames or ``MIN_VIEWS`` cameras). Fewer identities
+  footage too short or with too few cameras, :func:`nsd.cues.count.countable`). Fewer identities
   than that warns too, whatever the run was told: five individuals run with two windows
   named 2, every figure above within its limit (docs/nsd.md, "How many individuals the hull
   shows").
@@ -51,7 +51,7 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
-from nsd.cues.count import MIN_FRAMES, MIN_VIEWS, scene_bodies
+from nsd.cues.count import countable, instants, scene_bodies
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import voxel_grid
 from nsd.io.footage import MultiViewFootage
@@ -60,7 +60,6 @@ __all__ = ["TRUST_LIMITS", "FrameQuality", "QualityReport", "quality_markdown", 
            "reprojected_hulls"]
 
 HULL_RESOLUTION = 96  # voxels per side of the working volume (48: limbs fall between voxels)
-COUNT_FRAMES = 60  # frames spread over the footage in which the hull's bodies are counted
 MIN_OTHER_VIEWS = 2  # the hull of the other cameras needs this many of them to see a voxel
 # limits past which the report warns (each a share): the run is then not to be trusted blind.
 # Set between the good and the bad runs of docs/benchmarks/quality.md (a run with identity
@@ -281,18 +280,16 @@ def quality_report(
 
 def _hull_bodies(footage: MultiViewFootage, backgrounds: torch.Tensor, resolution: int,
                  min_views: int | str) -> float:
-    """The bodies the visual hull shows in ``COUNT_FRAMES`` frames spread over the footage
-    (module docstring), NaN where the footage is too short or has too few cameras."""
-    T, V = footage.num_frames, footage.num_views
-    if T < MIN_FRAMES or V < MIN_VIEWS:
+    """The bodies the visual hull shows in frames spread over the footage (module
+    docstring), NaN where the footage is too short or has too few cameras."""
+    if not countable(footage.num_frames, footage.num_views):
         return float("nan")
     W, H = footage.rig[0].size
     grid = voxel_grid(footage.rig, (H, W), resolution, min_views=min_views,
                       key="prior_proposal.min_views")
-    instants = np.unique(np.linspace(0, T - 1, min(COUNT_FRAMES, T)).round().astype(int))
     return float(scene_bodies(lambda t: foreground_evidence(
         torch.from_numpy(footage.frame(int(t))).permute(0, 3, 1, 2).float() / 255,
-        backgrounds), instants, grid)[0])
+        backgrounds), instants(footage.num_frames), grid)[0])
 
 
 def _warnings(s: dict[str, float], cams: list[str], individuals: int | None = None) -> list[str]:

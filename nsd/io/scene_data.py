@@ -23,7 +23,7 @@ from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.core.memory import trim_heap
 from nsd.cues.clustering import MixtureRules
-from nsd.cues.count import scene_bodies
+from nsd.cues.count import instants, scene_bodies
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import multiview_proposals, scene_track, voxel_grid
 from nsd.cues.proposals import evidence_proposals
@@ -184,17 +184,17 @@ class SceneData:
         trim_heap()  # the hull's temporaries, freed between the kept results
 
     def hull_bodies(self, threshold: float, softness: float, resolution: int,
-                    min_views: int | str = "auto", sample: int = 60) -> tuple[int, np.ndarray]:
-        """The separate bodies the visual hull shows in ``sample`` frames spread evenly over
-        the scene (:func:`nsd.cues.count.scene_bodies`: a lower bound on the individuals,
-        and the count of each frame); arguments as :meth:`compute_multiview_proposals`."""
+                    min_views: int | str = "auto") -> tuple[int, np.ndarray]:
+        """The separate bodies the visual hull shows in :data:`nsd.cues.count.SAMPLE` frames
+        spread evenly over the scene (:func:`nsd.cues.count.scene_bodies`: a lower bound on
+        the individuals, and the count of each frame); arguments as
+        :meth:`compute_multiview_proposals`."""
 
         grid = voxel_grid(self.rig, self.frame_hw, resolution, min_views=min_views,
                           key="prior_proposal.min_views")
-        T = self.frames.shape[0]
-        instants = np.unique(np.linspace(0, T - 1, min(sample, T)).round().astype(int))
         return scene_bodies(lambda t: foreground_evidence(
-            to_float(self.frames[int(t)]), self.backgrounds, threshold, softness), instants, grid)
+            to_float(self.frames[int(t)]), self.backgrounds, threshold, softness),
+            instants(self.frames.shape[0]), grid)
 
     def smooth_counts(self, window: int, scene_population: bool = False) -> None:
         """Individuals in view per frame: the multi-view proposals' count, median over

@@ -14,7 +14,7 @@ from nsd.core.device import resolve_device
 from nsd.core.errors import ConfigError
 from nsd.core.threads import set_threads
 from nsd.core.trainer import Trainer, TrainerConfig, load_checkpoint, seed_everything
-from nsd.cues.count import MIN_FRAMES, MIN_VIEWS
+from nsd.cues.count import countable
 from nsd.io.ground_truth import GroundTruth
 from nsd.io.labels import read_pose_labels
 from nsd.io.scene_data import SceneData
@@ -74,12 +74,11 @@ def _check_window_count(cfg: DictConfig, data: SceneData, gt: GroundTruth | None
                         scene: Path) -> None:
     """Warn before training when ``model.num_windows`` cannot fit the scene: against the
     individuals a synthetic scene declares, else against the bodies its visual hull shows
-    (footage of at least :data:`nsd.cues.count.MIN_FRAMES` frames and
-    :data:`nsd.cues.count.MIN_VIEWS` cameras)."""
+    (footage :func:`nsd.cues.count.countable`)."""
     k, presence = int(cfg.model.num_windows), bool(cfg.model.detector.presence)
     if gt is not None:
         problem = window_count_warning(k, presence, len(gt.scene.individuals))
-    elif data.frames.shape[0] < MIN_FRAMES or data.num_views < MIN_VIEWS:
+    elif not countable(data.frames.shape[0], data.num_views):
         return  # too short, or too few cameras, for the hull to count
     else:
         problem = hull_count_warning(k, *data.hull_bodies(
