@@ -336,9 +336,12 @@ def quality_markdown(report: QualityReport, worst: list[int]) -> str:
         side = "<" if key in ("explained", "consistency", "view_agreement") else ">"
         value = s.get(key, float("nan"))
         lines.append(f"| {key} | {value:.3f} | {side} {limit} |")
-    lines += ["", f"The visual hull shows at least {s.get('hull_bodies', float('nan')):.0f} "
-              f"separate bodies; the identities name {s.get('individuals', float('nan')):.0f} "
-              "individuals (nan: not counted).",
+    bodies, named = s.get("hull_bodies", float("nan")), s.get("individuals", float("nan"))
+    lines += ["", (f"The visual hull shows at least {bodies:.0f} separate bodies"
+                   if np.isfinite(bodies) else "The visual hull's bodies were not counted "
+                   "(footage too short or too few cameras)")
+              + (f"; the identities name {named:.0f} individuals." if np.isfinite(named)
+                 else "."),
               "", "| camera | explained | consistency |", "|---|---|---|"]
     lines += [f"| {c} | {s[f'explained/{c}']:.3f} | {s[f'consistency/{c}']:.3f} |"
               for c in report.cameras]

@@ -133,3 +133,22 @@ def test_short_footage_is_not_counted(tiny_scene):
 
     footage = MultiViewFootage(tiny_scene, None, (32, 24))
     assert np.isnan(_hull_bodies(footage, torch.zeros(2, 3, 24, 32), 48, "auto"))
+
+
+def test_the_report_says_what_the_hull_shows_beside_the_identities():
+    from nsd.evaluation.quality import QualityReport, quality_markdown
+
+    base = {"frames": 1.0, "explained": 1.0, "spill": 0.0, "consistency": 1.0,
+            "identity_switches": 0.0, "view_agreement": 1.0, "count_changes": 0.0,
+            "explained/a": 1.0, "consistency/a": 1.0}
+
+    def said(bodies: float, named: float) -> str:
+        report = QualityReport(["a"], [], {**base, "hull_bodies": bodies,
+                                           "individuals": named}, [])
+        return next(line for line in quality_markdown(report, []).splitlines()
+                    if "hull" in line)
+
+    assert said(4.0, 5.0) == ("The visual hull shows at least 4 separate bodies; the "
+                              "identities name 5 individuals.")
+    assert said(float("nan"), 2.0).startswith("The visual hull's bodies were not counted")
+    assert said(3.0, float("nan")) == "The visual hull shows at least 3 separate bodies."
