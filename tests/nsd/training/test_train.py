@@ -220,6 +220,18 @@ def test_hull_proposals_cluster_by_the_inference_mixture_keys(tiny_data, monkeyp
     assert len(seen) == 1
 
 
+def _warnings_of_one_step(scene, out, caplog, *overrides: str) -> list[str]:
+    """The warnings ``nsd.training.train.train`` logs for one step on ``scene`` with the tiny
+    config and ``overrides``."""
+    from nsd.training.train import train
+
+    cfg = tiny_cfg(f"data.scene={scene}", "trainer.max_steps=1", "trainer.progress=false",
+                   "trainer.checkpoint_every=0", *overrides)
+    with caplog.at_level("WARNING", logger="nsd.training.train"):
+        train(cfg, out)
+    return [r.getMessage() for r in caplog.records]
+
+
 @pytest.mark.parametrize(("overrides", "warned"), [
     (["model.num_windows=2"], True),  # a fixed count above the scene's one individual
     (["model.num_windows=1"], False),
@@ -228,14 +240,11 @@ def test_hull_proposals_cluster_by_the_inference_mixture_keys(tiny_data, monkeyp
 def test_a_window_count_other_than_the_declared_individuals_warns_before_training(
         overrides, warned, tmp_path, caplog):
     from nsd.synth import tiny_config, write_scene
-    from nsd.training.train import train
 
     scene = write_scene(tiny_config(num_individuals=1), tmp_path / "scene")
-    cfg = tiny_cfg(f"data.scene={scene}", "trainer.max_steps=1", "trainer.progress=false",
-                   "trainer.checkpoint_every=0", "data.image_size=[48,48]", *overrides)
-    with caplog.at_level("WARNING", logger="nsd.training.train"):
-        train(cfg, tmp_path / "run")
-    said = [r.getMessage() for r in caplog.records if "declares 1 individual " in r.getMessage()]
+    said = [m for m in _warnings_of_one_step(scene, tmp_path / "run", caplog,
+                                             "data.image_size=[48,48]", *overrides)
+            if "declares 1 individual " in m]
     assert bool(said) == warned, said
     if warned:
         assert "model.num_windows=2" in said[0] and "set model.num_windows=1" in said[0]
@@ -249,7 +258,6 @@ def test_footage_whose_hull_shows_more_bodies_than_windows_warns_before_training
     import shutil
 
     from nsd.synth import tiny_config, write_scene
-    from nsd.training.train import train
 
     scene = write_scene(tiny_config(
         num_individuals=3, num_frames=80, image_size=[64, 64],
@@ -257,12 +265,10 @@ def test_footage_whose_hull_shows_more_bodies_than_windows_warns_before_training
              "start_deg": 30.0},
         motion={"interaction": "free", "area_radius": 1.5}), tmp_path / "scene")
     shutil.rmtree(scene / "gt")
-    cfg = tiny_cfg(f"data.scene={scene}", "trainer.max_steps=1", "trainer.progress=false",
-                   "trainer.checkpoint_every=0", "data.image_size=[64,64]", "eval_frames=0",
-                   f"model.num_windows={windows}")
-    with caplog.at_level("WARNING", logger="nsd.training.train"):
-        train(cfg, tmp_path / "run")
-    said = [r.getMessage() for r in caplog.records if "separate bodies" in r.getMessage()]
+    said = [m for m in _warnings_of_one_step(scene, tmp_path / "run", caplog,
+                                             "data.image_size=[64,64]", "eval_frames=0",
+                                             f"model.num_windows={windows}")
+            if "separate bodies" in m]
     assert bool(said) == warned, said
     if warned:
         assert "shows 3 separate bodies" in said[0] and "model.num_windows=2" in said[0]
