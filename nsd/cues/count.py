@@ -41,7 +41,7 @@ from nsd.cues.occupancy import VoxelGrid, occupied_voxels
 from nsd.ops.vectors import up_frame
 
 __all__ = ["BODY_SHARE", "MIN_FRAMES", "MIN_VIEWS", "QUANTILE", "SAMPLE", "TOP_DROP", "blobs",
-           "body_counts", "countable", "instants", "scene_bodies"]
+           "body_counts", "countable", "sampled_frames", "scene_bodies"]
 
 MIN_COLUMN = 2  # voxels a column needs to count (one-voxel columns are hull noise)
 BODY_SHARE = 0.4  # a blob's fullest column against the scene's typical one (0.5: 19 of 24)
@@ -65,10 +65,10 @@ def countable(frames: int, views: int) -> bool:
     return frames >= MIN_FRAMES and views >= MIN_VIEWS
 
 
-def instants(frames: int, sample: int = SAMPLE) -> np.ndarray:
+def sampled_frames(frames: int, sample: int = SAMPLE) -> np.ndarray:
     """``sample`` frame indices spread evenly over ``frames`` (all of them if fewer).
 
-        >>> instants(5, 3).tolist(), instants(2).tolist()
+        >>> sampled_frames(5, 3).tolist(), sampled_frames(2).tolist()
         ([0, 2, 4], [0, 1])
     """
     return np.unique(np.linspace(0, frames - 1, min(sample, frames)).round().astype(int))

@@ -51,7 +51,7 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
-from nsd.cues.count import countable, instants, scene_bodies
+from nsd.cues.count import countable, sampled_frames, scene_bodies
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import voxel_grid
 from nsd.io.footage import MultiViewFootage
@@ -289,7 +289,7 @@ def _hull_bodies(footage: MultiViewFootage, backgrounds: torch.Tensor, resolutio
                       key="prior_proposal.min_views")
     return float(scene_bodies(lambda t: foreground_evidence(
         torch.from_numpy(footage.frame(int(t))).permute(0, 3, 1, 2).float() / 255,
-        backgrounds), instants(footage.num_frames), grid)[0])
+        backgrounds), sampled_frames(footage.num_frames), grid)[0])
 
 
 def _warnings(s: dict[str, float], cams: list[str], individuals: int | None = None) -> list[str]:

@@ -23,7 +23,7 @@ from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.core.memory import trim_heap
 from nsd.cues.clustering import MixtureRules
-from nsd.cues.count import instants, scene_bodies
+from nsd.cues.count import sampled_frames, scene_bodies
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import multiview_proposals, scene_track, voxel_grid
 from nsd.cues.proposals import evidence_proposals
@@ -194,7 +194,7 @@ class SceneData:
                           key="prior_proposal.min_views")
         return scene_bodies(lambda t: foreground_evidence(
             to_float(self.frames[int(t)]), self.backgrounds, threshold, softness),
-            instants(self.frames.shape[0]), grid)
+            sampled_frames(self.frames.shape[0]), grid)
 
     def smooth_counts(self, window: int, scene_population: bool = False) -> None:
         """Individuals in view per frame: the multi-view proposals' count, median over
