@@ -16,6 +16,8 @@ one variant per fresh process with one torch thread, two at a time on two cores
 * the same subjects with the ground truth's visible masks and amodal masks instead of the
   exported ones (the floor that the masks, 4 cameras and the model leave);
 * temporal smoothing of the occlusion-aware fits (``smooth_frames``), applied afterwards;
+* ``heading_refits``: the fits refitted turned to their track's heading, ``heading_turned``
+  how many of those refits were kept (:mod:`netepu.pipeline.heading`);
 * every row whose fits the direction of travel relabelled front to back
   (``travel_relabelled``, :mod:`netepu.pipeline.travel`) again as fitted (``[travel off]``).
 
@@ -74,6 +76,9 @@ VARIANTS = [  # (name, masks, invert_export settings)
     ("occluders, prune every 10 steps", "export", {"inverse": {"prune_every": 10}}),
     ("learned initialiser, 40 steps (the quadrupeds' default)", "export",
      {"initialiser": "builtin", "init_steps": 40, "init_templates": 0}),
+    ("learned initialiser, 40 steps, no heading check (the quadrupeds' default before "
+     "2026-12-01)", "export",
+     {"initialiser": "builtin", "init_steps": 40, "init_templates": 0, "heading_tolerance": 0}),
     ("learned initialiser, 40 steps, 384 points per view (the quadrupeds' default before "
      "2026-11-30)", "export", {"initialiser": "builtin", "init_steps": 40, "init_templates": 0,
                                "inverse": {"init_points_per_view": 384}}),
@@ -109,6 +114,8 @@ VARIANTS = [  # (name, masks, invert_export settings)
     ("learned initialiser + 2 templates screened cheaply from 8 poses, point budget 576, at "
      "most 288 points per view, 40 steps (the bipeds' default)", "export",
      BIPEDS),
+    ("the bipeds' default without the heading check (before 2026-12-01)", "export",
+     {**BIPEDS, "heading_tolerance": 0}),
     ("learned initialiser + 2 templates screened cheaply from 8 poses, point budget 576, at "
      "most 288 points per view, 40 steps, the worse starts dropped after 10 steps", "export",
      {**BIPEDS,
@@ -283,7 +290,9 @@ def main() -> None:
                                   outs[name] / "keypoints3d.npz", mirrors[run]),
                          "s_per_subject_frame": s["seconds"] / max(1, s["subject_frames"]),
                          "warm_share": s.get("warm_share"), "mean_loss": s["mean_loss"],
-                         "travel_relabelled": s.get("travel_relabelled")})
+                         "travel_relabelled": s.get("travel_relabelled"),
+                         "heading_refits": s.get("heading_refits"),
+                         "heading_turned": s.get("heading_turned")})
             print(rows[-1], flush=True)
             if s.get("travel_relabelled") and not kw.get("smooth_frames"):
                 path = unrelabelled(outs[name] / "keypoints3d.npz", mirrors[run],

@@ -400,6 +400,7 @@ def invert_silhouettes(
     occluders: Tensor | None = None,
     warm: InverseResult | None = None,
     initialiser: PoseInitialiser | None = None,
+    start_pose: Tensor | None = None,
 ) -> InverseResult:
     """Recover the keypoints of one individual from its silhouettes in V calibrated views.
 
@@ -417,6 +418,9 @@ def invert_silhouettes(
         initialiser: a learned initialiser: a cold start is its prediction (and
             ``init_templates`` screened templates) refined ``init_steps`` steps instead of the
             ``screen_keep`` screened templates for ``steps`` (module docstring).
+        start_pose: world keypoints (K, 3) that stand in for a learned initialiser's
+            prediction, refined as it would be (e.g. an earlier fit turned about the up
+            axis, :mod:`netepu.pipeline.heading`).
 
     Returns:
         :class:`InverseResult`.
@@ -438,8 +442,12 @@ def invert_silhouettes(
     for p in model.parameters():
         p.requires_grad_(False)
 
-    learned = None if initialiser is None else initial_keypoints(
-        initialiser, masks, ignored, camera, anchor)
+    if start_pose is not None:
+        learned = start_pose.float()
+    elif initialiser is not None:
+        learned = initial_keypoints(initialiser, masks, ignored, camera, anchor)
+    else:
+        learned = None
 
     def run(start: InverseResult | None, steps: int) -> tuple:
         run_s = s

@@ -281,7 +281,8 @@ KEYPOINT_SOURCES = ("inverse", "regressor")
 
 _INVERSE_KEYS = ("frame_step", "min_views", "min_area", "steps", "templates", "max_subject_frames",
                  "occlusion", "warm_steps", "smooth_frames", "point_budget", "init_steps",
-                 "init_templates", "init_poses", "init_points_per_view", "travel_speed")
+                 "init_templates", "init_poses", "init_points_per_view", "travel_speed",
+                 "heading_tolerance")
 
 
 def _check_keypoint_source(cfg: DictConfig, ground_truth: bool) -> None:

@@ -25,6 +25,12 @@ smooths each subject's keypoints over time with a Gaussian of that standard
 deviation (frames of the footage), weighing each fit by :math:`1/\text{loss}^2` so that a
 failed frame pulls its neighbours little (:func:`smooth_tracks`).
 
+A fit that faces more than a quarter turn away from its subject's fits at the neighbouring
+selected frames is refitted once from its own pose turned to their heading, and kept turned
+when its loss is at most ``heading_tolerance`` times the first's
+(:mod:`netepu.pipeline.heading`); then bipeds' fits are relabelled to face their travel
+(:mod:`netepu.pipeline.travel`).
+
 Templates (the inversion's starting poses) are poses of the geometry model's own
 synthetic individual (:func:`template_poses`), so no training data is needed at run time.
 
@@ -41,6 +47,7 @@ import os
 import time
 from collections import defaultdict
 from collections.abc import Collection
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +60,7 @@ from netepu.geometry.initialiser import PoseInitialiser, load_initialiser
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import load_geometry_model
+from netepu.pipeline.heading import heading, turned_pose, turns
 from netepu.pipeline.travel import TRAVEL_SECONDS, face_travel, travel_velocity
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
@@ -156,6 +164,7 @@ def invert_export(
     travel_speed: float | str = "auto",
     fps: float | None = None,
     only: Collection[tuple[int, int]] | None = None,
+    heading_tolerance: float = 1.25,
 ) -> dict[str, Any]:
     """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
 
@@ -195,15 +204,22 @@ def invert_export(
         workers: processes that invert subject-frames side by side (forked, the torch
             threads shared among them: :class:`nsd.export.parallel.BatchPool`); with warm
             starts each subject's frames stay in one process. The result does not depend
-            on it.
+            on it, but on the threads each process has: sums split over more threads round
+            otherwise, which a refit's 40 steps can carry to a different fit.
         only: the ``(frame, subject_id)`` subject-frames to invert (None: all); each one's
-            fit is the one it gets among all (its loss points are seeded by its frame),
-            without warm starts from frames left out.
+            first fit is the one it gets among all (its loss points are seeded by its frame),
+            without warm starts from frames left out, and its track's neighbours for the
+            heading check are the subject-frames selected.
+        heading_tolerance: a fit facing more than 90 degrees away from the heading of its
+            subject's neighbouring fits is refitted from its pose turned to it, and the refit
+            replaces it when its loss is at most this many times the first's
+            (:mod:`netepu.pipeline.heading`; 0: no check).
 
     Returns:
         counts, the mean final silhouette loss, seconds per subject-frame (wall time over
-        all workers), the share of subject-frames fitted from a warm start and the number
-        relabelled front to back by their travel.
+        all workers, refits included), the share of subject-frames fitted from a warm start,
+        the number relabelled front to back by their travel, the number refitted turned to
+        their track's heading and how many of those refits were kept.
     """
 
     if frame_step < 1 or min_views < 1:
@@ -215,6 +231,8 @@ def invert_export(
                           f"{smooth_frames}")
     if point_budget < 0:
         raise ConfigError(f"keypoints: point_budget must be >= 0, got {point_budget}")
+    if not heading_tolerance >= 0:  # NaN fails too
+        raise ConfigError(f"keypoints: heading_tolerance must be >= 0, got {heading_tolerance}")
     if (travel_speed != "auto" and float(travel_speed) < 0) or (fps is not None and fps <= 0):
         raise ConfigError(f"keypoints: travel_speed must be auto or >= 0 and fps > 0, got "
                           f"{travel_speed}, {fps}")
@@ -252,9 +270,13 @@ def invert_export(
             break
         tasks.append((t, sid, anns))
 
-    def fit(chain: list[int]) -> list[tuple[np.ndarray, float, bool]]:
+    refit_settings = replace(settings, init_templates=0)  # the turned pose alone
+
+    def fit(job: tuple[list[int], np.ndarray | None]) -> list[tuple[np.ndarray, float, bool]]:
         """Invert the subject-frames ``chain`` (indices into ``tasks``) in order, each later
-        one warm from the one before when ``warm_steps`` (then a chain is one subject's)."""
+        one warm from the one before when ``warm_steps`` (then a chain is one subject's);
+        with a pose (K, 3), the one subject-frame refitted from it (:mod:`.heading`)."""
+        chain, pose = job
         out, previous = [], None
         for i in chain:
             t, _sid, anns = tasks[i]
@@ -262,9 +284,11 @@ def invert_export(
             masks = torch.from_numpy(np.stack([_decode(a) for a in anns]))
             occluders = torch.from_numpy(np.stack([_others(a, in_image) for a in anns])) if (
                 occlusion) else None
-            previous = invert_silhouettes(model, masks, cams[cam_idx], starts, settings,
-                                          np.random.default_rng(t), occluders,
-                                          previous if warm_steps else None, learned)
+            previous = invert_silhouettes(
+                model, masks, cams[cam_idx], starts,
+                settings if pose is None else refit_settings, np.random.default_rng(t),
+                occluders, previous if warm_steps and pose is None else None, learned,
+                None if pose is None else torch.from_numpy(pose))
             out.append((previous.keypoints.float().numpy(), previous.loss, previous.warm))
         return out
 
@@ -275,12 +299,23 @@ def invert_export(
     start = time.perf_counter()
     with BatchPool(fit, max(1, min(workers, len(chains))), torch.get_num_threads(),
                    "keypoints", "netepu.keypoints.workers=") as pool:
-        for chain, chain_fits in pool.map(list(chains.values())):
+        for (chain, _), chain_fits in pool.map([(c, None) for c in chains.values()]):
             for i, (kp, loss, was_warm) in zip(chain, chain_fits, strict=True):
                 results[i] = (kp, loss, was_warm)
                 t, sid, anns = tasks[i]
                 log.info("keypoints: frame %d subject %d from %d views, loss %.3f (%s)",
                          t, sid, len(anns), loss, "warm" if was_warm else "cold")
+        refits = _turn_refits(tasks, results, species, settings.up) if heading_tolerance else {}
+        turned = 0
+        for ([i], _), [(kp, loss, _)] in pool.map([([i], p) for i, p in refits.items()]):
+            t, sid, _ = tasks[i]
+            kept = loss <= heading_tolerance * results[i][1]
+            log.info("keypoints: frame %d subject %d faced away from its track: refitted turned, "
+                     "loss %.3f against %.3f (%s)", t, sid, loss, results[i][1],
+                     "kept" if kept else "dropped")
+            if kept:
+                results[i] = (kp, loss, False)
+                turned += 1
     fits = [(t, sid, anns, *results[i][:2]) for i, (t, sid, anns) in enumerate(tasks)]
     warm_fits = sum(r[2] for r in results.values())
     fits, relabelled = _face_travel(fits, export, scene, rig, model.radius * travel_speed, fps,
@@ -296,7 +331,22 @@ def invert_export(
         "seconds_per_subject_frame": seconds / len(fits) if fits else None,
         "warm_share": warm_fits / len(fits) if fits else None,
         "travel_relabelled": int(sum(relabelled)),
+        "heading_refits": len(refits),
+        "heading_turned": turned,
     }
+
+
+def _turn_refits(tasks: list[tuple[int, int, list[dict]]],
+                 results: dict[int, tuple[np.ndarray, float, bool]], species: str,
+                 up: tuple[float, float, float]) -> dict[int, np.ndarray]:
+    """Task index -> the fit's pose turned to the heading its track's neighbours expect, for
+    the fits that face more than :data:`.heading.MAX_TURN` away from it (:mod:`.heading`)."""
+    rest = get_species(species).rest
+    frames = [t for t, _, _ in tasks]
+    subjects = [sid for _, sid, _ in tasks]
+    headings = [heading(results[i][0], rest, up) for i in range(len(tasks))]
+    return {i: turned_pose(results[i][0], angle, up).astype(np.float32)
+            for i, angle in turns(frames, subjects, headings).items()}
 
 
 def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: float | None,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from pycocotools import mask as mask_utils
 
 from netepu.pipeline.subject_keypoints import _others, smooth_tracks
@@ -88,30 +89,41 @@ def _hand_made_export(tmp_path, model, net):
 
 def test_the_keypoints_do_not_depend_on_the_workers(tmp_path):
     """Two processes (subject-frames side by side; with warm starts each subject's chain in
-    one) give the keypoints one process gives, in the same rows."""
+    one; the heading's refits side by side too) give the keypoints one process gives, in the
+    same rows, at one torch thread per process (more threads round sums otherwise)."""
     from netepu.geometry.model import load_geometry_model
     from netepu.pipeline.species_models import MODELS
     from netepu.pipeline.subject_keypoints import invert_export
 
-    model, config = load_geometry_model(MODELS / "biped.pt")
-    scene, export = _hand_made_export(tmp_path, model, config["netepu"])
-    for warm in (0, 3):
-        out = {}
-        for workers in (1, 2):
-            folder = tmp_path / f"w{warm}_{workers}"
-            summary = invert_export(export, scene, MODELS / "biped.pt", folder, frame_step=1,
-                                    steps=4, templates=2, warm_steps=warm, workers=workers)
-            assert summary["subject_frames"] == 4
-            with np.load(folder / "keypoints3d.npz") as z:
-                out[workers] = {k: z[k] for k in z.files}
-        assert out[1].keys() == out[2].keys()
-        for k in out[1]:
-            np.testing.assert_allclose(out[1][k], out[2][k], atol=1e-3, err_msg=k)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        model, config = load_geometry_model(MODELS / "biped.pt")
+        scene, export = _hand_made_export(tmp_path, model, config["netepu"])
+        refits = 0
+        for warm in (0, 3):
+            out = {}
+            for workers in (1, 2):
+                folder = tmp_path / f"w{warm}_{workers}"
+                summary = invert_export(export, scene, MODELS / "biped.pt", folder,
+                                        frame_step=1, steps=4, templates=2, warm_steps=warm,
+                                        workers=workers)
+                assert summary["subject_frames"] == 4
+                refits += summary["heading_refits"]
+                with np.load(folder / "keypoints3d.npz") as z:
+                    out[workers] = {k: z[k] for k in z.files}
+            assert out[1].keys() == out[2].keys()
+            for k in out[1]:
+                np.testing.assert_allclose(out[1][k], out[2][k], atol=1e-3, err_msg=k)
+        assert refits > 0  # the refits ran in the workers too
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_a_subject_frame_inverted_alone_gets_the_fit_it_gets_among_all(tmp_path):
     """``only`` (the chosen body's full fit in a run of two species) inverts the subject-frames
-    given, each to the keypoints and loss it gets when every subject-frame is inverted."""
+    given, each to the keypoints and loss it gets when every subject-frame is inverted (its
+    first fit: the heading's refits, off here, see the neighbours selected)."""
     from netepu.geometry.model import load_geometry_model
     from netepu.pipeline.species_models import MODELS
     from netepu.pipeline.subject_keypoints import invert_export
@@ -121,7 +133,7 @@ def test_a_subject_frame_inverted_alone_gets_the_fit_it_gets_among_all(tmp_path)
     got = {}
     for name, only in (("all", None), ("some", {(1, 0), (0, 1)}), ("none", set())):
         invert_export(export, scene, MODELS / "biped.pt", tmp_path / name, frame_step=1,
-                      steps=4, templates=2, only=only)
+                      steps=4, templates=2, only=only, heading_tolerance=0)
         with np.load(tmp_path / name / "keypoints3d.npz") as z:
             got[name] = {(int(t), int(s)): (kp, loss) for t, s, kp, loss in zip(
                 z["subject_frame"], z["subject_id"], z["subject_keypoints"], z["subject_loss"],
@@ -208,3 +220,39 @@ def test_the_template_settings_beside_a_learned_start_reach_the_inversions(tmp_p
     assert {"init_poses", "init_points_per_view"} <= set(_INVERSE_KEYS)
     assert {key for key in conf if key in params} - {"workers", "initialiser"} == set(
         _INVERSE_KEYS)
+
+
+def test_a_refit_turned_to_its_track_is_kept_only_within_the_tolerance(tmp_path):
+    """The hand-made export's fits that face away from their track are refitted: at a
+    tolerance nothing can meet, every fit stays as without the check; at one everything meets,
+    exactly the refitted subject-frames change. conf/run.yaml holds invert_export's default."""
+    import inspect
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from netepu.geometry.model import load_geometry_model
+    from netepu.pipeline.species_models import MODELS
+    from netepu.pipeline.subject_keypoints import invert_export
+
+    model, config = load_geometry_model(MODELS / "biped.pt")
+    scene, export = _hand_made_export(tmp_path, model, config["netepu"])
+    got, summary = {}, {}
+    for name, tolerance in (("off", 0.0), ("never", 1e-9), ("always", 1e9)):
+        summary[name] = invert_export(export, scene, MODELS / "biped.pt", tmp_path / name,
+                                      frame_step=1, steps=4, templates=2,
+                                      heading_tolerance=tolerance)
+        with np.load(tmp_path / name / "keypoints3d.npz") as z:
+            got[name] = {(int(t), int(s)): kp for t, s, kp in zip(
+                z["subject_frame"], z["subject_id"], z["subject_keypoints"], strict=True)}
+    refits = summary["always"]["heading_refits"]
+    assert summary["off"]["heading_refits"] == 0 and refits > 0
+    assert summary["never"]["heading_refits"] == refits and summary["never"]["heading_turned"] == 0
+    assert summary["always"]["heading_turned"] == refits
+    for key, kp in got["off"].items():
+        np.testing.assert_array_equal(got["never"][key], kp)
+    changed = [k for k in got["off"] if not np.allclose(got["always"][k], got["off"][k])]
+    assert len(changed) == refits
+    conf = OmegaConf.load(Path(__file__).parents[3] / "conf" / "run.yaml").netepu.keypoints
+    default = inspect.signature(invert_export).parameters["heading_tolerance"].default
+    assert conf.heading_tolerance == default
