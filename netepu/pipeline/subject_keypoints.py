@@ -98,11 +98,22 @@ def template_poses(data_cfg: dict[str, Any], n: int = 2, seed: int = 0) -> torch
 # (docs/netepu.md "Front and back", docs/benchmarks/keypoints_travel.md): bipeds keep two
 # coarsely screened templates beside the learned start and take front and back from their
 # travel; a quadruped's templates brought back its tail of wrong fits (mean 275 mm against 206
-# for the learned start alone) and the travel made it worse (214 against 206)
+# for the learned start alone) and the travel made it worse (214 against 206). A quadruped
+# turned half round is refitted to its track's heading (149.8 -> 104.0 mm on three of one
+# texture); bipeds, whose travel already tells front from back, gained nothing from it
+# (docs/netepu.md "Front and back from the track", benchmarks/keypoints_heading_*.md)
 AUTO: dict[str, dict[str, Any]] = {
-    "biped": {"init_templates": 2, "travel_speed": 0.6},
-    "quadruped": {"init_templates": 0, "travel_speed": 0.0},
+    "biped": {"init_templates": 2, "travel_speed": 0.6, "heading_tolerance": 0.0},
+    "quadruped": {"init_templates": 0, "travel_speed": 0.0, "heading_tolerance": 1.25},
 }
+
+
+def _number(value: Any) -> float:
+    """``value`` as a float, NaN where it is none."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
 
 
 def _auto(key: str, value: Any, species: str) -> Any:
@@ -164,7 +175,7 @@ def invert_export(
     travel_speed: float | str = "auto",
     fps: float | None = None,
     only: Collection[tuple[int, int]] | None = None,
-    heading_tolerance: float = 1.25,
+    heading_tolerance: float | str = "auto",
 ) -> dict[str, Any]:
     """Invert every subject of every ``frame_step``-th exported frame; writes ``keypoints3d.npz``.
 
@@ -213,7 +224,8 @@ def invert_export(
         heading_tolerance: a fit facing more than 90 degrees away from the heading of its
             subject's neighbouring fits is refitted from its pose turned to it, and the refit
             replaces it when its loss is at most this many times the first's
-            (:mod:`netepu.pipeline.heading`; 0: no check).
+            (:mod:`netepu.pipeline.heading`; 0: no check; ``auto``: the species'
+            :data:`AUTO`).
 
     Returns:
         counts, the mean final silhouette loss, seconds per subject-frame (wall time over
@@ -231,8 +243,9 @@ def invert_export(
                           f"{smooth_frames}")
     if point_budget < 0:
         raise ConfigError(f"keypoints: point_budget must be >= 0, got {point_budget}")
-    if not heading_tolerance >= 0:  # NaN fails too
-        raise ConfigError(f"keypoints: heading_tolerance must be >= 0, got {heading_tolerance}")
+    if heading_tolerance != "auto" and not _number(heading_tolerance) >= 0:  # NaN fails too
+        raise ConfigError(f"keypoints: heading_tolerance must be auto or a number >= 0, got "
+                          f"{heading_tolerance!r}")
     if (travel_speed != "auto" and float(travel_speed) < 0) or (fps is not None and fps <= 0):
         raise ConfigError(f"keypoints: travel_speed must be auto or >= 0 and fps > 0, got "
                           f"{travel_speed}, {fps}")
@@ -245,6 +258,7 @@ def invert_export(
     species = DataConfig.from_mapping(net["data"]).species
     init_templates = _auto("init_templates", init_templates, species)
     travel_speed = _auto("travel_speed", travel_speed, species)
+    heading_tolerance = float(_auto("heading_tolerance", heading_tolerance, species))
     starts = template_poses(net["data"], templates)
     render = net.get("render") or MapSettings.default_mapping()  # checkpoints before it: defaults
     settings = InverseSettings(steps=steps, margin=float(render["margin"]), warm_steps=warm_steps,

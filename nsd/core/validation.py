@@ -236,7 +236,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "netepu.keypoints.smooth_frames": _r("number", low=0),
         "netepu.keypoints.species_steps": _r("int", low=0),
         "netepu.keypoints.travel_speed": _r("number", low=0, allow=("auto",)),
-        "netepu.keypoints.heading_tolerance": _r("number", low=0),
+        "netepu.keypoints.heading_tolerance": _r("number", low=0, allow=("auto",)),
         "netepu.keypoints.source": _r("str", choices=("inverse", "regressor")),
         "netepu.keypoints.label_fraction": _r("number", above=0, high=1),
         "netepu.keypoints.regressor_steps": POS, "netepu.keypoints.labels": NULL_TEXT,

@@ -193,7 +193,7 @@ def test_the_pipeline_defaults_are_the_inversions():
                             "init_points_per_view")]
     for f in shared:
         assert conf[f.name] == f.default, f.name
-    assert conf.init_templates == conf.travel_speed == "auto"  # per species: AUTO
+    assert conf.init_templates == conf.travel_speed == conf.heading_tolerance == "auto"  # AUTO
 
 
 def test_screened_templates_beside_a_wrong_learned_start_win():

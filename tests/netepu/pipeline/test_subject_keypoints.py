@@ -107,7 +107,7 @@ def test_the_keypoints_do_not_depend_on_the_workers(tmp_path):
                 folder = tmp_path / f"w{warm}_{workers}"
                 summary = invert_export(export, scene, MODELS / "biped.pt", folder,
                                         frame_step=1, steps=4, templates=2, warm_steps=warm,
-                                        workers=workers)
+                                        workers=workers, heading_tolerance=1.25)
                 assert summary["subject_frames"] == 4
                 refits += summary["heading_refits"]
                 with np.load(folder / "keypoints3d.npz") as z:
@@ -183,7 +183,9 @@ def test_every_built_in_species_has_its_automatic_settings():
         assert values["travel_speed"] >= 0
         assert _auto("travel_speed", "auto", species) == values["travel_speed"]
         assert _auto("travel_speed", 1.5, species) == 1.5
+        assert values["heading_tolerance"] >= 0
     assert AUTO["biped"]["travel_speed"] > 0  # front and back from the travel: bipeds
+    assert AUTO["quadruped"]["heading_tolerance"] > 0  # from the track: quadrupeds
 
 
 def test_the_template_settings_beside_a_learned_start_reach_the_inversions(tmp_path, monkeypatch):
@@ -256,3 +258,14 @@ def test_a_refit_turned_to_its_track_is_kept_only_within_the_tolerance(tmp_path)
     conf = OmegaConf.load(Path(__file__).parents[3] / "conf" / "run.yaml").netepu.keypoints
     default = inspect.signature(invert_export).parameters["heading_tolerance"].default
     assert conf.heading_tolerance == default
+
+
+@pytest.mark.parametrize("bad", ["often", -1.0, float("nan"), None])
+def test_a_bad_heading_tolerance_is_refused_before_any_work(tmp_path, bad):
+    from netepu.pipeline.subject_keypoints import invert_export
+    from nsd.core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="heading_tolerance"):
+        invert_export(tmp_path / "no-export", tmp_path / "no-scene", tmp_path / "no.pt",
+                      tmp_path / "out", heading_tolerance=bad)
+    assert not (tmp_path / "out").exists()
