@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -63,6 +64,8 @@ def main() -> None:
                     help="report name: docs/benchmarks/<name>.{md,json} (native_hd for HD)")
     ap.add_argument("--trained", default="`nsd-run train.trainer.max_steps=1000` on it",
                     help="how the checkpoint was made, for the report's note")
+    ap.add_argument("--keep", action="store_true",
+                    help="keep the exports (a temporary folder, named at the end)")
     args = ap.parse_args()
     scene = Path(args.scene)
     info = json.loads((scene / "gt" / "scene.json").read_text())
@@ -71,6 +74,18 @@ def main() -> None:
     start = round(n * 0.8)  # the held-out tail (data.val_fraction 0.2)
     frames = f"{{start: {start}, stop: null, step: {args.step}}}"
     root = Path(tempfile.mkdtemp(prefix="bench-native-"))
+    try:
+        rows = _rows(args, scene, frames, root)
+    finally:  # four exports of every camera-frame: tens of MB each time
+        if args.keep:
+            print(f"exports kept in {root}", flush=True)
+        else:
+            shutil.rmtree(root, ignore_errors=True)
+    _report(args, scene, info, rows, w, h)
+
+
+def _rows(args: argparse.Namespace, scene: Path, frames: str, root: Path) -> list[dict]:
+    """One row per mask setting: the held-out frames exported into ``root`` and scored."""
     rows = []
     runs = (("upsampled (baseline)", "false", "false", []),
             ("native refine, spatial owner", "true", "false", []),
@@ -99,6 +114,11 @@ def main() -> None:
                      "camera_frames": manifest["counts"]["camera_frames"],
                      "export_s": seconds})
         print(rows[-1], flush=True)
+    return rows
+
+
+def _report(args: argparse.Namespace, scene: Path, info: dict, rows: list[dict], w, h) -> None:
+    """``docs/benchmarks/<name>.{md,json}``."""
     write_report(
         args.name, f"Visible masks at native resolution ({w} x {h})", rows,
         notes=(f"Scene {scene.name}, checkpoint {Path(args.checkpoint).parent.parent.name}; "

@@ -287,9 +287,10 @@ def invert_export(
     refit_settings = replace(settings, init_templates=0)  # the turned pose alone
 
     def fit(job: tuple[list[int], np.ndarray | None]) -> list[tuple[np.ndarray, float, bool]]:
-        """Invert the subject-frames ``chain`` (indices into ``tasks``) in order, each later
-        one warm from the one before when ``warm_steps`` (then a chain is one subject's);
-        with a pose (K, 3), the one subject-frame refitted from it (:mod:`.heading`)."""
+        """``job`` ``(chain, pose)``: invert the subject-frames ``chain`` (indices into
+        ``tasks``) in order, each later one warm from the one before when ``warm_steps`` (then
+        a chain is one subject's); with a ``pose`` (K, 3), the chain's one subject-frame
+        refitted from it alone (:mod:`.heading`)."""
         chain, pose = job
         out, previous = [], None
         for i in chain:
