@@ -30,6 +30,7 @@ __all__ = ["AUTO_MM_SPACING", "UNITS", "camera_spacing", "file_units", "in_metre
 log = logging.getLogger(__name__)
 
 UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}  # unit -> metres per unit
+_NOTED: set[str] = set()  # calibration files whose inferred unit was warned about
 AUTO_MM_SPACING = 30.0  # median camera spacing (file units) above which ``auto`` reads mm
 
 
@@ -74,7 +75,9 @@ def in_metres(rig: CameraRig, units: str = "auto") -> CameraRig:
         note = (f"calibration {rig.source}: the cameras are a median {camera_spacing(rig):.0f} "
                 f"units apart, read as millimetres and converted to metres (give units=m, cm "
                 f"or mm to say the unit)")
-        log.warning("%s", note)
+        # every stage reads the calibration again: the warning once per file and process
+        (log.debug if str(rig.source) in _NOTED else log.warning)("%s", note)
+        _NOTED.add(str(rig.source))
     out = rig if resolved == "m" else rig.with_translation_scale(UNITS[resolved])
     out.units_note = note
     return out

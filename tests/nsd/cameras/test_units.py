@@ -40,6 +40,18 @@ def test_auto_reads_millimetres_and_says_so(scenes):
     assert camera_spacing(read_calibration(scenes["mm"], "m")) > AUTO_MM_SPACING
 
 
+def test_the_inferred_unit_is_warned_once_per_file_and_noted_every_time(tmp_path, scenes,
+                                                                        caplog):
+    """Every stage reads the calibration again: one warning per file, the note on every rig."""
+    other = _in_unit(scenes["m"], tmp_path / "mm2", 1000.0)
+    with caplog.at_level("WARNING", logger="nsd.cameras.units"):
+        rigs = [read_calibration(path) for path in (other, other, other / "calibration.toml")]
+        first = len(caplog.records)
+        rigs.append(read_calibration(scenes["mm"]))  # another file warns (or did already)
+    assert first == 1 and "mm2" in caplog.records[0].getMessage()
+    assert all("millimetres" in rig.units_note for rig in rigs)
+
+
 @pytest.mark.parametrize("unit", ["mm", "cm"])
 def test_a_stated_unit_converts(scenes, unit):
     assert read_calibration(scenes[unit], unit).equals(read_calibration(scenes["m"]), atol=1e-9)
