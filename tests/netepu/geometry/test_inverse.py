@@ -295,3 +295,23 @@ def test_screening_keeps_the_candidates_that_fit():
     s.screen_keep = 64
     first = invert_silhouettes(model, own, cam, candidates, s)  # no screening: all kept
     assert len(first.start_losses) == 64
+
+
+def test_a_start_pose_stands_in_for_the_learned_initialiser():
+    """``start_pose`` (a fit turned to its track's heading, netepu.pipeline.heading) is the
+    one start, refined ``init_steps`` steps with no initialiser: from the true pose the fit
+    stays on it, from the pose 3 m above (no view sees it) it ends far off."""
+    model, config = load_geometry_model(MODELS / "biped.pt")
+    net = config["netepu"]
+    cam = ring(4, size=(96, 96), radius=5.0, f=90.0).stacked(torch.float32)
+    with torch.no_grad():
+        code = model.encode(template_poses(net["data"], 1, seed=5))
+        own = render_maps(model.query, model.prepare(code, cam), (96, 96),
+                          MapSettings.from_config(net["render"])).silhouette
+    truth = code.keypoints[0]
+    s = InverseSettings(init_steps=10, init_templates=0)
+    near, far = (invert_silhouettes(model, own, cam, template_poses(net["data"], 2), s,
+                                    np.random.default_rng(0), start_pose=p)
+                 for p in (truth, truth + torch.tensor([0.0, 0.0, 3.0])))
+    assert near.start_steps == far.start_steps == 10  # one start, init_steps steps
+    assert mpjpe(near.keypoints, truth) < 0.05 < 0.5 < mpjpe(far.keypoints, truth)
