@@ -24,8 +24,12 @@ decides it, not two keypoints.
 The heading expected at a subject-frame is the short-arc midpoint of the fits of the same
 subject at the fitted frames just before and after it (at the ends of a track, the one
 neighbour's); neighbours that face nearly opposite ways (more than :data:`AMBIGUOUS` apart)
-expect nothing. A fit more than ``max_turn`` (90 degrees) from what is expected is refitted
-from its own pose turned to the expected heading (:func:`turned_pose`), and the refit
+expect nothing, and neither do neighbours more than :data:`NEIGHBOUR_SECONDS` away: the
+synthetic cows turn up to ~90 degrees in 0.4 s, and half round within a second, so fits a
+second apart (``nsd-run``'s every 25th frame at 25 frames/s) say nothing of each other's
+heading (docs/netepu.md "Front and back from the track"). A fit more than ``max_turn``
+(90 degrees) from what is expected is refitted from its own pose turned to the expected
+heading (:func:`turned_pose`), and the refit
 replaces the first when its silhouette loss is at most ``tolerance`` times the first's
 (:func:`netepu.pipeline.subject_keypoints.invert_export`): the track only proposes, the
 masks decide.
@@ -43,10 +47,12 @@ import torch
 from netepu.geometry.inverse import rotate_about_up
 from nsd.ops.vectors import up_frame
 
-__all__ = ["AMBIGUOUS", "MAX_TURN", "expected_headings", "heading", "turned_pose", "turns"]
+__all__ = ["AMBIGUOUS", "MAX_TURN", "NEIGHBOUR_SECONDS", "expected_headings", "heading",
+           "turned_pose", "turns"]
 
 MAX_TURN = math.radians(90)  # a fit this far from its neighbours' heading is refitted
 AMBIGUOUS = math.radians(170)  # neighbours this far apart expect no heading
+NEIGHBOUR_SECONDS = 0.5  # neighbours further apart in time expect no heading
 
 
 def _wrap(angle: float) -> float:
@@ -78,16 +84,19 @@ def heading(keypoints: np.ndarray, rest: np.ndarray, up: Sequence[float]) -> flo
 
 
 def expected_headings(frames: Sequence[int], subjects: Sequence[int],
-                      headings: Sequence[float]) -> list[float | None]:
+                      headings: Sequence[float], max_gap: float = math.inf
+                      ) -> list[float | None]:
     """Per fit, the heading its track's neighbours expect (module docstring), None where
-    the subject has no other fit or its two neighbours face nearly opposite ways."""
+    the subject has no other fit within ``max_gap`` frames or its two neighbours face nearly
+    opposite ways."""
     tracks: dict[int, list[int]] = defaultdict(list)
     for i in sorted(range(len(frames)), key=lambda i: frames[i]):
         tracks[int(subjects[i])].append(i)
     out: list[float | None] = [None] * len(frames)
     for rows in tracks.values():
         for j, i in enumerate(rows):
-            near = [headings[rows[n]] for n in (j - 1, j + 1) if 0 <= n < len(rows)]
+            near = [headings[rows[n]] for n in (j - 1, j + 1) if 0 <= n < len(rows)
+                    and abs(frames[rows[n]] - frames[i]) <= max_gap]
             if len(near) == 1:
                 out[i] = near[0]
             elif len(near) == 2 and abs(_wrap(near[1] - near[0])) <= AMBIGUOUS:
@@ -96,11 +105,11 @@ def expected_headings(frames: Sequence[int], subjects: Sequence[int],
 
 
 def turns(frames: Sequence[int], subjects: Sequence[int], headings: Sequence[float],
-          max_turn: float = MAX_TURN) -> dict[int, float]:
+          max_gap: float = math.inf, max_turn: float = MAX_TURN) -> dict[int, float]:
     """Fit index -> the turn (radians about up) that takes it to the heading its neighbours
-    expect, for the fits more than ``max_turn`` from it."""
+    (within ``max_gap`` frames) expect, for the fits more than ``max_turn`` from it."""
     out = {}
-    for i, want in enumerate(expected_headings(frames, subjects, headings)):
+    for i, want in enumerate(expected_headings(frames, subjects, headings, max_gap)):
         if want is not None and abs(_wrap(want - headings[i])) > max_turn:
             out[i] = _wrap(want - headings[i])
     return out

@@ -26,7 +26,8 @@ deviation (frames of the footage), weighing each fit by :math:`1/\text{loss}^2` 
 failed frame pulls its neighbours little (:func:`smooth_tracks`).
 
 A fit that faces more than a quarter turn away from its subject's fits at the neighbouring
-selected frames is refitted once from its own pose turned to their heading, and kept turned
+selected frames (at most half a second away) is refitted once from its own pose turned to
+their heading, and kept turned
 when its loss is at most ``heading_tolerance`` times the first's
 (:mod:`netepu.pipeline.heading`); then bipeds' fits are relabelled to face their travel
 (:mod:`netepu.pipeline.travel`).
@@ -60,7 +61,7 @@ from netepu.geometry.initialiser import PoseInitialiser, load_initialiser
 from netepu.geometry.inverse import InverseSettings, invert_silhouettes
 from netepu.geometry.maps import MapSettings
 from netepu.geometry.model import load_geometry_model
-from netepu.pipeline.heading import heading, turned_pose, turns
+from netepu.pipeline.heading import NEIGHBOUR_SECONDS, heading, turned_pose, turns
 from netepu.pipeline.travel import TRAVEL_SECONDS, face_travel, travel_velocity
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
@@ -222,7 +223,8 @@ def invert_export(
             without warm starts from frames left out, and its track's neighbours for the
             heading check are the subject-frames selected.
         heading_tolerance: a fit facing more than 90 degrees away from the heading of its
-            subject's neighbouring fits is refitted from its pose turned to it, and the refit
+            subject's neighbouring fits (at most :data:`.heading.NEIGHBOUR_SECONDS` away, at
+            ``fps`` or the footage's rate) is refitted from its pose turned to it, and the refit
             replaces it when its loss is at most this many times the first's
             (:mod:`netepu.pipeline.heading`; 0: no check; ``auto``: the species'
             :data:`AUTO`).
@@ -320,7 +322,9 @@ def invert_export(
                 t, sid, anns = tasks[i]
                 log.info("keypoints: frame %d subject %d from %d views, loss %.3f (%s)",
                          t, sid, len(anns), loss, "warm" if was_warm else "cold")
-        refits = _turn_refits(tasks, results, species, settings.up) if heading_tolerance else {}
+        refits = _turn_refits(tasks, results, species, settings.up,
+                              NEIGHBOUR_SECONDS * _frame_rate(scene, rig, fps, "heading")
+                              ) if heading_tolerance and tasks else {}
         turned = 0
         for ([i], _), [(kp, loss, _)] in pool.map([([i], p) for i, p in refits.items()]):
             t, sid, _ = tasks[i]
@@ -353,15 +357,27 @@ def invert_export(
 
 def _turn_refits(tasks: list[tuple[int, int, list[dict]]],
                  results: dict[int, tuple[np.ndarray, float, bool]], species: str,
-                 up: tuple[float, float, float]) -> dict[int, np.ndarray]:
-    """Task index -> the fit's pose turned to the heading its track's neighbours expect, for
-    the fits that face more than :data:`.heading.MAX_TURN` away from it (:mod:`.heading`)."""
+                 up: tuple[float, float, float], max_gap: float) -> dict[int, np.ndarray]:
+    """Task index -> the fit's pose turned to the heading its track's neighbours (within
+    ``max_gap`` frames) expect, for the fits that face more than :data:`.heading.MAX_TURN`
+    away from it (:mod:`.heading`)."""
     rest = get_species(species).rest
     frames = [t for t, _, _ in tasks]
     subjects = [sid for _, sid, _ in tasks]
     headings = [heading(results[i][0], rest, up) for i in range(len(tasks))]
     return {i: turned_pose(results[i][0], angle, up).astype(np.float32)
-            for i, angle in turns(frames, subjects, headings).items()}
+            for i, angle in turns(frames, subjects, headings, max_gap).items()}
+
+
+def _frame_rate(scene, rig, fps: float | None, what: str) -> float:
+    """Frames per second: ``fps``, the footage's, or 30 with a warning saying ``what`` uses it
+    (image folders have none)."""
+    rate = fps or footage_frame_rate(scene, rig.names)
+    if rate is None:
+        log.warning("keypoints: %s has no frame rate (image folders): the %s assumes 30 "
+                    "frames/s; give formats.fps", scene, what)
+        rate = 30.0
+    return float(rate)
 
 
 def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: float | None,
@@ -371,11 +387,7 @@ def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: f
     (:mod:`netepu.pipeline.travel`), and which were."""
     if min_speed <= 0 or not fits:
         return fits, [False] * len(fits)
-    rate = fps or footage_frame_rate(scene, rig.names)
-    if rate is None:
-        log.warning("keypoints: %s has no frame rate (image folders): the travel that tells "
-                    "front from back assumes 30 frames/s; give formats.fps", scene)
-        rate = 30.0
+    rate = _frame_rate(scene, rig, fps, "travel that tells front from back")
     d = max(1, round(TRAVEL_SECONDS * rate))
     positions = triangulate_positions(
         export, rig, frames={t + s for t, *_ in fits for s in (-d, d)})

@@ -84,3 +84,16 @@ def test_only_fits_more_than_a_quarter_turn_off_are_turned_and_by_what_is_missin
     got = turns(frames, subjects, [r(0), r(0), r(100), r(0), r(0)])
     assert set(got) == {2} and math.degrees(got[2]) == pytest.approx(-100.0, abs=1e-9)
     assert turns(frames, subjects, [r(0), r(0), r(80), r(0), r(0)]) == {}
+
+
+def test_neighbours_further_apart_than_the_gap_expect_nothing():
+    """Frames 0, 10 and 40 of one track: with a gap of 15 frames frame 10 hears only frame 0,
+    frame 40 nobody; with no gap every neighbour counts."""
+    r = math.radians
+    frames, subjects, headings = [0, 10, 40], [1, 1, 1], [r(0), r(20), r(100)]
+    got = expected_headings(frames, subjects, headings, max_gap=15)
+    assert got[0] == pytest.approx(r(20)) and got[1] == pytest.approx(r(0)) and got[2] is None
+    assert all(g is not None for g in expected_headings(frames, subjects, headings))
+    assert turns(frames, subjects, [r(0), r(170), r(0)], max_gap=15) == {
+        0: pytest.approx(r(170)), 1: pytest.approx(r(-170))}
+    assert turns(frames, subjects, [r(0), r(170), r(0)], max_gap=5) == {}
