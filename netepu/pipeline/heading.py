@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from netepu.geometry.inverse import rotate_about_up
-from nsd.ops.vectors import up_frame
+from nsd.ops.vectors import up_frame, wrap_angle
 
 __all__ = ["AMBIGUOUS", "MAX_TURN", "NEIGHBOUR_SECONDS", "expected_headings", "heading",
            "turned_pose", "turns"]
@@ -53,11 +53,6 @@ __all__ = ["AMBIGUOUS", "MAX_TURN", "NEIGHBOUR_SECONDS", "expected_headings", "h
 MAX_TURN = math.radians(90)  # a fit this far from its neighbours' heading is refitted
 AMBIGUOUS = math.radians(170)  # neighbours this far apart expect no heading
 NEIGHBOUR_SECONDS = 0.5  # neighbours further apart in time expect no heading
-
-
-def _wrap(angle: float) -> float:
-    """``angle`` in [-pi, pi)."""
-    return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
 def heading(keypoints: np.ndarray, rest: np.ndarray, up: Sequence[float]) -> float:
@@ -99,8 +94,8 @@ def expected_headings(frames: Sequence[int], subjects: Sequence[int],
                     and abs(frames[rows[n]] - frames[i]) <= max_gap]
             if len(near) == 1:
                 out[i] = near[0]
-            elif len(near) == 2 and abs(_wrap(near[1] - near[0])) <= AMBIGUOUS:
-                out[i] = _wrap(near[0] + _wrap(near[1] - near[0]) / 2)
+            elif len(near) == 2 and abs(wrap_angle(near[1] - near[0])) <= AMBIGUOUS:
+                out[i] = wrap_angle(near[0] + wrap_angle(near[1] - near[0]) / 2)
     return out
 
 
@@ -110,8 +105,8 @@ def turns(frames: Sequence[int], subjects: Sequence[int], headings: Sequence[flo
     (within ``max_gap`` frames) expect, for the fits more than ``max_turn`` from it."""
     out = {}
     for i, want in enumerate(expected_headings(frames, subjects, headings, max_gap)):
-        if want is not None and abs(_wrap(want - headings[i])) > max_turn:
-            out[i] = _wrap(want - headings[i])
+        if want is not None and abs(wrap_angle(want - headings[i])) > max_turn:
+            out[i] = wrap_angle(want - headings[i])
     return out
 
 

@@ -45,6 +45,7 @@ GHOST_SPREAD = 3.0
 # On 5 scenes made after the choice (hull_blobs_blind.md) detection moved +0.11, +0.10, 0, 0
 # and -0.08 (a quadruped in two blobs, both seeding); BLOB_GAP = 0: components alone.
 BLOB_GAP = 1
+MIN_COLUMN = 2  # voxels a column of the plane needs to count (one-voxel columns are noise)
 BLOB_SHARE = 0.07
 KMEANS_ITERATIONS = 10
 # then a Gaussian mixture of the voxels in 3D (full covariances: a long, low quadruped beside
@@ -398,7 +399,7 @@ def cluster_individuals(
     up: Tensor,
     cell: float,
     k: int,
-    min_column: int = 2,
+    min_column: int = MIN_COLUMN,
     split: bool = True,
     ghost_ratio: float = 0.2,
     mixture_gain: float | None = None,

@@ -36,14 +36,14 @@ import torch
 from scipy import ndimage
 from torch import Tensor
 
-from nsd.cues.clustering import BLOB_GAP
-from nsd.cues.occupancy import VoxelGrid, occupied_voxels
+from nsd.cameras.calibration import CameraRig
+from nsd.cues.clustering import BLOB_GAP, MIN_COLUMN
+from nsd.cues.occupancy import VoxelGrid, occupied_voxels, voxel_grid
 from nsd.ops.vectors import up_frame
 
 __all__ = ["BODY_SHARE", "MIN_FRAMES", "MIN_VIEWS", "QUANTILE", "SAMPLE", "TOP_DROP", "blobs",
-           "body_counts", "countable", "sampled_frames", "scene_bodies"]
+           "body_counts", "countable", "footage_bodies", "sampled_frames", "scene_bodies"]
 
-MIN_COLUMN = 2  # voxels a column needs to count (one-voxel columns are hull noise)
 BODY_SHARE = 0.4  # a blob's fullest column against the scene's typical one (0.5: 19 of 24)
 TOP_DROP = 0.5  # typical fullest columns a body's top may lie below the typical top (0.3-0.7)
 QUANTILE = 0.9  # of the instants' counts (0.75 undercounts huddles: 10 of the first 20)
@@ -144,3 +144,18 @@ def scene_bodies(evidence: Callable[[int], Tensor], instants: Iterable[int],
     if len(counts) == 0:
         return 0, counts
     return int(np.quantile(counts, QUANTILE, method="lower")), counts
+
+
+def footage_bodies(evidence: Callable[[int], Tensor], frames: int, rig: CameraRig,
+                   frame_hw: tuple[int, int], resolution: int, min_views: int | str = "auto"
+                   ) -> tuple[int, np.ndarray]:
+    """:func:`scene_bodies` of :data:`SAMPLE` frames spread over footage of ``frames`` frames,
+    in the voxel grid of ``resolution`` voxels per side and ``min_views`` that the hull's
+    proposals use (``prior_proposal.resolution``, ``prior_proposal.min_views``).
+
+    Args:
+        evidence: frame -> (V, H, W) foreground evidence at ``frame_hw`` (H, W).
+    """
+    grid = voxel_grid(rig, frame_hw, resolution, min_views=min_views,
+                      key="prior_proposal.min_views")
+    return scene_bodies(evidence, sampled_frames(frames), grid)

@@ -51,7 +51,7 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
-from nsd.cues.count import countable, sampled_frames, scene_bodies
+from nsd.cues.count import countable, footage_bodies
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import voxel_grid
 from nsd.io.footage import MultiViewFootage
@@ -285,11 +285,9 @@ def _hull_bodies(footage: MultiViewFootage, backgrounds: torch.Tensor, resolutio
     if not countable(footage.num_frames, footage.num_views):
         return float("nan")
     W, H = footage.rig[0].size
-    grid = voxel_grid(footage.rig, (H, W), resolution, min_views=min_views,
-                      key="prior_proposal.min_views")
-    return float(scene_bodies(lambda t: foreground_evidence(
+    return float(footage_bodies(lambda t: foreground_evidence(
         torch.from_numpy(footage.frame(int(t))).permute(0, 3, 1, 2).float() / 255,
-        backgrounds), sampled_frames(footage.num_frames), grid)[0])
+        backgrounds), footage.num_frames, footage.rig, (H, W), resolution, min_views)[0])
 
 
 def _warnings(s: dict[str, float], cams: list[str], individuals: int | None = None) -> list[str]:

@@ -23,7 +23,7 @@ from nsd.core.device import move
 from nsd.core.errors import ConfigError
 from nsd.core.memory import trim_heap
 from nsd.cues.clustering import MixtureRules
-from nsd.cues.count import sampled_frames, scene_bodies
+from nsd.cues.count import footage_bodies
 from nsd.cues.evidence import foreground_evidence
 from nsd.cues.occupancy import multiview_proposals, scene_track, voxel_grid
 from nsd.cues.proposals import evidence_proposals
@@ -190,11 +190,9 @@ class SceneData:
         the individuals, and the count of each frame); arguments as
         :meth:`compute_multiview_proposals`."""
 
-        grid = voxel_grid(self.rig, self.frame_hw, resolution, min_views=min_views,
-                          key="prior_proposal.min_views")
-        return scene_bodies(lambda t: foreground_evidence(
+        return footage_bodies(lambda t: foreground_evidence(
             to_float(self.frames[int(t)]), self.backgrounds, threshold, softness),
-            sampled_frames(self.frames.shape[0]), grid)
+            self.frames.shape[0], self.rig, self.frame_hw, resolution, min_views)
 
     def smooth_counts(self, window: int, scene_population: bool = False) -> None:
         """Individuals in view per frame: the multi-view proposals' count, median over

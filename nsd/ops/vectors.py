@@ -6,7 +6,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["unit_vectors", "up_frame"]
+__all__ = ["unit_vectors", "up_frame", "wrap_angle"]
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
+    """Angles (radians) wrapped to [-pi, pi), any shape.
+
+    Example:
+        >>> round(wrap_angle(3 * np.pi / 2), 6), round(wrap_angle(-np.pi), 6)
+        (-1.570796, -3.141593)
+    """
+    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 def unit_vectors(x: np.ndarray, eps: float = 1e-8) -> np.ndarray:

@@ -51,6 +51,7 @@ import torch
 
 from nsd.core.config import ConfigSection
 from nsd.core.errors import ConfigError
+from nsd.ops.vectors import wrap_angle
 from nsd.synth.body import Individual, Pose
 from nsd.synth.skeleton import Species
 
@@ -353,10 +354,6 @@ def _waypoint(config: MotionConfig, rng: np.random.Generator) -> np.ndarray:
     return np.array([r * np.cos(a), r * np.sin(a)])
 
 
-def _wrap(a: np.ndarray | float) -> np.ndarray | float:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 def _initial_positions(
     individuals: Sequence[Individual], config: MotionConfig, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -451,7 +448,7 @@ def simulate_motion(
         gap_limit = HUDDLE_GAP if huddling else config.follow_gap
         goal = np.repeat(group_goal[None], N, axis=0) if close else goals
         d = goal - pos
-        steer = np.where(walking, STEER_GAIN * _wrap(np.arctan2(d[:, 1], d[:, 0]) - head), 0.0)
+        steer = np.where(walking, STEER_GAIN * wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - head), 0.0)
         if close:
             for n in range(N):
                 gap, m = min(
@@ -463,10 +460,10 @@ def simulate_motion(
                     walking[n] = True
                     target_speed[n] = pref[n]
                     dm = pos[m] - pos[n]
-                    steer[n] = STEER_GAIN * _wrap(np.arctan2(dm[1], dm[0]) - head[n])
+                    steer[n] = STEER_GAIN * wrap_angle(np.arctan2(dm[1], dm[0]) - head[n])
                 elif not walking[n]:  # standing: face the nearest other
                     dm = pos[m] - pos[n]
-                    steer[n] = STEER_GAIN * _wrap(np.arctan2(dm[1], dm[0]) - head[n])
+                    steer[n] = STEER_GAIN * wrap_angle(np.arctan2(dm[1], dm[0]) - head[n])
             reached = np.linalg.norm(pos - group_goal, axis=1).min() < WAYPOINT_REACHED + 0.3
             if reached and not huddling:  # a huddle stays where it formed
                 group_goal = _waypoint(config, rng)
@@ -476,7 +473,7 @@ def simulate_motion(
         still = t < config.linger * T  # the first individual lingers where it is
         if still:
             walking[0], target_speed[0], speed[0], steer[0], omega[0] = False, 0.0, 0.0, 0.0, 0.0
-        head = _wrap(head + (omega + steer) * dt)
+        head = wrap_angle(head + (omega + steer) * dt)
         speed += (target_speed - speed) * min(1.0, dt / SPEED_TAU)
         step = speed * dt
         pos = pos + step[:, None] * np.stack([np.cos(head), np.sin(head)], axis=1)
