@@ -264,6 +264,7 @@ RULES: dict[str, dict[str, Rule]] = {
         "embeddings.format": _r("str", choices=("parquet", "npz")),
         "embeddings.row_group_size": POS, "tracking.appearance_weight": FRACTION,
         "tracking.min_similarity": FRACTION, "tracking.position_weight": FRACTION,
+        "tracking.max_tracks": _r("int", low=1, null=True, allow=("auto",)),
         "tracking.position_scale": _r("number", above=0, allow=("auto",)), "views.max_points": POS,
         "views.thumbnail": _r("int", low=4), "views.perplexity": RATE,
     },

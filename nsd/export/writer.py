@@ -36,7 +36,12 @@ from nsd.inference.multiview import (
     model_scene_track,
 )
 from nsd.inference.single import associate_views
-from nsd.inference.tracking import SubjectObservation, SubjectTracker, position_scale
+from nsd.inference.tracking import (
+    SubjectObservation,
+    SubjectTracker,
+    max_tracks,
+    position_scale,
+)
 from nsd.io.coco import CocoStreamWriter
 from nsd.io.coco_results import SUBJECT_CATEGORY, decomposition_to_coco
 from nsd.io.crops import CropWriter, subject_crop
@@ -93,6 +98,7 @@ class SubjectWriter:
             float(t.appearance_weight), float(t.min_similarity), int(t.max_gap),
             float(t.position_weight),
             position_scale(t.position_scale, inp.footage.rig, int(self.inference.resolution)),
+            max_tracks(t.max_tracks, int(self.model.cfg.num_windows)),
         )
         self.grid = (
             self.inference.grid(inp.footage.rig, inp.trained.frame_hw)

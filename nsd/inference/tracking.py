@@ -20,14 +20,22 @@ subjects of consecutive frames into tracks with a deliberately simple rule:
   similarity; pairs below ``min_similarity`` are not linked;
 * an unlinked subject starts a new track; a track unseen for more than
   ``max_gap`` frames is closed (its id is never reused). A track's description
-  is its last observation (no motion model, no smoothing).
+  is its last observation (no motion model, no smoothing);
+* at most ``max_tracks`` tracks are live (the export gives the model's number of windows:
+  no frame holds more subjects than that). A subject left unlinked while that many are
+  live takes, whatever its similarity, the most similar live track that no subject of its
+  frame took (again a Hungarian assignment). Without the bound, one frame in which every
+  link falls below ``min_similarity`` (a box that hugs a body moves with its limbs, a
+  position jumps with it) opens a new track while the old one is still live, and the
+  subjects then flip between the two: on the real 4-camera Pose2Sim demo
+  (docs/scaling.md) 2 subjects per frame became 7 tracks in 100 frames; bounded, 2.
 
 Track ids start at 1 (MOTChallenge ids are positive).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -38,7 +46,9 @@ from nsd.cues.occupancy import working_volume
 from nsd.ops.boxes import box_iou_xywh
 from nsd.ops.vectors import unit_vectors
 
-__all__ = ["SubjectObservation", "SubjectTracker", "position_scale", "track_similarity"]
+__all__ = [
+    "SubjectObservation", "SubjectTracker", "max_tracks", "position_scale", "track_similarity",
+]
 
 
 def position_scale(setting: float | str, rig: CameraRig, resolution: int) -> float:
@@ -50,6 +60,18 @@ def position_scale(setting: float | str, rig: CameraRig, resolution: int) -> flo
         _, half, _ = working_volume(rig)
         return 2 * (2 * half / int(resolution))
     return float(setting)
+
+
+def max_tracks(setting: int | str | None, num_windows: int) -> int | None:
+    """The export's ``tracking.max_tracks``: ``auto``, the model's ``num_windows`` (no frame
+    holds more subjects); a number as given; None, no bound.
+
+    >>> max_tracks("auto", 3), max_tracks(5, 3), max_tracks(None, 3)
+    (3, 5, None)
+    """
+    if setting is None:
+        return None
+    return int(num_windows) if setting == "auto" else int(setting)
 
 
 @dataclass
@@ -103,6 +125,7 @@ class SubjectTracker:
         position_weight: share of the similarity given to the positions' closeness when
             both observations have one (0: appearance and boxes only).
         position_scale: distance (world units) at which closeness falls to exp(-1/2).
+        max_tracks: most tracks live at once (None: no bound).
 
     Example:
         >>> trk = SubjectTracker()
@@ -115,6 +138,7 @@ class SubjectTracker:
     def __init__(
         self, appearance_weight: float = 0.5, min_similarity: float = 0.3, max_gap: int = 10,
         position_weight: float = 0.0, position_scale: float = 1.0,
+        max_tracks: int | None = None,
     ) -> None:
         if not 0.0 <= appearance_weight <= 1.0:
             raise ValueError(f"appearance_weight must be in [0, 1], got {appearance_weight}")
@@ -123,8 +147,11 @@ class SubjectTracker:
                              f"{position_weight}, {position_scale}")
         self.appearance_weight = appearance_weight
         self.position_weight, self.position_scale = position_weight, position_scale
+        if max_tracks is not None and max_tracks < 1:
+            raise ValueError(f"max_tracks must be >= 1 or None, got {max_tracks}")
         self.min_similarity = min_similarity
         self.max_gap = max_gap
+        self.max_tracks = max_tracks
         self.tracks: list[_Track] = []
         self.next_id = 1
 
@@ -145,17 +172,37 @@ class SubjectTracker:
                     for tr in self.tracks
                 ]
             )
-            rows, cols = linear_sum_assignment(-sim)
-            for r, c in zip(rows, cols, strict=True):
-                if sim[r, c] >= self.min_similarity:
-                    tr, obs = self.tracks[r], subjects[keys[c]]
-                    if obs.position is None and tr.last.position is not None:
-                        obs = replace(obs, position=tr.last.position)  # seen by one camera
-                    tr.last, tr.last_frame = obs, frame
-                    out[keys[c]] = tr.id
+            self._link(frame, subjects, keys, sim, range(len(self.tracks)), self.min_similarity,
+                       out)
+            if self.max_tracks is not None and len(self.tracks) >= self.max_tracks:
+                taken = {self._row[i] for i in out.values()}
+                free = [r for r in range(len(self.tracks)) if r not in taken]
+                left = [k for k in keys if k not in out]
+                if free and left:  # a full house: no new track, the best free one
+                    self._link(frame, subjects, left, sim[:, [keys.index(k) for k in left]],
+                               free, -np.inf, out)
         for k in keys:
             if k not in out:
                 self.tracks.append(_Track(self.next_id, subjects[k], frame))
                 out[k] = self.next_id
                 self.next_id += 1
         return out
+
+    @property
+    def _row(self) -> dict[int, int]:
+        """Track id -> its row in :attr:`tracks`."""
+        return {tr.id: r for r, tr in enumerate(self.tracks)}
+
+    def _link(self, frame: int, subjects: Mapping[int, SubjectObservation], keys: list[int],
+              sim: np.ndarray, rows: Sequence[int], floor: float, out: dict[int, int]) -> None:
+        """Link ``keys`` to the tracks of ``rows`` by a Hungarian assignment on ``sim``
+        (all tracks x ``keys``), pairs below ``floor`` left unlinked; into ``out``."""
+        rows = list(rows)
+        r_idx, c_idx = linear_sum_assignment(-sim[rows])
+        for r, c in zip(r_idx, c_idx, strict=True):
+            if sim[rows[r], c] >= floor:
+                tr, obs = self.tracks[rows[r]], subjects[keys[c]]
+                if obs.position is None and tr.last.position is not None:
+                    obs = replace(obs, position=tr.last.position)  # seen by one camera
+                tr.last, tr.last_frame = obs, frame
+                out[keys[c]] = tr.id

@@ -56,6 +56,8 @@ def test_every_shipped_group_option_passes(group, option):
         ("run", "train.model.crop_size=2", "train.model.crop_size = 2"),
         ("run", "+export.batch_size=0", "export.batch_size = 0"),
         ("run", "+export.nonsense=1", "export.nonsense: nsd-export has no such key"),
+        ("export", "tracking.max_tracks=0", "tracking.max_tracks = 0: must be an integer >= 1"),
+        ("export", "tracking.max_tracks=some", "tracking.max_tracks = 'some'"),
         ("run", "train.prior_mask=hull",
          "train.prior_mask is a group of settings, not one value; choose its option with "
          "prior_mask@train.prior_mask=hull"),
@@ -77,7 +79,8 @@ def test_a_bad_value_is_named_with_its_range(app, override, message):
 @pytest.mark.parametrize(("app", "overrides"), [
     ("run", ["prior_mask@train.prior_mask=hull"]), ("run", ["train.prior_mask.weight=2.0"]),
     ("train", ["prior_mask=hull"]), ("run", ["netepu.keypoints.point_budget=0"]),
-    ("netepu_train", ["netepu.texture.model.crop_margin=null"])])
+    ("netepu_train", ["netepu.texture.model.crop_margin=null"]),
+    ("export", ["tracking.max_tracks=null"]), ("export", ["tracking.max_tracks=4"])])
 def test_a_group_chosen_the_right_way_passes(app, overrides):
     check_config(app, compose_app(app, overrides), overrides)  # no ConfigError
 

@@ -115,6 +115,11 @@ def test_round_trip_equals_model_outputs(trained, tmp_path):
         for a in ids:
             by_assoc.setdefault(a["association_id"], set()).add(a["subject_id"])
         assert all(len(v) == 1 for v in by_assoc.values())
+    # tracking.max_tracks=auto: never more tracks than windows (6 frames < max_gap: none closes)
+    from nsd.model.checkpoint import load_decomposition
+
+    windows = load_decomposition(ckpt).model.cfg.num_windows
+    assert {a["subject_id"] for a in coco.dataset["annotations"]} <= set(range(1, windows + 1))
 
 
 def test_crops_index_and_manifest_checksums(trained, tmp_path):

@@ -102,3 +102,35 @@ def test_a_track_keeps_its_last_position_through_a_one_camera_frame():
     assert trk.tracks[0].last.position is not None
     with pytest.raises(ValueError, match="position_weight"):
         SubjectTracker(position_weight=1.5)
+
+
+def _flip_frames():
+    """Two subjects apart; in frame 2 both look and sit unlike anything before (every link
+    below min_similarity), then as in frame 1 again."""
+    C = np.array([0.0, 0.0, 1.0])
+    steady = {0: _obs(A, 0), 1: _obs(B, 50)}
+    odd = {0: _obs(C, 200), 1: _obs(-A, 300)}
+    return [steady, steady, odd, steady]
+
+
+def test_a_full_house_links_the_free_tracks_instead_of_opening_new_ones():
+    free = SubjectTracker(appearance_weight=0.5, min_similarity=0.3)
+    ids = [free.update(t, f) for t, f in enumerate(_flip_frames())]
+    assert ids[2] == {0: 3, 1: 4}  # unbounded: two new tracks while 1 and 2 are live
+    bounded = SubjectTracker(appearance_weight=0.5, min_similarity=0.3, max_tracks=2)
+    ids = [bounded.update(t, f) for t, f in enumerate(_flip_frames())]
+    assert all(set(i.values()) == {1, 2} for i in ids)
+    assert bounded.next_id == 3
+    assert ids[3] == {0: 1, 1: 2}
+
+
+def test_the_bound_opens_tracks_below_it_and_beyond_a_crowded_frame():
+    trk = SubjectTracker(appearance_weight=1.0, min_similarity=0.5, max_tracks=2)
+    assert trk.update(0, {0: _obs(A, 0)}) == {0: 1}
+    assert trk.update(1, {0: _obs(B, 0)}) == {0: 2}  # one live track of two: a new one
+    assert trk.update(2, {0: _obs(-A, 0)}) in ({0: 1}, {0: 2})  # two live: no third
+    C = np.array([0.0, 0.0, 1.0])
+    out = trk.update(3, {0: _obs(A, 0), 1: _obs(B, 0), 2: _obs(C, 0)})
+    assert sorted(out.values()) == [1, 2, 3]  # more subjects than the bound: the extra opens
+    with pytest.raises(ValueError, match="max_tracks"):
+        SubjectTracker(max_tracks=0)
