@@ -560,7 +560,8 @@ def _assign(source: Path, rows: set[int] | None, column: str, i: DictConfig, k: 
     summary)``."""
     keys = ["id", "camera", "frame", "subject_id"]
     by_app = column != "app" and str(i.fill) == "app"
-    table = read_embeddings(source, [*keys, column, *(["app"] if by_app else [])])
+    table = read_embeddings(source, [*keys, column, *(["app"] if by_app else [])],
+                            optional=("tracklet_id",))  # an older export has none
     if rows is not None:
         keep = np.isin(np.asarray(table["id"], np.int64), sorted(rows))
         table = {c: v[keep] for c, v in table.items()}

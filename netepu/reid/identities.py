@@ -1,9 +1,13 @@
 """Identities across cameras and time from texture codes (or NSD appearance vectors).
 
 ``nsd-export`` gives every subject a track id (``subject_id``: the cross-view
-association of a frame, linked over time by box overlap and appearance). A
-track can break (an occlusion, a subject leaving the view), two tracks can be
-the same individual, and a track can swap individuals when they cross. Every
+association of a frame, linked over time by box overlap and appearance) and a tracklet id
+(``tracklet_id``: the track cut where the tracker opened it or forced a link on it,
+:mod:`nsd.inference.tracking`); the steps below that use codes take the tracklets for
+tracks (an export without them: the tracks), so that a forced link that joined two
+individuals carries no identity across. A track can break (an occlusion, a subject
+leaving the view), two tracks can be the same individual, and a track can swap
+individuals when they cross. Every
 row's identity is therefore decided from its own texture code (NeTePu's
 :math:`\\mu` from the visible pixels only, see ``netepu-embed``), in three steps:
 
@@ -188,7 +192,8 @@ def assign_identities(
 
     Args:
         table: columns ``subject_id``, ``frame`` and ``column`` (rows, D), optionally
-            ``<column>_valid``; ``method="rows"`` also needs ``camera``.
+            ``<column>_valid`` and ``tracklet_id`` (the export's: then the code-based
+            methods take the tracklets for tracks); ``method="rows"`` also needs ``camera``.
         column: the texture-code column.
         k: identities (0: the median number of subjects per frame).
         method: ``subjects`` (each subject-frame by its rows' pooled code), ``rows`` (each
@@ -225,7 +230,8 @@ def assign_identities(
         if not positions or not jump > 0:
             raise ValueError("identities: method motion needs the subjects' world positions "
                              f"and a jump > 0 (got jump={jump})")
-    sid = np.asarray(table["subject_id"], np.int64)
+    subject = np.asarray(table["subject_id"], np.int64)
+    sid = np.asarray(table["tracklet_id"], np.int64) if "tracklet_id" in table else subject
     frame = np.asarray(table["frame"], np.int64)
     codes = np.asarray(table[column], np.float64)
     valid = np.asarray(table.get(f"{column}_valid", ~np.isnan(codes).any(1)), bool)
@@ -240,7 +246,7 @@ def assign_identities(
     identity = np.full(len(sid), -1, np.int64)
     summary: dict[str, Any] = {"tracks": len(tracks), "k": k, "method": method}
     if method == "motion":
-        identity, part = _by_motion(sid, frame, k, positions, jump)
+        identity, part = _by_motion(subject, frame, k, positions, jump)
         return identity, summary | part
     if not tracks:
         return identity, summary | {"identities": 0, "association": "no texture codes"}
@@ -259,7 +265,7 @@ def assign_identities(
             method = "motion" if positions else "tracks"  # nobody seen by two cameras
         summary |= {"method": method, "chosen_by": "auto", "separation": separation}
         if method == "motion":
-            identity, part = _by_motion(sid, frame, k, positions, jump)
+            identity, part = _by_motion(subject, frame, k, positions, jump)
             return identity, summary | part
     of_track, n_clusters = _cluster_tracks(unit, sid[valid], tracks, per_frame, k)
     if method == "tracks":

@@ -230,10 +230,11 @@ class SubjectWriter:
         for v in range(len(self.names)):
             self.coco.add_image(self.inp.images(v, res.t))
         track = self.tracker.update(res.t, res.observations)
+        pieces = self.tracker.tracklets
         rows: dict[str, list] = defaultdict(list)
         for v, cam in enumerate(self.names):
             for r, app, crop in zip(res.per_view[v], res.apps[v], res.crops[v], strict=True):
-                self._write_subject(cam, res.t, r, app, crop, track, rows)
+                self._write_subject(cam, res.t, r, app, crop, (track, pieces), rows)
         if rows:
             self.embeddings.write(columns(rows))
 
@@ -294,10 +295,12 @@ class SubjectWriter:
         return out
 
     def _write_subject(self, cam: str, t: int, r: dict, app: np.ndarray, crop: tuple,
-                       track: dict, rows: dict[str, list]) -> None:
-        """One subject-camera-frame: COCO annotation, crop, MOT line, sample, table row."""
-        sid = track[r["association_id"]]
-        ann_id = self.coco.add_annotation({**r, "subject_id": sid, "iscrowd": 0})
+                       track: tuple[dict, dict], rows: dict[str, list]) -> None:
+        """One subject-camera-frame: COCO annotation, crop, MOT line, sample, table row;
+        ``track``: the tracker's (track ids, tracklet ids) of the frame's subjects."""
+        sid, piece = (ids[r["association_id"]] for ids in track)
+        ann_id = self.coco.add_annotation({**r, "subject_id": sid, "tracklet_id": piece,
+                                           "iscrowd": 0})
         window, image, mask, small = crop
         self.crops.put(ann_id, sid, cam, t, window, r["bbox"], image, mask)
         self.mot.write(cam, t, sid, r["bbox"], r["score"])
@@ -306,6 +309,7 @@ class SubjectWriter:
         values = {
             "id": ann_id,
             "subject_id": sid,
+            "tracklet_id": piece,
             "association_id": r["association_id"],
             "camera": cam,
             "frame": t,
@@ -334,6 +338,7 @@ class SubjectWriter:
 COLUMN_TYPES = {
     "id": np.int64,
     "subject_id": np.int64,
+    "tracklet_id": np.int64,
     "association_id": np.int64,
     "camera": str,
     "frame": np.int64,

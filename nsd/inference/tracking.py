@@ -29,6 +29,10 @@ subjects of consecutive frames into tracks with a deliberately simple rule:
   position jumps with it) opens a new track while the old one is still live, and the
   subjects then flip between the two: on the real 4-camera Pose2Sim demo
   (docs/scaling.md) 2 subjects per frame became 7 tracks in 100 frames; bounded, 2.
+  Such a forced link may join two individuals, so each track is also cut into
+  *tracklets* where it opened or was forced on (:attr:`SubjectTracker.tracklets`): what
+  a link above ``min_similarity`` vouches for. The identities stage decides per tracklet
+  (a forced link that joined two individuals must not carry one's identity to the other).
 
 Track ids start at 1 (MOTChallenge ids are positive).
 """
@@ -113,6 +117,7 @@ class _Track:
     id: int
     last: SubjectObservation
     last_frame: int
+    tracklet: int
 
 
 class SubjectTracker:
@@ -126,6 +131,11 @@ class SubjectTracker:
             both observations have one (0: appearance and boxes only).
         position_scale: distance (world units) at which closeness falls to exp(-1/2).
         max_tracks: most tracks live at once (None: no bound).
+
+    Attributes:
+        tracklets: per-frame id -> tracklet id (from 1) of the subjects of the last
+            :meth:`update`: a new one where a track opened or was forced on (module
+            docstring).
 
     Example:
         >>> trk = SubjectTracker()
@@ -154,6 +164,8 @@ class SubjectTracker:
         self.max_tracks = max_tracks
         self.tracks: list[_Track] = []
         self.next_id = 1
+        self.tracklets: dict[int, int] = {}
+        self._next_tracklet = 1
 
     def update(self, frame: int, subjects: Mapping[int, SubjectObservation]) -> dict[int, int]:
         """Link the subjects of ``frame`` (key: per-frame subject id) to tracks.
@@ -163,6 +175,7 @@ class SubjectTracker:
         self.tracks = [tr for tr in self.tracks if frame - tr.last_frame <= self.max_gap]
         keys = list(subjects)
         out: dict[int, int] = {}
+        self.tracklets = {}
         if self.tracks and keys:
             sim = np.array(
                 [
@@ -180,13 +193,18 @@ class SubjectTracker:
                 left = [k for k in keys if k not in out]
                 if free and left:  # a full house: no new track, the best free one
                     self._link(frame, subjects, left, sim[:, [keys.index(k) for k in left]],
-                               free, -np.inf, out)
+                               free, -np.inf, out, forced=True)
         for k in keys:
             if k not in out:
-                self.tracks.append(_Track(self.next_id, subjects[k], frame))
+                self.tracks.append(_Track(self.next_id, subjects[k], frame, self._tracklet()))
                 out[k] = self.next_id
+                self.tracklets[k] = self.tracks[-1].tracklet
                 self.next_id += 1
         return out
+
+    def _tracklet(self) -> int:
+        self._next_tracklet += 1
+        return self._next_tracklet - 1
 
     @property
     def _row(self) -> dict[int, int]:
@@ -194,9 +212,11 @@ class SubjectTracker:
         return {tr.id: r for r, tr in enumerate(self.tracks)}
 
     def _link(self, frame: int, subjects: Mapping[int, SubjectObservation], keys: list[int],
-              sim: np.ndarray, rows: Sequence[int], floor: float, out: dict[int, int]) -> None:
+              sim: np.ndarray, rows: Sequence[int], floor: float, out: dict[int, int],
+              forced: bool = False) -> None:
         """Link ``keys`` to the tracks of ``rows`` by a Hungarian assignment on ``sim``
-        (all tracks x ``keys``), pairs below ``floor`` left unlinked; into ``out``."""
+        (all tracks x ``keys``), pairs below ``floor`` left unlinked; into ``out`` (a
+        ``forced`` link starts a tracklet)."""
         rows = list(rows)
         r_idx, c_idx = linear_sum_assignment(-sim[rows])
         for r, c in zip(r_idx, c_idx, strict=True):
@@ -205,4 +225,7 @@ class SubjectTracker:
                 if obs.position is None and tr.last.position is not None:
                     obs = replace(obs, position=tr.last.position)  # seen by one camera
                 tr.last, tr.last_frame = obs, frame
+                if forced:
+                    tr.tracklet = self._tracklet()
                 out[keys[c]] = tr.id
+                self.tracklets[keys[c]] = tr.tracklet

@@ -19,7 +19,7 @@ codes computed later for the same rows), atomically.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -163,13 +163,19 @@ def embeddings_path(path: str | os.PathLike) -> Path:
 
 
 def read_embeddings(
-    path: str | os.PathLike, columns: list[str] | None = None
+    path: str | os.PathLike, columns: list[str] | None = None,
+    optional: Sequence[str] = (),
 ) -> dict[str, np.ndarray]:
-    """All (or the named) columns of a table as numpy arrays; vectors as (rows, D)."""
+    """All (or the named) columns of a table as numpy arrays; vectors as (rows, D); the
+    ``optional`` columns too where the table has them (an older export's may not)."""
     path = embeddings_path(path)
     if path.suffix == ".npz":
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in (columns or z.files)}
+            names = [*(columns or z.files), *(c for c in optional if c in z.files)]
+            return {k: z[k] for k in names}
+    if columns is not None and optional:
+        have = set(pq.ParquetFile(path).schema_arrow.names)
+        columns = [*columns, *(c for c in optional if c in have)]
     table = pq.read_table(path, columns=columns)
     return {name: _numpy_column(table.column(name)) for name in table.column_names}
 

@@ -105,6 +105,7 @@ def test_round_trip_equals_model_outputs(trained, tmp_path):
                 r = row[a["id"]]
                 assert (emb["camera"][r], emb["frame"][r], emb["slot"][r]) == (cam, t, k)
                 assert emb["subject_id"][r] == a["subject_id"] >= 1
+                assert emb["tracklet_id"][r] == a["tracklet_id"] >= 1
                 np.testing.assert_allclose(emb["app"][r], dec.app[v, k].numpy(), atol=1e-5)
                 n += 1
     assert n == s.subjects == len(emb["id"]) > 0
@@ -115,6 +116,10 @@ def test_round_trip_equals_model_outputs(trained, tmp_path):
         for a in ids:
             by_assoc.setdefault(a["association_id"], set()).add(a["subject_id"])
         assert all(len(v) == 1 for v in by_assoc.values())
+    # a tracklet lies within one track
+    track_of = {}
+    for a in coco.dataset["annotations"]:
+        assert track_of.setdefault(a["tracklet_id"], a["subject_id"]) == a["subject_id"]
     # tracking.max_tracks=auto: never more tracks than windows (6 frames < max_gap: none closes)
     from nsd.model.checkpoint import load_decomposition
 

@@ -124,6 +124,21 @@ def test_a_full_house_links_the_free_tracks_instead_of_opening_new_ones():
     assert ids[3] == {0: 1, 1: 2}
 
 
+def test_tracklets_start_where_a_track_opens_or_is_forced_on():
+    trk = SubjectTracker(appearance_weight=0.5, min_similarity=0.3, max_tracks=2)
+    pieces = []
+    for t, f in enumerate(_flip_frames()):
+        trk.update(t, f)
+        pieces.append(dict(trk.tracklets))
+    assert pieces[0] == pieces[1] == {0: 1, 1: 2}  # opened, then linked above the floor
+    assert sorted(pieces[2].values()) == [3, 4]  # both forced on: new tracklets
+    # frame 3 looks like frame 1, not like the forced frame 2: forced again
+    assert sorted(pieces[3].values()) == [5, 6]
+    steady = SubjectTracker(appearance_weight=0.5, min_similarity=0.3, max_tracks=2)
+    assert [(steady.update(t, f), steady.tracklets)[1] for t, f in
+            enumerate(_flip_frames()[:2])] == [{0: 1, 1: 2}] * 2
+
+
 def test_the_bound_opens_tracks_below_it_and_beyond_a_crowded_frame():
     trk = SubjectTracker(appearance_weight=1.0, min_similarity=0.5, max_tracks=2)
     assert trk.update(0, {0: _obs(A, 0)}) == {0: 1}
