@@ -32,7 +32,9 @@ row's identity is therefore decided from its own texture code (NeTePu's
    a track that swapped individuals between two coded frames is right up to halfway on
    each side of the swap, and one coded frame with wrong codes changes nothing.
    ``fill="tracks"``: the most frequent identity of all the track's coded rows, wrong
-   on the whole stretch after a swap. -1 when the track has no coded row.
+   on the whole stretch after a swap. A tracklet without a coded row takes its track's
+   identity the same way, from the track's rows that have one (:func:`_fill_from_tracks`);
+   -1 when the whole track has no coded row.
 
 ``method="subjects"`` (the default) runs step 2 on *subject-frames* instead of rows: the rows
 of one subject in one frame (its cameras, which the export's cross-view association
@@ -253,6 +255,8 @@ def assign_identities(
     coded = np.isin(sid, tracks)
     if k == 1 or len(tracks) == 1:
         identity[coded] = 0
+        if sid is not subject:
+            _fill_from_tracks(identity, subject, frame, fill)
         return identity, summary | {"identities": 1, "association": "skipped: one subject"}
     unit = unit_vectors(codes[valid], eps=1e-12)
     if method in ("auto", "subjects"):
@@ -270,6 +274,8 @@ def assign_identities(
     of_track, n_clusters = _cluster_tracks(unit, sid[valid], tracks, per_frame, k)
     if method == "tracks":
         identity[coded] = [of_track[int(s)] for s in sid[coded]]
+        if sid is not subject:
+            _fill_from_tracks(identity, subject, frame, fill)
         return identity, summary | {
             "identities": n_clusters,
             "association": f"tracks clustered by {column}",
@@ -293,6 +299,8 @@ def assign_identities(
         else:
             identity[gap] = _nearest_coded(frame[rows & valid], identity[rows & valid],
                                            frame[gap])
+    if sid is not subject:  # tracklets without a code: their track's, as ``fill`` says
+        _fill_from_tracks(identity, subject, frame, fill)
     return identity, summary | {
         "identities": len(set(identity[valid].tolist())),
         "association": f"{method} clustered by {column}",
@@ -401,6 +409,25 @@ def _most_frequent(ids: np.ndarray) -> int:
     """The most frequent value of ``ids`` (the smallest on a tie)."""
     values, counts = np.unique(ids, return_counts=True)
     return int(values[counts.argmax()])
+
+
+def _fill_from_tracks(identity: np.ndarray, track: np.ndarray, frame: np.ndarray,
+                      fill: str) -> None:
+    """Rows of a tracklet without a coded row (-1) take, in place, the identity their track
+    (``track`` (rows,), the export's ``subject_id``) has among its rows that have one: at the
+    nearest frame in time (``fill="nearest"``) or the most frequent (``"tracks"``). Where the
+    tracker forced links often (real footage whose boxes jump, docs/pipeline.md "At most as
+    many tracks as windows"), most tracklets hold no coded frame; the track's forced links
+    are right more often than not, and an identity is better than none."""
+    for s in np.unique(track[identity < 0]):
+        rows = track == s
+        known, gap = rows & (identity >= 0), rows & (identity < 0)
+        if not known.any():
+            continue
+        if fill == "tracks":
+            identity[gap] = _most_frequent(identity[known])
+        else:
+            identity[gap] = _nearest_coded(frame[known], identity[known], frame[gap])
 
 
 def _nearest_coded(coded_frame: np.ndarray, coded_id: np.ndarray, frames: np.ndarray

@@ -602,6 +602,26 @@ def test_tracklets_cut_where_the_tracker_forced_a_link_carry_no_identity_across(
     assert set(frame[by_tracks != truth].tolist()) == {14, 15}
 
 
+@pytest.mark.parametrize("fill", ["nearest", "tracks"])
+def test_a_tracklet_without_a_code_takes_its_tracks_identity(fill):
+    """Track 1 is cut into three tracklets, the middle one (frames 22-27) holding no coded
+    frame: its rows take track 1's identity (nearest: at frames 20 and 30; tracks: the
+    track's most frequent), not -1."""
+    from netepu.reid.identities import assign_identities
+
+    rng = np.random.default_rng(5)
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    table = _track_table([(1, range(40), a), (2, range(40), b)], rng)
+    table["texture_valid"] = table["frame"] % 10 == 0
+    frame, track = table["frame"], table["subject_id"]
+    table["tracklet_id"] = track * 10 + (frame >= 22) + (frame >= 28)
+    identity, summary = assign_identities(table, method="subjects", fill=fill)
+    assert summary["tracks"] == 4  # the tracklets with a code: 1's first and last, 2's three
+    assert (identity >= 0).all()
+    assert len(set(identity[track == 1].tolist())) == 1
+    assert identity[track == 1][0] != identity[track == 2][0]
+
+
 def test_one_coded_frame_with_wrong_codes_does_not_flip_the_rows_around_it():
     """The codes of coded frame 20 are swapped between the two subjects (a bad inversion),
     the tracks are right: the coded rows of frame 20 follow their codes, but the uncoded
