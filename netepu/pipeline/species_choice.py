@@ -14,8 +14,10 @@ biped, nor a biped's by a cow.
   on a tie): one frame whose masks were poor (a huddle) does not flip the body, a track that
   swapped individuals of two species follows the swap.
 * Every row of the export then takes a species (:func:`species_of_rows`): its subject-frame's
-  where it was fitted, otherwise its track's at the nearest fitted frame in time (the earlier
-  on a tie); "" for tracks never fitted.
+  where it was fitted, otherwise its tracklet's at the nearest fitted frame in time (the
+  earlier on a tie; the export's ``tracklet_id``, the track cut where the tracker forced a
+  link, which may join a biped to a cow), its track's where the tracklet has no fitted
+  frame; "" for tracks never fitted.
 
 Each species' keypoints file then holds the subject-frames that took it (:func:`split_fits`),
 which that species' texture model codes; identities are assigned within each species.
@@ -114,24 +116,39 @@ def split_fits(fits: Mapping[str, str | os.PathLike], choices: list[SpeciesChoic
     return kept
 
 
-def species_of_rows(subject_id: np.ndarray, frame: np.ndarray, choices: list[SpeciesChoice]
-                    ) -> np.ndarray:
+def species_of_rows(subject_id: np.ndarray, frame: np.ndarray, choices: list[SpeciesChoice],
+                    tracklet: np.ndarray | None = None) -> np.ndarray:
     """The species of every row (module docstring): (rows,) object array of str ("" for
-    tracks never fitted)."""
+    tracks never fitted); ``tracklet`` (rows,): the rows' ``tracklet_id`` (None: an export
+    without them, tracks only)."""
     sid = np.asarray(subject_id, np.int64)
     frame = np.asarray(frame, np.int64)
-    by_track: dict[int, list[SpeciesChoice]] = defaultdict(list)
-    for c in choices:
-        by_track[c.subject_id].append(c)
     out = np.full(len(sid), "", object)
-    for s, fitted in by_track.items():
-        rows = np.flatnonzero(sid == s)
+    _nearest_choice(out, sid, frame, [(c, c.subject_id) for c in choices])
+    if tracklet is not None:
+        piece = np.asarray(tracklet, np.int64)
+        of = dict(zip(zip(frame.tolist(), sid.tolist(), strict=True), piece.tolist(),
+                      strict=True))
+        _nearest_choice(out, piece, frame, [(c, of.get((c.frame, c.subject_id), -1))
+                                            for c in choices])
+    return out
+
+
+def _nearest_choice(out: np.ndarray, owner: np.ndarray, frame: np.ndarray,
+                    owned: list[tuple[SpeciesChoice, int]]) -> None:
+    """Into ``out``: each row the species of its owner's (track or tracklet, ``owner``
+    (rows,); ``owned``: each choice with its owner) fitted frame nearest in time; owners
+    without one are left as they are."""
+    by_owner: dict[int, list[SpeciesChoice]] = defaultdict(list)
+    for c, o in owned:
+        by_owner[o].append(c)
+    for o, fitted in by_owner.items():
+        rows = np.flatnonzero(owner == o)
         if not len(rows):
             continue
         fitted.sort(key=lambda c: c.frame)
         pick = nearest_in_time(np.array([c.frame for c in fitted]), frame[rows])
         out[rows] = [fitted[i].species for i in pick]
-    return out
 
 
 def write_species_csv(path: str | os.PathLike, choices: list[SpeciesChoice]) -> None:

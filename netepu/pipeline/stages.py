@@ -637,8 +637,9 @@ def _identities_of_species(up: dict[str, StageResult], species: list[str], colum
     (-1: a row of no species) and the summary with one entry per species."""
     keys = ["id", "camera", "frame", "subject_id"]
     choices = read_species_csv(up["keypoints"].folder / "species.csv")
-    table = read_embeddings(up["export"].folder, keys)
-    of_row = species_of_rows(table["subject_id"], table["frame"], choices)
+    table = read_embeddings(up["export"].folder, keys, optional=("tracklet_id",))
+    of_row = species_of_rows(table["subject_id"], table["frame"], choices,
+                             table.get("tracklet_id"))
     identity = np.full(len(of_row), -1, np.int64)
     row = {int(r): n for n, r in enumerate(table["id"].tolist())}
     summary: dict[str, Any] = {"species": {}}

@@ -32,6 +32,11 @@ when its loss is at most ``heading_tolerance`` times the first's
 (:mod:`netepu.pipeline.heading`); then bipeds' fits are relabelled to face their travel
 (:mod:`netepu.pipeline.travel`).
 
+"A subject over time" in all of these (warm starts, smoothing, neighbouring headings, travel)
+is a tracklet of the export (``tracklet_id``): its track since the tracker last forced a link
+on it (:mod:`nsd.inference.tracking`), where it may have passed to another individual; an
+export without tracklets: its tracks.
+
 Templates (the inversion's starting poses) are poses of the geometry model's own
 synthetic individual (:func:`template_poses`), so no training data is needed at run time.
 
@@ -43,6 +48,7 @@ one process of two threads 5.9 s (docs/netepu.md).
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -309,9 +315,9 @@ def invert_export(
             out.append((previous.keypoints.float().numpy(), previous.loss, previous.warm))
         return out
 
-    chains: dict[int, list[int]] = defaultdict(list)  # warm starts: one chain per subject
-    for i, (_, sid, _) in enumerate(tasks):
-        chains[sid if warm_steps else i].append(i)
+    chains: dict[int, list[int]] = defaultdict(list)  # warm starts: one chain per tracklet
+    for i, (_, sid, anns) in enumerate(tasks):
+        chains[_tracklet(sid, anns) if warm_steps else i].append(i)
     results: dict[int, tuple[np.ndarray, float, bool]] = {}
     start = time.perf_counter()
     with BatchPool(fit, max(1, min(workers, len(chains))), torch.get_num_threads(),
@@ -340,8 +346,8 @@ def invert_export(
     fits, relabelled = _face_travel(fits, export, scene, rig, model.radius * travel_speed, fps,
                                     species, np.asarray(settings.up, np.float64))
     seconds = time.perf_counter() - start
-    smoothed = smooth_tracks([(t, sid, kp, loss) for t, sid, _, kp, loss in fits],
-                             smooth_frames)
+    smoothed = smooth_tracks([(t, _tracklet(sid, anns), kp, loss)
+                              for t, sid, anns, kp, loss in fits], smooth_frames)
     fitted = SubjectKeypoints()
     for (t, sid, anns, _, loss), kp, flip in zip(fits, smoothed, relabelled, strict=True):
         fitted.add(t, sid, anns, kp, loss, flip)
@@ -355,6 +361,14 @@ def invert_export(
     }
 
 
+def _tracklet(sid: int, anns: list[dict]) -> int:
+    """The tracklet of a subject-frame (its rows' ``tracklet_id``; an export without them:
+    its track ``sid``): the fits that warm-start, smooth and judge each other over time
+    are a tracklet's, which the tracker vouches is one individual
+    (:mod:`nsd.inference.tracking`)."""
+    return int(anns[0].get("tracklet_id", sid)) if anns else int(sid)
+
+
 def _turn_refits(tasks: list[tuple[int, int, list[dict]]],
                  results: dict[int, tuple[np.ndarray, float, bool]], species: str,
                  up: tuple[float, float, float], max_gap: float) -> dict[int, np.ndarray]:
@@ -363,7 +377,7 @@ def _turn_refits(tasks: list[tuple[int, int, list[dict]]],
     away from it (:mod:`.heading`)."""
     rest = get_species(species).rest
     frames = [t for t, _, _ in tasks]
-    subjects = [sid for _, sid, _ in tasks]
+    subjects = [_tracklet(sid, anns) for _, sid, anns in tasks]
     headings = [heading(results[i][0], rest, up) for i in range(len(tasks))]
     return {i: turned_pose(results[i][0], angle, up).astype(np.float32)
             for i, angle in turns(frames, subjects, headings, max_gap).items()}
@@ -391,12 +405,17 @@ def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: f
     d = max(1, round(TRAVEL_SECONDS * rate))
     positions = triangulate_positions(
         export, rig, frames={t + s for t, *_ in fits for s in (-d, d)})
+    coco = json.loads((Path(export) / "subjects.coco.json").read_text())
+    pieces = {(int(a["frame"]), int(a["subject_id"])): int(a["tracklet_id"])
+              for a in coco["annotations"] if "tracklet_id" in a}
     body = get_species(species)
     left, mirror = body.left_index(), body.mirror_index()
     up = unit_vectors(up)
     out, flips = [], []
     for t, sid, anns, kp, loss in fits:
         velocity = travel_velocity(positions, t, sid, d, rate, up)
+        if len({pieces.get((t + s, sid)) for s in (-d, 0, d)}) > 1:
+            velocity = None  # the track was forced on between: maybe another individual
         kp, flip = face_travel(np.asarray(kp), velocity, left, mirror, up, min_speed)
         if flip:
             log.info("keypoints: frame %d subject %d faced against its travel: left and right "

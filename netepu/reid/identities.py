@@ -40,7 +40,10 @@ row's identity is therefore decided from its own texture code (NeTePu's
 of one subject in one frame (its cameras, which the export's cross-view association
 joined) are one item whose code is the normalised mean of their unit codes, and the
 subjects of one frame take distinct identities; every row takes its subject-frame's. A
-camera in which the subject is half hidden then no longer decides its row alone.
+camera in which the subject is half hidden then no longer decides its row alone. Step 3
+decides each tracklet alone, so it can give two subjects of an uncoded frame one identity;
+such frames are then made distinct (:func:`distinct_in_frames`: each subject the identity
+coded nearest in time on its tracklet, by a Hungarian assignment per frame).
 ``method="tracks"`` stops after step 1: every row takes its track's cluster.
 ``method="motion"`` uses no code: every subject-frame takes the trajectory it lies on, the
 export's tracks cut where their world positions jump and stitched by position
@@ -82,6 +85,7 @@ __all__ = [
     "code_separation",
     "constrained_average_linkage",
     "constrained_kmeans",
+    "distinct_in_frames",
     "majority_in_window",
     "nearest_in_time",
     "subject_frames",
@@ -100,6 +104,10 @@ SEPARATION_MIN = 2.0
 # frame_step): codes of every frame would move little from one to the next whoever they are.
 SEPARATION_GAP = 25
 FILL_METHODS = ("nearest", "tracks")  # rows without a code; "app" is transfer_identities
+# distinct_in_frames: a track's coded frame counts as this many frames farther than one of
+# the subject's own tracklet (the tracklet vouches for its individual, the track may not)
+TRACK_SUPPORT_FRAMES = 1000
+_NO_SUPPORT = 1e9  # no coded frame of that identity on the tracklet or the track
 # Two tracks seen together in at most this many frames may still be one individual: the
 # tracker may open a track for an individual a few frames before it closes the old one (a
 # handover). Measured on the contact runs (docs/pipeline.md "Individuals that look alike"):
@@ -301,6 +309,9 @@ def assign_identities(
                                            frame[gap])
     if sid is not subject:  # tracklets without a code: their track's, as ``fill`` says
         _fill_from_tracks(identity, subject, frame, fill)
+    if method == "subjects":
+        summary["frames_made_distinct"] = distinct_in_frames(identity, frame, subject, sid,
+                                                             valid, k)
     return identity, summary | {
         "identities": len(set(identity[valid].tolist())),
         "association": f"{method} clustered by {column}",
@@ -409,6 +420,74 @@ def _most_frequent(ids: np.ndarray) -> int:
     """The most frequent value of ``ids`` (the smallest on a tie)."""
     values, counts = np.unique(ids, return_counts=True)
     return int(values[counts.argmax()])
+
+
+def distinct_in_frames(identity: np.ndarray, frame: np.ndarray, subject: np.ndarray,
+                       piece: np.ndarray, coded: np.ndarray, k: int) -> int:
+    """Give the subjects of each frame distinct identities where the fill gave two of them
+    one (in place; rows (R,) of ``identity``, ``frame``, ``subject`` the export's track and
+    ``piece`` its tracklet, ``coded`` the rows with a code). The fill decides each tracklet
+    alone, so where a track's swap falls between two coded frames, two subjects of a frame
+    can take one identity, and one of them is wrong. In such a frame the subjects take the
+    ``k`` identities by a Hungarian assignment on how far in time each subject's tracklet
+    has a coded frame of each identity (its track's, ``TRACK_SUPPORT_FRAMES`` further,
+    where the tracklet has none; a coded subject-frame is at distance 0 from its own). A
+    subject-frame is one item: all its rows move together. Returns the frames changed.
+    """
+    if k < 2:
+        return 0
+    sf, sf_of_row = np.unique(np.stack([frame, subject], 1), axis=0, return_inverse=True)
+    sf_of_row = sf_of_row.reshape(-1)
+    current = np.full(len(sf), -1, np.int64)
+    current[sf_of_row] = identity  # a subject-frame's rows share one identity
+    sf_piece = np.zeros(len(sf), np.int64)
+    sf_piece[sf_of_row] = piece
+    is_coded = np.zeros(len(sf), bool)
+    np.logical_or.at(is_coded, sf_of_row, coded)
+    changed = 0
+    dup_frames = [t for t in np.unique(sf[:, 0]) if _has_duplicate(current[sf[:, 0] == t])]
+    if not dup_frames:
+        return 0
+    support = _support(sf[is_coded, 0], sf_piece[is_coded], current[is_coded])
+    track_support = _support(sf[is_coded, 0], sf[is_coded, 1], current[is_coded])
+    for t in dup_frames:
+        items = np.flatnonzero(sf[:, 0] == t)
+        cost = np.array([[_distance(support, sf_piece[j], i, t, track_support, sf[j, 1])
+                          for i in range(k)] for j in items])
+        rows, cols = linear_sum_assignment(cost)
+        moved = False
+        for r, c in zip(rows, cols, strict=True):
+            if current[items[r]] != c:
+                identity[sf_of_row == items[r]] = c
+                moved = True
+        changed += moved
+    return changed
+
+
+def _has_duplicate(ids: np.ndarray) -> bool:
+    ids = ids[ids >= 0]
+    return len(ids) != len(np.unique(ids))
+
+
+def _support(frames: np.ndarray, owner: np.ndarray, ids: np.ndarray
+             ) -> dict[tuple[int, int], np.ndarray]:
+    """(owner, identity) -> the sorted frames of the owner's coded subject-frames of it."""
+    out: dict[tuple[int, int], list] = defaultdict(list)
+    for t, o, i in zip(frames.tolist(), owner.tolist(), ids.tolist(), strict=True):
+        out[(o, i)].append(t)
+    return {key: np.sort(np.asarray(v)) for key, v in out.items()}
+
+
+def _distance(support: dict, piece: int, i: int, t: int, track_support: dict,
+              track: int) -> float:
+    """Frames from ``t`` to the nearest coded frame of identity ``i`` on the tracklet, else
+    on the track (+ ``TRACK_SUPPORT_FRAMES``), else a very large number."""
+    for table, key, extra in ((support, piece, 0), (track_support, track,
+                                                     TRACK_SUPPORT_FRAMES)):
+        frames = table.get((key, i))
+        if frames is not None:
+            return float(np.abs(frames - t).min() + extra)
+    return _NO_SUPPORT
 
 
 def _fill_from_tracks(identity: np.ndarray, track: np.ndarray, frame: np.ndarray,

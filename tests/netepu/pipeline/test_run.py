@@ -566,11 +566,27 @@ def test_uncoded_rows_take_their_tracks_identity_at_the_nearest_coded_frame():
     if (near[frame == 0] != truth[frame == 0]).any():
         truth = 1 - truth
     assert set(frame[near != truth].tolist()) == {14, 15}
-    by_tracks, _ = assign_identities(table, method="subjects", fill="tracks")
+    # ``tracks``: each track's coded frames hold both identities twice, so both tracks' most
+    # frequent is one identity, held twice in every uncoded frame; distinct_in_frames then
+    # gives each frame's subjects their tracklets' nearest coded identities: as ``nearest``
+    by_tracks, summary = assign_identities(table, method="subjects", fill="tracks")
+    assert summary["frames_made_distinct"] == 36  # the uncoded frames
+    # (frame 15 is 5 frames from a coded frame of either identity: a tie either way)
+    assert {14} <= set(frame[by_tracks != truth].tolist()) <= {14, 15}
+    # swapped at frame 24 instead: track 1 is mostly a, track 2 mostly b, no frame holds one
+    # identity twice, and ``tracks`` is wrong on the whole stretch after the swap
+    spec = [(1, range(24), a), (1, range(24, 40), b), (2, range(24), b), (2, range(24, 40), a)]
+    table = _track_table(spec, rng, cameras=("a", "b"))
+    table["texture_valid"] = table["frame"] % 10 == 0
+    truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
+    by_tracks, summary = assign_identities(table, method="subjects", fill="tracks")
+    if (by_tracks[table["frame"] == 0] != truth[table["frame"] == 0]).any():
+        truth = 1 - truth
+    assert summary["frames_made_distinct"] == 0
     uncoded = ~table["texture_valid"]
     for s in (1, 2):
         assert len(set(by_tracks[uncoded & (table["subject_id"] == s)].tolist())) == 1
-    assert (by_tracks != truth).sum() >= 2 * 2 * 12  # 2 tracks x 2 cameras x a side's uncoded
+    assert (by_tracks != truth).sum() == 2 * 2 * 15  # 2 tracks x 2 cameras x 25..39 but 30
     with pytest.raises(ValueError, match="fill"):
         assign_identities(table, fill="app")
 
@@ -620,6 +636,31 @@ def test_a_tracklet_without_a_code_takes_its_tracks_identity(fill):
     assert (identity >= 0).all()
     assert len(set(identity[track == 1].tolist())) == 1
     assert identity[track == 1][0] != identity[track == 2][0]
+
+
+def test_distinct_in_frames_known_case():
+    """Frame 5: subjects 1 and 2 both hold identity 0 after the fill, subject 3 identity 2.
+    Subject 1's tracklet has identity 0 coded at frame 4, subject 2's tracklet has 0 at
+    frame 0 and 1 at frame 8: 1 keeps 0 (1 frame away), 2 takes 1 (3 frames), 3 keeps 2.
+    Frame 6 has no duplicate and is left alone, whatever its support."""
+    from netepu.reid.identities import distinct_in_frames
+
+    #                  frame  subject piece coded identity
+    rows = np.array([[4, 1, 10, 1, 0], [0, 2, 20, 1, 0], [8, 2, 20, 1, 1], [2, 3, 30, 1, 2],
+                     [5, 1, 10, 0, 0], [5, 1, 10, 0, 0], [5, 2, 20, 0, 0], [5, 3, 30, 0, 2],
+                     [6, 1, 10, 0, 1], [6, 2, 20, 0, 0]])
+    frame, subject, piece, coded, identity = (rows[:, c].copy() for c in range(5))
+    assert distinct_in_frames(identity, frame, subject, piece, coded.astype(bool), 3) == 1
+    assert identity.tolist() == [0, 0, 1, 2, 0, 0, 1, 2, 1, 0]
+    again = identity.copy()
+    assert distinct_in_frames(again, frame, subject, piece, coded.astype(bool), 3) == 0
+    assert (again == identity).all()
+    # a subject whose tracklet has no coded frame of an identity falls back on its track
+    rows = np.array([[0, 1, 10, 1, 0], [0, 2, 20, 1, 1], [3, 1, 11, 0, 1], [3, 2, 20, 0, 1]])
+    frame, subject, piece, coded, identity = (rows[:, c].copy() for c in range(5))
+    assert distinct_in_frames(identity, frame, subject, piece, coded.astype(bool), 2) == 1
+    assert identity[2:].tolist() == [0, 1]  # subject 1 by its track's frame 0
+    assert distinct_in_frames(identity, frame, subject, piece, coded.astype(bool), 1) == 0
 
 
 def test_one_coded_frame_with_wrong_codes_does_not_flip_the_rows_around_it():

@@ -83,6 +83,14 @@ def test_every_row_takes_the_species_of_its_tracks_nearest_fitted_frame(tmp_path
     # frame 10 is halfway: the earlier fitted frame; track 3 was never fitted
     assert got.tolist() == ["biped", "biped", "biped", "quadruped", "quadruped",
                             "quadruped", "quadruped", ""]
+    # track 1 cut at frame 11 into tracklets 7 and 8 (a forced link): the same as by the
+    # track (frame 10 is in 7, with the biped's fit); cut at frame 10, frame 10 takes the
+    # quadruped of its own tracklet's frame 20; track 3's tracklet has no fit: ""
+    sid, frame = np.append(sid, 1), np.append(frame, 20)  # the fitted frame's own row
+    piece = np.array([7, 7, 7, 8, 8, 9, 9, 10, 8])
+    assert species_of_rows(sid, frame, choices, piece).tolist() == [*got.tolist(), "quadruped"]
+    cut = np.array([7, 7, 8, 8, 8, 9, 9, 10, 8])  # the cut at frame 10 instead
+    assert species_of_rows(sid, frame, choices, cut)[2] == "quadruped"  # not track 1's biped
     path = tmp_path / "species.csv"
     choices[0] = SpeciesChoice(0, 1, "biped", {"biped": 0.125, "quadruped": 0.5})
     write_species_csv(path, choices[:1])
