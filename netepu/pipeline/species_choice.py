@@ -10,8 +10,8 @@ of two bodies on one subject-frame compare. A cow's silhouette cannot be drawn b
 biped, nor a biped's by a cow.
 
 * A fitted subject-frame takes the species of the lowest loss, then the most frequent species
-  of it and its track's fitted frames within ``window`` fitted frames on either side (its own
-  on a tie): one frame whose masks were poor (a huddle) does not flip the body, a track that
+  of it and its tracklet's fitted frames within ``window`` fitted frames on either side (its
+  own on a tie): one frame whose masks were poor (a huddle) does not flip the body, a track that
   swapped individuals of two species follows the swap.
 * Every row of the export then takes a species (:func:`species_of_rows`): its subject-frame's
   where it was fitted, otherwise its tracklet's at the nearest fitted frame in time (the
@@ -59,7 +59,8 @@ def _fits(path: str | os.PathLike) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
-def choose_species(fits: Mapping[str, str | os.PathLike], window: int = WINDOW
+def choose_species(fits: Mapping[str, str | os.PathLike], window: int = WINDOW,
+                   tracklets: Mapping[tuple[int, int], int] | None = None
                    ) -> list[SpeciesChoice]:
     """The species of every subject-frame fitted with each species' model.
 
@@ -67,6 +68,9 @@ def choose_species(fits: Mapping[str, str | os.PathLike], window: int = WINDOW
         fits: species -> ``keypoints3d.npz`` of the same subject-frames fitted with that
             species' geometry model (:mod:`nsd.io.keypoints`).
         window: fitted frames of the track on either side that vote (0: each frame alone).
+        tracklets: (frame, subject) -> the export's ``tracklet_id``: the votes are the
+            tracklet's, not the whole track's (a forced link may join a biped to a cow);
+            None: the track's.
 
     Returns:
         one :class:`SpeciesChoice` per subject-frame fitted by every species, in
@@ -82,7 +86,7 @@ def choose_species(fits: Mapping[str, str | os.PathLike], window: int = WINDOW
     keys = sorted(k for k, v in loss.items() if len(v) == len(names))
     by_track: dict[int, list[tuple[int, int]]] = defaultdict(list)
     for k in keys:
-        by_track[k[1]].append(k)
+        by_track[k[1] if tracklets is None else tracklets.get(k, -1 - k[1])].append(k)
     chosen = {}
     for frames in by_track.values():  # each frame's body of lowest loss, voted along the track
         own = [min(names, key=lambda s, k=k: loss[k][s]) for k in frames]

@@ -376,7 +376,10 @@ def _keypoints_of_species(models: list[SpeciesModels], invert, export: Path, sce
                  f" ({species_steps} steps, to choose its species)" if short else "")
         per_species[m.species] = invert(m, export, scene, out / m.species / "all", **short)
         fits[m.species] = out / m.species / "all" / "keypoints3d.npz"
-    choices = choose_species(fits)
+    rows = read_embeddings(export, ["frame", "subject_id"], optional=("tracklet_id",))
+    choices = choose_species(fits, tracklets=dict(zip(
+        zip(rows["frame"].tolist(), rows["subject_id"].tolist(), strict=True),
+        rows["tracklet_id"].tolist(), strict=True)) if "tracklet_id" in rows else None)
     write_species_csv(out / "species.csv", choices)
     if not short:
         kept = split_fits(fits, choices, {s: out / s / "keypoints3d.npz" for s in fits})

@@ -54,6 +54,16 @@ def test_each_subject_frame_takes_the_body_that_fits_it_and_one_bad_frame_is_out
             "quadruped": _write(tmp_path / "q2.npz", "quadruped", other)}
     got = [c.species for c in choose_species(fits, window=1)]
     assert got == ["biped"] * 3 + ["quadruped"] * 3
+    # track 4 a biped at frame 0, then forced onto a quadruped (tracklets 7 and 8): voted
+    # along the track the biped's one frame is outvoted, along its tracklet it is not
+    biped = {(t, 4): (0.1 if t == 0 else 0.4) for t in range(0, 60, 10)}
+    quad = {(t, 4): (0.3 if t == 0 else 0.1) for t in range(0, 60, 10)}
+    fits = {"biped": _write(tmp_path / "b3.npz", "biped", biped),
+            "quadruped": _write(tmp_path / "q3.npz", "quadruped", quad)}
+    assert choose_species(fits, window=2)[0].species == "quadruped"
+    pieces = {(t, 4): 7 if t == 0 else 8 for t in range(0, 60, 10)}
+    got = [c.species for c in choose_species(fits, window=2, tracklets=pieces)]
+    assert got == ["biped"] + ["quadruped"] * 5
 
 
 def test_each_species_file_keeps_the_subject_frames_that_took_it(tmp_path):
