@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from netepu.reid.identities import majority_in_window, nearest_in_time
+from netepu.reid.identities import majority_in_window, nearest_in_time, row_groups
 from nsd.core.atomic import atomic_save_npz, atomic_write_text
 
 __all__ = ["SpeciesChoice", "choose_species", "read_species_csv", "species_of_rows",
@@ -146,9 +146,10 @@ def _nearest_choice(out: np.ndarray, owner: np.ndarray, frame: np.ndarray,
     by_owner: dict[int, list[SpeciesChoice]] = defaultdict(list)
     for c, o in owned:
         by_owner[o].append(c)
+    rows_of = dict(row_groups(owner))
     for o, fitted in by_owner.items():
-        rows = np.flatnonzero(owner == o)
-        if not len(rows):
+        rows = rows_of.get(o)
+        if rows is None:
             continue
         fitted.sort(key=lambda c: c.frame)
         pick = nearest_in_time(np.array([c.frame for c in fitted]), frame[rows])

@@ -88,6 +88,7 @@ __all__ = [
     "distinct_in_frames",
     "majority_in_window",
     "nearest_in_time",
+    "row_groups",
     "subject_frames",
     "transfer_identities",
 ]
@@ -297,16 +298,17 @@ def assign_identities(
         cams = np.unique(np.asarray(table["camera"])[valid], return_inverse=True)[1]
         groups = frame[valid] * (cams.max() + 1) + cams
         identity[valid] = _cluster_rows(unit, row_track, groups, k, restarts)
-    for s in tracks:  # uncoded rows of a coded track
-        rows = sid == s
-        gap = rows & ~valid
-        if not gap.any():
+    coded_tracks = set(tracks)
+    for s, rows in row_groups(sid):  # uncoded rows of a coded track
+        if s not in coded_tracks:
+            continue
+        gap, known = rows[~valid[rows]], rows[valid[rows]]
+        if not len(gap):
             continue
         if fill == "tracks":  # the track's most frequent identity
-            identity[gap] = _most_frequent(identity[rows & valid])
+            identity[gap] = _most_frequent(identity[known])
         else:
-            identity[gap] = _nearest_coded(frame[rows & valid], identity[rows & valid],
-                                           frame[gap])
+            identity[gap] = _nearest_coded(frame[known], identity[known], frame[gap])
     if sid is not subject:  # tracklets without a code: their track's, as ``fill`` says
         _fill_from_tracks(identity, subject, frame, fill)
     if method == "subjects":
@@ -444,29 +446,28 @@ def distinct_in_frames(identity: np.ndarray, frame: np.ndarray, subject: np.ndar
     sf_piece[sf_of_row] = piece
     is_coded = np.zeros(len(sf), bool)
     np.logical_or.at(is_coded, sf_of_row, coded)
-    changed = 0
-    dup_frames = [t for t in np.unique(sf[:, 0]) if _has_duplicate(current[sf[:, 0] == t])]
-    if not dup_frames:
+    known = current >= 0
+    pairs, counts = np.unique(np.stack([sf[known, 0], current[known]], 1), axis=0,
+                              return_counts=True)
+    dup_frames = np.unique(pairs[counts > 1, 0])
+    if not len(dup_frames):
         return 0
     support = _support(sf[is_coded, 0], sf_piece[is_coded], current[is_coded])
     track_support = _support(sf[is_coded, 0], sf[is_coded, 1], current[is_coded])
-    for t in dup_frames:
-        items = np.flatnonzero(sf[:, 0] == t)
+    by_sf = np.argsort(sf_of_row, kind="stable")  # the rows of subject-frame j:
+    first = np.searchsorted(sf_of_row[by_sf], np.arange(len(sf) + 1))  # by_sf[first[j]:...]
+    changed = 0
+    for t in dup_frames.tolist():
+        items = np.arange(*np.searchsorted(sf[:, 0], [t, t + 1]))  # sf is sorted by frame
         cost = np.array([[_distance(support, sf_piece[j], i, t, track_support, sf[j, 1])
                           for i in range(k)] for j in items])
-        rows, cols = linear_sum_assignment(cost)
         moved = False
-        for r, c in zip(rows, cols, strict=True):
+        for r, c in zip(*linear_sum_assignment(cost), strict=True):
             if current[items[r]] != c:
-                identity[sf_of_row == items[r]] = c
+                identity[by_sf[first[items[r]]:first[items[r] + 1]]] = c
                 moved = True
         changed += moved
     return changed
-
-
-def _has_duplicate(ids: np.ndarray) -> bool:
-    ids = ids[ids >= 0]
-    return len(ids) != len(np.unique(ids))
 
 
 def _support(frames: np.ndarray, owner: np.ndarray, ids: np.ndarray
@@ -490,6 +491,18 @@ def _distance(support: dict, piece: int, i: int, t: int, track_support: dict,
     return _NO_SUPPORT
 
 
+def row_groups(owner: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """``(owner, its row indices in order)`` for every value of ``owner`` (rows,): one sort,
+    not a scan of all rows per owner (a long recording has thousands of tracklets).
+
+    >>> [(o, r.tolist()) for o, r in row_groups(np.array([3, 1, 3, 2]))]
+    [(1, [1]), (2, [3]), (3, [0, 2])]
+    """
+    order = np.argsort(owner, kind="stable")
+    values, first = np.unique(owner[order], return_index=True)
+    return list(zip(values.tolist(), np.split(order, first[1:]), strict=True))
+
+
 def _fill_from_tracks(identity: np.ndarray, track: np.ndarray, frame: np.ndarray,
                       fill: str) -> None:
     """Rows of a tracklet without a coded row (-1) take, in place, the identity their track
@@ -498,10 +511,12 @@ def _fill_from_tracks(identity: np.ndarray, track: np.ndarray, frame: np.ndarray
     tracker forced links often (real footage whose boxes jump, docs/pipeline.md "At most as
     many tracks as windows"), most tracklets hold no coded frame; the track's forced links
     are right more often than not, and an identity is better than none."""
-    for s in np.unique(track[identity < 0]):
-        rows = track == s
-        known, gap = rows & (identity >= 0), rows & (identity < 0)
-        if not known.any():
+    missing = set(np.unique(track[identity < 0]).tolist())
+    for s, rows in row_groups(track):
+        if s not in missing:
+            continue
+        known, gap = rows[identity[rows] >= 0], rows[identity[rows] < 0]
+        if not len(known):
             continue
         if fill == "tracks":
             identity[gap] = _most_frequent(identity[known])

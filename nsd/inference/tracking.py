@@ -188,7 +188,8 @@ class SubjectTracker:
             self._link(frame, subjects, keys, sim, range(len(self.tracks)), self.min_similarity,
                        out)
             if self.max_tracks is not None and len(self.tracks) >= self.max_tracks:
-                taken = {self._row[i] for i in out.values()}
+                row = {tr.id: r for r, tr in enumerate(self.tracks)}
+                taken = {row[i] for i in out.values()}
                 free = [r for r in range(len(self.tracks)) if r not in taken]
                 left = [k for k in keys if k not in out]
                 if free and left:  # a full house: no new track, the best free one
@@ -205,11 +206,6 @@ class SubjectTracker:
     def _tracklet(self) -> int:
         self._next_tracklet += 1
         return self._next_tracklet - 1
-
-    @property
-    def _row(self) -> dict[int, int]:
-        """Track id -> its row in :attr:`tracks`."""
-        return {tr.id: r for r, tr in enumerate(self.tracks)}
 
     def _link(self, frame: int, subjects: Mapping[int, SubjectObservation], keys: list[int],
               sim: np.ndarray, rows: Sequence[int], floor: float, out: dict[int, int],
