@@ -61,7 +61,7 @@ from nsd.export.subjects import export_subjects
 from nsd.inference.multiview import InferenceSettings
 from nsd.inference.tracking import position_scale
 from nsd.io.background_report import write_background_report
-from nsd.io.embeddings import read_embeddings
+from nsd.io.embeddings import read_embeddings, read_tracklets
 from nsd.io.ground_truth import GroundTruth
 from nsd.io.identities import identity_by_row, write_identities
 from nsd.io.mot import write_identity_tracks
@@ -376,10 +376,7 @@ def _keypoints_of_species(models: list[SpeciesModels], invert, export: Path, sce
                  f" ({species_steps} steps, to choose its species)" if short else "")
         per_species[m.species] = invert(m, export, scene, out / m.species / "all", **short)
         fits[m.species] = out / m.species / "all" / "keypoints3d.npz"
-    rows = read_embeddings(export, ["frame", "subject_id"], optional=("tracklet_id",))
-    choices = choose_species(fits, tracklets=dict(zip(
-        zip(rows["frame"].tolist(), rows["subject_id"].tolist(), strict=True),
-        rows["tracklet_id"].tolist(), strict=True)) if "tracklet_id" in rows else None)
+    choices = choose_species(fits, tracklets=read_tracklets(export))
     write_species_csv(out / "species.csv", choices)
     if not short:
         kept = split_fits(fits, choices, {s: out / s / "keypoints3d.npz" for s in fits})

@@ -48,7 +48,6 @@ one process of two threads 5.9 s (docs/netepu.md).
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -73,6 +72,7 @@ from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
 from nsd.export.parallel import BatchPool
 from nsd.export.positions import triangulate_positions
+from nsd.io.embeddings import read_tracklets
 from nsd.io.footage import footage_frame_rate
 from nsd.io.keypoints import SubjectKeypoints, subject_groups
 from nsd.ops.vectors import unit_vectors
@@ -405,9 +405,7 @@ def _face_travel(fits: list[tuple], export, scene, rig, min_speed: float, fps: f
     d = max(1, round(TRAVEL_SECONDS * rate))
     positions = triangulate_positions(
         export, rig, frames={t + s for t, *_ in fits for s in (-d, d)})
-    coco = json.loads((Path(export) / "subjects.coco.json").read_text())
-    pieces = {(int(a["frame"]), int(a["subject_id"])): int(a["tracklet_id"])
-              for a in coco["annotations"] if "tracklet_id" in a}
+    pieces = read_tracklets(export) or {}
     body = get_species(species)
     left, mirror = body.left_index(), body.mirror_index()
     up = unit_vectors(up)

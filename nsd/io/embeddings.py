@@ -33,7 +33,9 @@ try:  # optional at run time: without pyarrow the table falls back to .npz (modu
 except ImportError:  # pragma: no cover - pyarrow is a core dependency
     pa = pq = None
 
-__all__ = ["EmbeddingWriter", "add_columns", "embeddings_path", "read_embeddings"]
+__all__ = [
+    "EmbeddingWriter", "add_columns", "embeddings_path", "read_embeddings", "read_tracklets",
+]
 
 
 def _have_pyarrow() -> bool:
@@ -178,6 +180,20 @@ def read_embeddings(
         columns = [*columns, *(c for c in optional if c in have)]
     table = pq.read_table(path, columns=columns)
     return {name: _numpy_column(table.column(name)) for name in table.column_names}
+
+
+def read_tracklets(path: str | os.PathLike) -> dict[tuple[int, int], int] | None:
+    """``(frame, subject_id) -> tracklet_id`` of an export's table (the tracker's pieces of
+    each track, :mod:`nsd.inference.tracking`); None where there are none: an export made
+    before tracklets, or a folder without the table."""
+    try:
+        t = read_embeddings(path, ["frame", "subject_id"], optional=("tracklet_id",))
+    except FileNotFoundError:
+        return None
+    if "tracklet_id" not in t:
+        return None
+    keys = zip(t["frame"].tolist(), t["subject_id"].tolist(), strict=True)
+    return dict(zip(keys, t["tracklet_id"].tolist(), strict=True))
 
 
 def add_columns(path: str | os.PathLike, columns: Mapping[str, np.ndarray]) -> Path:

@@ -309,6 +309,18 @@ def _track_table(spec, rng, cameras=("a",)):
     }
 
 
+def _swapped_pair(swap: int, rng) -> tuple[dict, np.ndarray]:
+    """Tracks 1 and 2 over frames 0-39, seen by cameras a and b, swapping individuals (codes
+    e0, e1) at frame ``swap``; codes on every 10th frame. ``(table, truth)``, truth 0 for
+    e0's rows."""
+    a, b = np.eye(8)[0], np.eye(8)[1]
+    spec = [(1, range(swap), a), (1, range(swap, 40), b), (2, range(swap), b),
+            (2, range(swap, 40), a)]
+    table = _track_table(spec, rng, cameras=("a", "b"))
+    table["texture_valid"] = table["frame"] % 10 == 0
+    return table, np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
+
+
 @pytest.mark.parametrize("method", ["subjects", "rows", "tracks"])
 def test_identities_join_tracks_of_one_texture_and_keep_co_visible_tracks_apart(method):
     from netepu.reid.identities import assign_identities
@@ -553,11 +565,7 @@ def test_uncoded_rows_take_their_tracks_identity_at_the_nearest_coded_frame():
     from netepu.reid.identities import assign_identities
 
     rng = np.random.default_rng(4)
-    a, b = np.eye(8)[0], np.eye(8)[1]
-    spec = [(1, range(14), a), (1, range(14, 40), b), (2, range(14), b), (2, range(14, 40), a)]
-    table = _track_table(spec, rng, cameras=("a", "b"))
-    table["texture_valid"] = table["frame"] % 10 == 0
-    truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
+    table, truth = _swapped_pair(14, rng)
     frame = table["frame"]
     # (four coded frames, one pair 25 apart per track, across the swap: too few for
     # method=auto to judge the codes by)
@@ -575,10 +583,7 @@ def test_uncoded_rows_take_their_tracks_identity_at_the_nearest_coded_frame():
     assert {14} <= set(frame[by_tracks != truth].tolist()) <= {14, 15}
     # swapped at frame 24 instead: track 1 is mostly a, track 2 mostly b, no frame holds one
     # identity twice, and ``tracks`` is wrong on the whole stretch after the swap
-    spec = [(1, range(24), a), (1, range(24, 40), b), (2, range(24), b), (2, range(24, 40), a)]
-    table = _track_table(spec, rng, cameras=("a", "b"))
-    table["texture_valid"] = table["frame"] % 10 == 0
-    truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
+    table, truth = _swapped_pair(24, rng)
     by_tracks, summary = assign_identities(table, method="subjects", fill="tracks")
     if (by_tracks[table["frame"] == 0] != truth[table["frame"] == 0]).any():
         truth = 1 - truth
@@ -599,11 +604,7 @@ def test_tracklets_cut_where_the_tracker_forced_a_link_carry_no_identity_across(
     from netepu.reid.identities import assign_identities
 
     rng = np.random.default_rng(4)
-    a, b = np.eye(8)[0], np.eye(8)[1]
-    spec = [(1, range(14), a), (1, range(14, 40), b), (2, range(14), b), (2, range(14, 40), a)]
-    table = _track_table(spec, rng, cameras=("a", "b"))
-    table["texture_valid"] = table["frame"] % 10 == 0
-    truth = np.array([0 if c[0] > 0.5 else 1 for c in table["texture"]])
+    table, truth = _swapped_pair(14, rng)
     frame = table["frame"]
     table["tracklet_id"] = table["subject_id"] * 10 + (frame >= 14)
     near, summary = assign_identities(table, method="subjects", fill="nearest")

@@ -120,6 +120,11 @@ def test_round_trip_equals_model_outputs(trained, tmp_path):
     track_of = {}
     for a in coco.dataset["annotations"]:
         assert track_of.setdefault(a["tracklet_id"], a["subject_id"]) == a["subject_id"]
+    from nsd.io.embeddings import read_tracklets
+
+    assert read_tracklets(s.out) == {(a["frame"], a["subject_id"]): a["tracklet_id"]
+                                     for a in coco.dataset["annotations"]}
+    assert read_tracklets(tmp_path) is None  # no table there
     # tracking.max_tracks=auto: never more tracks than windows (6 frames < max_gap: none closes)
     from nsd.model.checkpoint import load_decomposition
 
