@@ -10,8 +10,12 @@ each camera's true empty backdrop given as a plate, the upper bound) it reports:
 
 * ``bg_wrong``: share of background pixels more than 24 grey levels from the true
   backdrop (the scene's ``gt/background``), mean over cameras;
-* ``uncertain``: share reported as having two stable colours (the scene check warns
-  above 0.5 %);
+* ``uncertain``: share reported as having two stable colours, mean over cameras;
+  ``stayed``: the share of it where something stayed for a stretch of the recording (a
+  clear stay kept, or replaced; ``BackgroundEstimate.stayed``), mean over cameras, and
+  ``warned``: the cameras the scene check warns about (``nsd.io.scene_check.lingered``:
+  with ``modes``, ``stayed`` above 0.5 %; with ``median``, ``uncertain`` above 0.5 %), and
+  ``warned_before``: those it warned about until 2026-12-01 (``uncertain`` above 0.5 %);
 * the hull-only decomposition's visible-mask detection rate (IoU >= 0.5) and mIoU
   (``nsd.evaluation.hull_baseline``, every 3rd frame), while the subject lingers, after,
   and over all frames;
@@ -41,6 +45,7 @@ from nsd.evaluation.hull_baseline import evaluate_hull  # noqa: E402
 from nsd.inference.multiview import InferenceSettings  # noqa: E402
 from nsd.io.footage import MultiViewFootage  # noqa: E402
 from nsd.io.ground_truth import GroundTruth  # noqa: E402
+from nsd.io.scene_check import LINGER_SHARE, lingered  # noqa: E402
 from nsd.io.scene_data import SceneData  # noqa: E402
 from nsd.io.scenes import resolve_scene  # noqa: E402
 from tools.benchlib import write_report  # noqa: E402
@@ -131,8 +136,8 @@ def main() -> None:
             data = SceneData(where, (128, 128), val_fraction=0.0,
                              background="median" if method == "plate" else method)
             fp = data.footage
-            uncertain = float(np.mean([fp.background_estimate(v).uncertain_share
-                                       for v in range(fp.num_views)]))
+            est = [fp.background_estimate(v) for v in range(fp.num_views)]
+            uncertain = float(np.mean([e.uncertain_share for e in est]))
             grid = InferenceSettings.defaults().grid(data.rig, data.frame_hw)
             T = len(data.frames)
             split = round(split_at * T)  # a twin is split where its lingering scene is
@@ -141,6 +146,10 @@ def main() -> None:
             row = {"scene": name, "background": method,
                    "bg_wrong": round(_bg_wrong(data, scene), 4),
                    "uncertain": round(uncertain, 4)}
+            if method != "plate":  # a plate is the background: nothing uncertain, no warning
+                row |= {"stayed": round(float(np.mean([e.stayed_share for e in est])), 4),
+                        "warned": sum(lingered(e, method) for e in est),
+                        "warned_before": sum(e.uncertain_share > LINGER_SHARE for e in est)}
             for part, frames in parts.items():
                 if not len(frames):
                     continue
@@ -151,8 +160,12 @@ def main() -> None:
             print(row, flush=True)
     notes = (
         "`bg_wrong`: share of background pixels more than 24 grey levels from the true "
-        "backdrop (mean over the 4 cameras). `uncertain`: share with two stable colours "
-        "(the scene check warns above 0.5 %). Detection and mIoU: the hull-only "
+        "backdrop (mean over the 4 cameras). `uncertain`: share with two stable colours; "
+        "`stayed`: the share of it where something stayed for a stretch (a clear stay kept, "
+        "or replaced), both means over the cameras; `warned`: the cameras the scene check "
+        "warns about (with `modes` those whose `stayed` exceeds 0.5 %, with `median` those "
+        "whose `uncertain` does); `warned_before`: those it warned about until 2026-12-01 "
+        "(`uncertain` above 0.5 %, either method). Detection and mIoU: the hull-only "
         "decomposition (no learning; every 3rd frame), split into the frames while the "
         "first individual lingers and after it left, and over all frames (`_all`). "
         "`plate`: each camera's true empty backdrop given as "

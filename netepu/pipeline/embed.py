@@ -113,15 +113,16 @@ def embed_export(
     row_ids = read_embeddings(table, columns=["id"])["id"].astype(np.int64)
     codes = np.full((len(row_ids), texture.cfg.latent), np.nan, np.float32)
     reid = np.full((len(row_ids), texture.cfg.reid_dims), np.nan, np.float32)
-    todo = [k for k, i in enumerate(row_ids) if int(i) in index and (kps is None or int(i) in kps)]
-    skipped = len(row_ids) - len(todo)
-    if skipped:
-        log.warning(
-            "%d of %d rows have no crop%s; their codes are NaN",
-            skipped,
-            len(row_ids),
-            " or keypoints" if texture.cfg.use_nnopcs else "",
-        )
+    cropped = [k for k, i in enumerate(row_ids) if int(i) in index]
+    todo = [k for k in cropped if kps is None or int(row_ids[k]) in kps]
+    if len(cropped) < len(row_ids):  # the export writes a crop for every row it keeps
+        log.warning("%d of %d rows have no crop; their codes are NaN",
+                    len(row_ids) - len(cropped), len(row_ids))
+    if len(todo) < len(cropped):  # keypoints are fitted on every frame_step-th frame only
+        log.info("%d of %d rows with a crop have no 3D keypoints (nsd-run fits them on every "
+                 "netepu.keypoints.frame_step-th frame); their codes are NaN (nsd-run's "
+                 "identities carry the coded rows' along each tracklet)",
+                 len(cropped) - len(todo), len(cropped))
     read: dict[str, list] = {"id": [], "rgb": [], "inside": [], "surface": []}
     batch = _Batcher(texture, geometry, crops, index, kps, rig, calibration)
     for s in range(0, len(todo), batch_size):

@@ -149,6 +149,7 @@ def _load_stage(path: Path) -> Stage:
             )
         shutil.copyfile(path, out / "checkpoint.pt")
         return {"checkpoint": "checkpoint.pt", "steps": int(state.get("step", 0)),
+                "num_windows": config.get("model", {}).get("num_windows"),
                 "loaded_from": str(path)}  # fmt: skip
 
     return Stage("train", run, settings, needs=("scene",))
@@ -177,9 +178,11 @@ def train_stage(cfg: DictConfig, ground_truth: bool) -> Stage:
             shutil.move(str(item), out / item.name)
         work.rmdir()
 
+        state = load_checkpoint(out / "checkpoint.pt")
         return {
             "checkpoint": "checkpoint.pt",
-            "steps": int(load_checkpoint(out / "checkpoint.pt").get("step", 0)),
+            "steps": int(state.get("step", 0)),
+            "num_windows": state["config"]["model"]["num_windows"],  # as settled (auto)
             "metrics": {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)},
         }
 
@@ -703,16 +706,24 @@ def formats_stage(cfg: DictConfig, have_identities: bool, keypoints: list[str]) 
                  why_disabled="formats.enabled=false or formats.which=[]")
 
 
+def _told_individuals(checkpoint: Path) -> int | None:
+    """The individuals the decomposition was told there are: its windows (as trained, after
+    ``num_windows: auto`` was settled), or None where they were an upper bound (presence)."""
+    model = (load_checkpoint(checkpoint).get("config") or {}).get("model", {})
+    if model.get("detector", {}).get("presence") or "num_windows" not in model:
+        return None
+    return int(model["num_windows"])
+
+
 def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
     """A label-free quality report of the export (nsd.evaluation.quality): how much of the
     moving foreground the masks explain, whether the other cameras confirm them, how stable
     the identities are, with image grids of the worst frames; its warnings go to the log."""
     q = cfg.quality
-    model = cfg.train.model
-    known = None if model.detector.presence else int(model.num_windows)  # else a bound
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         export, scene = up["export"].folder, up["scene"].summary["path"]
+        known = _told_individuals(_checkpoint(up))
         ids = identity_by_row(up["identities"].folder / "identities.csv") if have_identities \
             else None
         w, h = cfg.train.data.image_size
@@ -741,10 +752,10 @@ def quality_stage(cfg: DictConfig, have_identities: bool) -> Stage:
                 "files": [f.name for f in files]}
 
     return Stage("quality", run, {**_container(q), "identities": have_identities,
-                                  "grid_size": cfg.grids.size, "individuals": known,
+                                  "grid_size": cfg.grids.size,
                                   "hull": [int(cfg.train.prior_proposal.resolution),
                                            _container(cfg.train.prior_proposal.min_views)]},
-                 needs=("scene", "export", "identities"), enabled=bool(q.enabled),
+                 needs=("scene", "train", "export", "identities"), enabled=bool(q.enabled),
                  why_disabled="quality.enabled=false")
 
 

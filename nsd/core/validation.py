@@ -160,7 +160,7 @@ RULES: dict[str, dict[str, Rule]] = {
              "cameras": _r("any"), "scene": NULL_TEXT, "same_view": FRACTION, "units": UNITS,
              "frame_stride": POS, "background": BACKGROUND},
     "model": {
-        "num_windows": POS, "crop_size": _r("int", low=4), "mode": _r(
+        "num_windows": _r("int", low=1, allow=("auto",)), "crop_size": _r("int", low=4), "mode": _r(
             "str", choices=("bi_nvs", "autoencoder")),
         "association_dims": POS, "association_unit": RATE, "mask_floor": RATE,
         "mask_pool": _r("int", low=1, odd=True), "mask_normalisation": _r(

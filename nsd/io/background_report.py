@@ -1,11 +1,13 @@
 """The background report of a run: what each camera's background is and where it is unsure.
 
 For every camera, ``<camera>.png`` (the background the decomposition compares frames
-with), ``<camera>.uncertain.png`` (the frame at half brightness, pixels with two stable
-colours over the recording in red, those where the second colour was taken in yellow),
-and one ``report.json`` with the shares (:class:`nsd.cues.background.BackgroundEstimate`).
-A large uncertain share means a subject stayed in place for part of the recording: the
-scene check warns about it by camera (:mod:`nsd.io.scene_check`).
+with), ``<camera>.uncertain.png`` (the frame at half brightness; in red the pixels where
+something stayed for a stretch of the recording and its colour was kept, in yellow those
+where the colour of the frames without it was taken, in blue the other uncertain pixels,
+where subjects pass in most frames), and one ``report.json`` with the shares
+(:class:`nsd.cues.background.BackgroundEstimate`). A large share of stays means a subject
+stayed in place for part of the recording: the scene check warns about it by camera
+(:mod:`nsd.io.scene_check`).
 """
 
 from __future__ import annotations
@@ -24,22 +26,26 @@ from nsd.cues.background import BackgroundEstimate
 
 __all__ = ["uncertainty_image", "write_background_report"]
 
-UNCERTAIN = (255, 40, 40)  # RGB of pixels with two stable colours, the first kept
-REPLACED = (255, 220, 0)  # RGB of those where the second colour was taken
+STAYED = (255, 40, 40)  # RGB of pixels where something stayed, its colour kept
+REPLACED = (255, 220, 0)  # RGB of those where the colour of the frames without it was taken
+PASSING = (60, 120, 255)  # RGB of the other uncertain pixels: subjects pass in most frames
 
 
-def uncertainty_image(background: np.ndarray, uncertain: np.ndarray,
-                      replaced: np.ndarray) -> np.ndarray:
+def uncertainty_image(background: np.ndarray, uncertain: np.ndarray, replaced: np.ndarray,
+                      stayed: np.ndarray) -> np.ndarray:
     """The background at half brightness with its uncertain pixels coloured: (H, W, 3) uint8.
 
     Example:
-        >>> img = uncertainty_image(np.full((1, 2, 3), 100, np.uint8),
-        ...                         np.array([[True, False]]), np.array([[False, False]]))
+        >>> no = np.array([[False, False, False]])
+        >>> img = uncertainty_image(np.full((1, 3, 3), 100, np.uint8),
+        ...                         np.array([[True, True, False]]), no,
+        ...                         np.array([[True, False, False]]))
         >>> img[0].tolist()
-        [[255, 40, 40], [50, 50, 50]]
+        [[255, 40, 40], [60, 120, 255], [50, 50, 50]]
     """
     out = background // 2
-    out[uncertain & ~replaced] = UNCERTAIN
+    out[uncertain] = PASSING
+    out[stayed] = STAYED
     out[replaced] = REPLACED
     return out
 
@@ -65,7 +71,7 @@ def write_background_report(
 
     Returns:
         what ``report.json`` holds: per camera ``plate`` (its file or None),
-        ``uncertain`` and ``replaced`` shares.
+        ``uncertain``, ``stayed`` and ``replaced`` shares.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -73,10 +79,11 @@ def write_background_report(
     for cam, est in estimates.items():
         _png(out / f"{cam}.png", est.image)
         _png(out / f"{cam}.uncertain.png",
-             uncertainty_image(est.image, est.uncertain, est.replaced))
+             uncertainty_image(est.image, est.uncertain, est.replaced, est.stayed))
         report["cameras"][cam] = {
             "plate": plates.get(cam),
             "uncertain": round(est.uncertain_share, 6),
+            "stayed": round(est.stayed_share, 6),
             "replaced": round(float(est.replaced.mean()), 6),
             "samples": est.samples,
         }

@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 BACKGROUND_SAMPLES = 50  # frames in the per-camera median background (NSD: 50)
+BACKGROUND_CACHE = 2  # the cached estimates' format (2: the stays in their own mask level)
 # cameras whose frame counts differ by at most this many are trimmed to the shortest (with a
 # warning: camera software often drops the last frame); a larger difference is an error
 MAX_FRAME_TRIM = 10
@@ -473,7 +474,8 @@ class MultiViewFootage:
         plate = self.plate(v)
         src = self.sources[v] if plate is None else plate
         method = "median" if plate is not None else self.background_method
-        key = hashlib.sha1(f"{src.signature()}:{num_samples}:{method}".encode()).hexdigest()[:16]
+        key = hashlib.sha1(f"{src.signature()}:{num_samples}:{method}:{BACKGROUND_CACHE}"
+                           .encode()).hexdigest()[:16]
         path = self.cache_dir / "background" / f"{src.camera}.{key}.png"
         mask_path = path.with_suffix(".uncertain.png")
         meta_path = path.with_suffix(".json")
@@ -486,7 +488,8 @@ class MultiViewFootage:
                 meta = None
             if img is not None and mask is not None and meta is not None:
                 return BackgroundEstimate(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), mask >= 128,
-                                          mask == 255, int(meta.get("samples", 0)))
+                                          mask == 255, int(meta.get("samples", 0)),
+                                          mask >= 224)
         idx = np.unique(np.linspace(0, src.num_frames - 1, num_samples).round().astype(int))
         stack = np.stack([src.read(int(t)) for t in idx])
         est = estimate_background(stack, method)
@@ -494,8 +497,10 @@ class MultiViewFootage:
             est.uncertain[:] = False
         try:
             ok, buf = cv2.imencode(".png", cv2.cvtColor(est.image, cv2.COLOR_RGB2BGR))
-            # 255: uncertain, second colour taken; 192: uncertain, first colour kept
-            mask = (est.uncertain * 192 + est.replaced * 63).astype(np.uint8)
+            # 255: uncertain, second colour taken (a stay); 224: a stay, first colour kept;
+            # 192: uncertain, no stay
+            mask = np.select([est.replaced, est.stayed, est.uncertain], [255, 224, 192],
+                             0).astype(np.uint8)
             ok_mask, buf_mask = cv2.imencode(".png", mask)
             if ok and ok_mask:
                 atomic_write_bytes(path, buf.tobytes())

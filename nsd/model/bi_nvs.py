@@ -70,7 +70,7 @@ class BiNVSConfig(ConfigSection):
         {"detector", "encoder", "decoder", "mask_refiner", "depth_from_step", "reinit_at_depth"}
     )  # keys of the section read by other objects
 
-    num_windows: int  # N: subjects per frame (an upper bound when presence is on)
+    num_windows: int | str  # N: subjects per frame (an upper bound when presence is on); auto
     crop_size: int  # h = w of the window crops
     focal: bool  # focal spatial transformer (False: classical, for the ablation)
     depth: bool  # erf-transmittance compositor (False: additive eq. 6, ablation)
@@ -91,8 +91,9 @@ class BiNVSConfig(ConfigSection):
     presence_gate: str
 
     def validate(self) -> None:
-        if self.num_windows < 1:
-            raise ConfigError(f"model.num_windows must be >= 1, got {self.num_windows}")
+        k = self.num_windows  # auto: settled for a scene (nsd.training.window_count)
+        if k != "auto" and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+            raise ConfigError(f"model.num_windows must be auto or an integer >= 1, got {k!r}")
         if self.mode not in ("bi_nvs", "autoencoder"):
             raise ConfigError(f"model.mode must be 'bi_nvs' or 'autoencoder', got {self.mode!r}")
         if self.mask_normalisation not in MASK_NORMALISATIONS:

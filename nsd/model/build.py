@@ -29,6 +29,9 @@ def build_model(model_cfg: Mapping[str, Any]) -> BiNVS:
     checkpoints written before it existed, has none)."""
     m = dict(model_cfg)
     cfg = BiNVSConfig.from_config(m)
+    if cfg.num_windows == "auto":
+        raise ConfigError("model.num_windows=auto is chosen for a scene when training starts "
+                          "(nsd.training.window_count); give a number to build a model alone")
     det, enc, dec = _section(m, "detector"), _section(m, "encoder"), _section(m, "decoder")
     for name, widths, size in (
         ("detector", det["widths"], det["input_size"]),

@@ -58,6 +58,7 @@ from nsd.priors.presence import (
 from nsd.priors.proposal import association_prior, proposal_prior
 from nsd.priors.window import aspect_prior, position_prior, presence_prior, scale_prior
 from nsd.training.losses import total_image_loss
+from nsd.training.window_count import settle_window_count
 
 __all__ = ["NSDTask"]
 
@@ -101,6 +102,8 @@ class NSDTask:
     ) -> None:
         self.cfg, self.data, self.gt = cfg, data, gt
         self.device = torch.device("cpu") if device is None else device
+        declared = len(gt.scene.individuals) if gt is not None else None
+        settle_window_count(cfg, data, declared, data.footage.scene.name)  # before the networks
         self.cameras = data.cameras.to(self.device)
         self.model = build_model(OmegaConf.to_container(cfg.model, resolve=True)).to(self.device)
         self.depth_from = int(cfg.model.depth_from_step)

@@ -31,8 +31,10 @@ KNOBS = {
 
 
 def _cfg(overrides: list[str]):
+    """The config with ``overrides``; ``model.num_windows`` the count ``auto`` settles on for
+    the default scene (2), so that a model can be built without a scene."""
     with initialize_config_module("nsd.conf", version_base="1.3"):
-        return compose("train", overrides=overrides)
+        return compose("train", overrides=["model.num_windows=2", *overrides])
 
 
 def _flat(d, prefix=""):

@@ -64,6 +64,7 @@ def test_tiny_run_then_rerun_does_no_work(tiny_run, monkeypatch):
     assert img.shape == (2 + 2 * 38, 2 + 4 * 50, 3)
     record = json.loads((out / "pipeline.json").read_text())
     assert record["train"]["status"] == "ran" and record["evaluate"]["status"] == "disabled"
+    assert record["train"]["summary"]["num_windows"] == 2  # the windows trained, said
 
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
 
@@ -94,6 +95,7 @@ def test_a_trained_decomposition_is_loaded_instead_of_trained(tiny_run, tmp_path
     ckpt = first / "train" / "checkpoint.pt"
     res = run_pipeline(_cfg(tiny_scene, tmp_path / "run", f"checkpoint={ckpt}"))
     assert res["train"].summary["loaded_from"] == str(ckpt)
+    assert res["train"].summary["num_windows"] == 2
     assert (tmp_path / "run" / "train" / "checkpoint.pt").read_bytes() == ckpt.read_bytes()
     a = json.loads((first / "export" / "subjects.coco.json").read_text())["annotations"]
     b = json.loads((tmp_path / "run" / "export" / "subjects.coco.json").read_text())["annotations"]

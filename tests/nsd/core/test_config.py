@@ -119,11 +119,13 @@ def test_python_and_cli_build_the_same_model(cli_configs):
     """The model built from the CLI's model config and from the Python defaults is one model."""
     cli_model = OmegaConf.create(cli_configs["train"]).model
     py_model = compose_app("train").model
+    assert cli_model.num_windows == py_model.num_windows == "auto"  # settled for a scene
+    cli_model.num_windows = py_model.num_windows = 2
     torch.manual_seed(0)
     a = build_model(OmegaConf.to_container(cli_model, resolve=True))
     torch.manual_seed(0)
     b = build_model(OmegaConf.to_container(py_model, resolve=True))
-    assert a.cfg == b.cfg == BiNVSConfig.defaults()
+    assert a.cfg == b.cfg == BiNVSConfig.defaults(num_windows=2)
     sa, sb = a.state_dict(), b.state_dict()
     assert sa.keys() == sb.keys()
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
@@ -147,8 +149,12 @@ def test_overrides_and_bad_keys_name_the_key():
     del full["mask_floor"]
     with pytest.raises(ConfigError, match=r"model: missing keys \['mask_floor'\]"):
         BiNVSConfig.from_config(full)
-    with pytest.raises(ConfigError, match=r"model\.num_windows must be >= 1"):
-        BiNVSConfig.defaults(num_windows=0)
+    for bad in (0, "some", True, 2.5):
+        with pytest.raises(ConfigError, match=r"model\.num_windows must be auto or an integer"):
+            BiNVSConfig.defaults(num_windows=bad)
+    assert BiNVSConfig.defaults().num_windows == "auto"
+    with pytest.raises(ConfigError, match=r"num_windows=auto is chosen for a scene"):
+        build_model(OmegaConf.to_container(compose_app("train").model, resolve=True))
 
 
 def test_default_mapping_is_a_fresh_copy():

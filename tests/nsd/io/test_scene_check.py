@@ -49,12 +49,15 @@ def test_a_file_that_is_not_an_image_is_named(tiny_scene):
         check_scene(tiny_scene)
 
 
-def test_a_calibration_in_millimetres_is_converted_and_said(tiny_scene):
+def test_a_calibration_in_millimetres_is_converted_and_said(tiny_scene, caplog):
     p = tiny_scene / "calibration.toml"
     p.write_text(p.read_text().replace("translation = [0.0, 0.0, 4.0]",
                                        "translation = [0.0, 0.0, 4000.0]"))
-    check = check_scene(tiny_scene)
+    with caplog.at_level("WARNING"):
+        check = check_scene(tiny_scene)
     assert any(re.search(r"5657 units apart, read as millimetres", w) for w in check.warnings)
+    said = [r for r in caplog.records if "read as millimetres" in r.getMessage()]
+    assert len(said) == 1, [r.getMessage() for r in said]  # once, not again by the check
     assert check.camera_spacing == pytest.approx(5.657, abs=1e-3)
     with pytest.raises(CalibrationError, match=r"5657 m apart.*units=mm"):
         check_scene(tiny_scene, units="m")  # the user says metres: refused, with what to do

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import torch
@@ -220,16 +222,40 @@ def test_hull_proposals_cluster_by_the_inference_mixture_keys(tiny_data, monkeyp
     assert len(seen) == 1
 
 
-def _warnings_of_one_step(scene, out, caplog, *overrides: str) -> list[str]:
-    """The warnings ``nsd.training.train.train`` logs for one step on ``scene`` with the tiny
-    config and ``overrides``."""
+def _one_step(scene, out, caplog, *overrides: str, level: str = "WARNING"
+              ) -> tuple[list[str], dict]:
+    """What ``nsd.training.train.train`` logs at ``level`` and above (its window count's
+    messages included) for one step on ``scene`` with the tiny config and ``overrides``, and
+    the checkpoint's config."""
+    from nsd.core.trainer import load_checkpoint
     from nsd.training.train import train
 
     cfg = tiny_cfg(f"data.scene={scene}", "trainer.max_steps=1", "trainer.progress=false",
                    "trainer.checkpoint_every=0", *overrides)
-    with caplog.at_level("WARNING", logger="nsd.training.train"):
+    with caplog.at_level(level, logger="nsd.training"):
         train(cfg, out)
-    return [r.getMessage() for r in caplog.records]
+    return ([r.getMessage() for r in caplog.records if r.levelno >= getattr(logging, level)],
+            load_checkpoint(out / "checkpoint.pt")["config"])
+
+
+def _warnings_of_one_step(scene, out, caplog, *overrides: str) -> list[str]:
+    return _one_step(scene, out, caplog, *overrides)[0]
+
+
+def _three_apart(tmp_path, frames: int = 80):
+    """Three individuals walking apart, 4 cameras, 64 x 64, the ground truth removed (as
+    footage): the hull shows 3 bodies (nsd.cues.count) when there are 60 frames or more."""
+    import shutil
+
+    from nsd.synth import tiny_config, write_scene
+
+    scene = write_scene(tiny_config(
+        num_individuals=3, num_frames=frames, image_size=[64, 64],
+        rig={"kind": "ring", "count": 4, "radius": 4.0, "height": 2.0, "fov_deg": 50.0,
+             "start_deg": 30.0},
+        motion={"interaction": "free", "area_radius": 1.5}), tmp_path / "scene")
+    shutil.rmtree(scene / "gt")
+    return scene
 
 
 @pytest.mark.parametrize(("overrides", "warned"), [
@@ -253,18 +279,7 @@ def test_a_window_count_other_than_the_declared_individuals_warns_before_trainin
 @pytest.mark.parametrize(("windows", "warned"), [(2, True), (3, False)])
 def test_footage_whose_hull_shows_more_bodies_than_windows_warns_before_training(
         windows, warned, tmp_path, caplog):
-    """Three individuals walking apart, 4 cameras, 80 frames, the ground truth removed (as
-    footage): the hull shows 3 bodies (nsd.cues.count)."""
-    import shutil
-
-    from nsd.synth import tiny_config, write_scene
-
-    scene = write_scene(tiny_config(
-        num_individuals=3, num_frames=80, image_size=[64, 64],
-        rig={"kind": "ring", "count": 4, "radius": 4.0, "height": 2.0, "fov_deg": 50.0,
-             "start_deg": 30.0},
-        motion={"interaction": "free", "area_radius": 1.5}), tmp_path / "scene")
-    shutil.rmtree(scene / "gt")
+    scene = _three_apart(tmp_path)
     said = [m for m in _warnings_of_one_step(scene, tmp_path / "run", caplog,
                                              "data.image_size=[64,64]", "eval_frames=0",
                                              f"model.num_windows={windows}")
@@ -272,3 +287,39 @@ def test_footage_whose_hull_shows_more_bodies_than_windows_warns_before_training
     assert bool(said) == warned, said
     if warned:
         assert "shows 3 separate bodies" in said[0] and "model.num_windows=2" in said[0]
+
+
+def test_auto_windows_are_the_individuals_the_scene_declares(tmp_path, caplog):
+    """``num_windows=auto`` on a scene of one individual: one window, kept in the checkpoint
+    (what export and evaluation build the model from), said where it came from, no warning."""
+    from nsd.synth import tiny_config, write_scene
+
+    scene = write_scene(tiny_config(num_individuals=1), tmp_path / "scene")
+    said, config = _one_step(scene, tmp_path / "run", caplog, "data.image_size=[48,48]",
+                             "model.num_windows=auto", level="INFO")
+    assert config["model"]["num_windows"] == 1
+    assert any("num_windows=auto: 1, the individuals the scene declares" in m for m in said)
+    assert not [m for m in said if "declares 1 individual " in m]  # the count warning
+
+
+@pytest.mark.parametrize(("frames", "windows", "why"), [
+    (80, 3, "the visual hull shows 3 separate bodies"),
+    (40, 2, "too few frames or cameras"),  # too short to count: the floor
+])
+def test_auto_windows_on_footage_are_the_bodies_the_hull_shows(frames, windows, why, tmp_path,
+                                                                caplog):
+    scene = _three_apart(tmp_path, frames)
+    said, config = _one_step(scene, tmp_path / "run", caplog, "data.image_size=[64,64]",
+                             "eval_frames=0", "model.num_windows=auto", level="INFO")
+    assert config["model"]["num_windows"] == windows
+    assert any(f"num_windows=auto: {windows}, {why}" in m for m in said), said
+
+
+def test_a_window_count_that_is_no_count_is_refused_before_training(tiny_data):
+    from nsd.core.errors import ConfigError
+
+    for bad in ("some", "0", "true"):
+        with pytest.raises(ConfigError, match=r"model\.num_windows must be auto or an integer"):
+            NSDTask(tiny_cfg(f"model.num_windows={bad}"), tiny_data)
+
+
