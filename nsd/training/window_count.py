@@ -3,17 +3,18 @@
 NSD's windows are a fixed count (or, with presence learned, an upper bound) that the networks
 are built with. Fewer windows than individuals each hold several bodies, more cut bodies in
 pieces, in every camera alike, and no label-free figure of the run sees it (a consistent
-merge looks like a good run: docs/nsd.md, "How many windows").
+merge looks like a good run: docs/nsd.md, "How many individuals the hull shows").
 
 ``model.num_windows: auto`` (the default) takes, before the networks are built,
 
 1. the individuals the scene declares (``gt/scene.json`` of an ``nsd-synth`` scene: what a
    user who recorded three mice knows);
 2. else, on footage long and wide enough to count (:func:`nsd.cues.count.countable`), the
-   separate bodies its visual hull shows (:func:`nsd.cues.count.scene_bodies`), but at
-   least ``MIN_AUTO_WINDOWS``: the hull's count is a lower bound (bodies that touch are one
-   blob), and two windows were the fixed default before ``auto``;
-3. else ``MIN_AUTO_WINDOWS``.
+   separate bodies its visual hull shows (:func:`nsd.cues.count.scene_bodies`; at least 1).
+   The count is a lower bound: bodies that touch are one blob, so a pair that touches in
+   nine frames of ten counts as one; a single performer given two windows is split between
+   them in every camera alike (docs/pipeline.md, the Pose2Sim single-person demo);
+3. else ``UNCOUNTED_WINDOWS``, the fixed default before ``auto``.
 
 A number is kept as given and checked the same way: a count other than the declared one, or
 below the bodies the hull shows, warns before training, naming the key to set.
@@ -30,16 +31,16 @@ from nsd.core.errors import ConfigError
 from nsd.cues.count import countable
 from nsd.io.scene_data import SceneData
 
-__all__ = ["AUTO", "MIN_AUTO_WINDOWS", "hull_count_warning", "settle_window_count",
+__all__ = ["AUTO", "UNCOUNTED_WINDOWS", "hull_count_warning", "settle_window_count",
            "window_count_warning"]
 
 log = logging.getLogger(__name__)
 
 AUTO = "auto"
-# auto never chooses fewer windows than this where nothing declares the count: the hull's
-# count is a lower bound (docs/benchmarks/hull_count.md: right on 21 of 24 scenes, fewer on 3,
-# never more), and 2 was the fixed default before auto
-MIN_AUTO_WINDOWS = 2
+# auto's windows where nothing declares the count and the hull cannot count the bodies (too
+# few frames or cameras): the fixed default before auto. (Where it counts, the hull's count:
+# docs/benchmarks/hull_count.md, right on 21 of 24 scenes, fewer on 3, never more.)
+UNCOUNTED_WINDOWS = 2
 
 
 def window_count_warning(num_windows: int, presence: bool, individuals: int) -> str | None:
@@ -114,12 +115,12 @@ def settle_window_count(cfg: DictConfig, data: SceneData, individuals: int | Non
             k, source = int(individuals), "the individuals the scene declares (gt/scene.json)"
         elif countable(data.frames.shape[0], data.num_views):
             bodies = _hull_bodies(cfg, data)[0]
-            k = max(MIN_AUTO_WINDOWS, bodies)
-            source = (f"the visual hull shows {bodies} separate bodies (a lower bound where "
-                      f"bodies touch), at least {MIN_AUTO_WINDOWS}")
+            k = max(1, bodies)
+            source = (f"the visual hull shows {bodies} separate bod{'ies' if bodies != 1 else 'y'}"
+                      " (a lower bound: bodies that touch are one)")
         else:
-            k, source = MIN_AUTO_WINDOWS, ("too few frames or cameras for the visual hull to "
-                                           "count the bodies")
+            k, source = UNCOUNTED_WINDOWS, ("too few frames or cameras for the visual hull to "
+                                            "count the bodies")
         cfg.model.num_windows = k
         log.info("%smodel.num_windows=auto: %d, %s; give the number of individuals "
                  "(model.num_windows=N) if you know it", where, k, source)

@@ -261,7 +261,7 @@ def test_a_crowded_spot_is_reported_but_not_warned_about(tiny_scene, tmp_path):
     scene = _scene(tiny_scene, range(0))
     for cam in ("left", "right"):
         rng = np.random.default_rng(3)
-        for t, f in enumerate(sorted((scene / cam).glob("*.png"))):
+        for f in sorted((scene / cam).glob("*.png")):
             img = cv2.imread(str(f))
             img[8:16, 6:14] = rng.integers(0, 255, 3)  # someone else there in every frame
             cv2.imwrite(str(f), img)

@@ -242,15 +242,15 @@ def _warnings_of_one_step(scene, out, caplog, *overrides: str) -> list[str]:
     return _one_step(scene, out, caplog, *overrides)[0]
 
 
-def _three_apart(tmp_path, frames: int = 80):
-    """Three individuals walking apart, 4 cameras, 64 x 64, the ground truth removed (as
-    footage): the hull shows 3 bodies (nsd.cues.count) when there are 60 frames or more."""
+def _three_apart(tmp_path, frames: int = 80, individuals: int = 3):
+    """Three (``individuals``) walking apart, 4 cameras, 64 x 64, the ground truth removed
+    (as footage): the hull shows 3 bodies (nsd.cues.count) when there are 60 frames or more."""
     import shutil
 
     from nsd.synth import tiny_config, write_scene
 
     scene = write_scene(tiny_config(
-        num_individuals=3, num_frames=frames, image_size=[64, 64],
+        num_individuals=individuals, num_frames=frames, image_size=[64, 64],
         rig={"kind": "ring", "count": 4, "radius": 4.0, "height": 2.0, "fov_deg": 50.0,
              "start_deg": 30.0},
         motion={"interaction": "free", "area_radius": 1.5}), tmp_path / "scene")
@@ -302,13 +302,14 @@ def test_auto_windows_are_the_individuals_the_scene_declares(tmp_path, caplog):
     assert not [m for m in said if "declares 1 individual " in m]  # the count warning
 
 
-@pytest.mark.parametrize(("frames", "windows", "why"), [
-    (80, 3, "the visual hull shows 3 separate bodies"),
-    (40, 2, "too few frames or cameras"),  # too short to count: the floor
+@pytest.mark.parametrize(("frames", "individuals", "windows", "why"), [
+    (80, 3, 3, "the visual hull shows 3 separate bodies"),
+    (80, 1, 1, "the visual hull shows 1 separate body"),  # one window for one performer
+    (40, 3, 2, "too few frames or cameras"),  # too short to count: the default before auto
 ])
-def test_auto_windows_on_footage_are_the_bodies_the_hull_shows(frames, windows, why, tmp_path,
-                                                                caplog):
-    scene = _three_apart(tmp_path, frames)
+def test_auto_windows_on_footage_are_the_bodies_the_hull_shows(frames, individuals, windows,
+                                                                why, tmp_path, caplog):
+    scene = _three_apart(tmp_path, frames, individuals)
     said, config = _one_step(scene, tmp_path / "run", caplog, "data.image_size=[64,64]",
                              "eval_frames=0", "model.num_windows=auto", level="INFO")
     assert config["model"]["num_windows"] == windows
