@@ -193,7 +193,7 @@ def _rate(name: str, fn, flops_fn=None) -> dict:
 def hot_loops(peak: float) -> list[dict]:
     from nsd.model.build import build_model
 
-    cfg = _compose("train", [])
+    cfg = _compose("train", ["model.num_windows=2"])  # what auto settles on the default scene
     model = build_model(dict(_to_container(cfg.model)))
     crops = 2 * 2 * int(cfg.batch_size) * int(cfg.model.num_windows)  # windows of a step
     c = int(cfg.model.crop_size)

@@ -335,11 +335,12 @@ def quality_markdown(report: QualityReport, worst: list[int]) -> str:
         value = s.get(key, float("nan"))
         lines.append(f"| {key} | {value:.3f} | {side} {limit} |")
     bodies, named = s.get("hull_bodies", float("nan")), s.get("individuals", float("nan"))
-    lines += ["", (f"The visual hull shows at least {bodies:.0f} separate bodies"
+    lines += ["", (f"The visual hull shows at least {bodies:.0f} separate "
+                   f"bod{'y' if bodies == 1 else 'ies'}"
                    if np.isfinite(bodies) else "The visual hull's bodies were not counted "
                    "(footage too short or too few cameras)")
-              + (f"; the identities name {named:.0f} individuals." if np.isfinite(named)
-                 else "."),
+              + (f"; the identities name {named:.0f} individual{'' if named == 1 else 's'}."
+                 if np.isfinite(named) else "."),
               "", "| camera | explained | consistency |", "|---|---|---|"]
     lines += [f"| {c} | {s[f'explained/{c}']:.3f} | {s[f'consistency/{c}']:.3f} |"
               for c in report.cameras]

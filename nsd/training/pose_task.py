@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 from nsd.core.device import move
 from nsd.core.errors import ConfigError
+from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.pose import mpjpe
 from nsd.inference.multiview import InferenceSettings, decompose_views, model_scene_track
 from nsd.model.build import build_model
@@ -54,6 +55,12 @@ class PoseTask:
             raise ConfigError("stage=pose needs init_from=<decomposition checkpoint.pt>")
         self.cfg, self.data, self.gt = cfg, data, gt
         self.device = torch.device("cpu") if device is None else device
+        if cfg.model.num_windows == "auto":  # the decomposition's windows, as it was trained
+            trained = (load_checkpoint(cfg.init_from).get("config") or {}).get("model", {})
+            if not isinstance(trained.get("num_windows"), int):
+                raise ConfigError(f"init_from={cfg.init_from} does not say its windows: give "
+                                  "model.num_windows (the decomposition's)")
+            cfg.model.num_windows = trained["num_windows"]
         self.model = build_model(cfg.model).to(self.device)
         for p in self.model.parameters():
             p.requires_grad_(False)

@@ -184,8 +184,11 @@ def test_pose_regressor_trains_from_a_users_2d_labels(regressor_run, tmp_path):
     c.pose.labels = str(_slp_labels(scene, tmp_path / "all.slp"))
     c.trainer.max_steps, c.trainer.max_minutes, c.trainer.progress = 3, 0.0, False
     c.trainer.eval_at_minutes = []
+    windows, c.model.num_windows = c.model.num_windows, "auto"  # the decomposition's
     metrics = train(c, tmp_path / "pose")
     assert metrics["labelled_frames"] >= 1 and np.isfinite(metrics["mpjpe_mm"])
+    saved = load_checkpoint(tmp_path / "pose" / "checkpoint.pt")["config"]["model"]
+    assert saved["num_windows"] == windows
     c.pose.labels = str(_slp_labels(scene, tmp_path / "train.slp", lambda f: f < 3))
     with pytest.raises(ConfigError, match="no labelled held-out frames"):
         train(c, tmp_path / "pose2")
