@@ -85,12 +85,14 @@ class BackgroundEstimate:
             module docstring).
         replaced: (H, W) bool, where another colour was taken instead of the first.
         samples: how many frames the estimate read.
-        stayed: (H, W) bool, where something stayed for a stretch of the recording: the
-            clear stays kept (a stretch from the start or to the end, another colour in the
-            rest) and the pixels replaced. The uncertain pixels without a stay (no colour in
-            half of the frames; a subject-like colour beside another that forms no stretch)
-            are where subjects pass often: there the estimate is right on every synthetic
-            scene measured (docs/benchmarks/background.md).
+        stayed: (H, W) bool, where something stayed for a stretch of the recording and the
+            estimate may hold it or replaced it: the pixels replaced, and the clear stays
+            kept (a stretch from the start or to the end, another colour in the rest) whose
+            kept colour is subject-like (``modes``; with ``median`` every clear stay). The
+            other uncertain pixels (no colour in half of the frames; a subject-like colour
+            beside another that forms no stretch; the floor kept beside a subject that stood
+            at the start or the end) are where subjects pass or stood: there the estimate
+            was right on the synthetic scenes measured (docs/benchmarks/background.md).
     """
 
     image: np.ndarray
@@ -417,5 +419,8 @@ def estimate_background(
         replaced = replaced | (np.abs(image.astype(np.int16) - image_before).max(-1)
                                > MODE_TOLERANCE)
         stay = stay | doubtful
+        # a clear stay kept in a background-like colour is the floor kept beside a subject
+        # that stood there at the start or the end: the estimate holds no subject there
+        clear = clear & (_likeness(image, table) > 0)
     return BackgroundEstimate(image, stay | replaced | no_majority, replaced, int(N),
                               clear | replaced)
