@@ -11,8 +11,9 @@ each camera's true empty backdrop given as a plate, the upper bound) it reports:
 * ``bg_wrong``: share of background pixels more than 24 grey levels from the true
   backdrop (the scene's ``gt/background``), mean over cameras;
 * ``uncertain``: share reported as having two stable colours, mean over cameras;
-  ``stayed``: the share of it where something stayed for a stretch of the recording (a
-  clear stay kept, or replaced; ``BackgroundEstimate.stayed``), mean over cameras, and
+  ``stayed``: the share of it where something stayed for a stretch of the recording and
+  the estimate replaced it or kept a subject-like colour (``BackgroundEstimate.stayed``),
+  mean over cameras, and
   ``warned``: the cameras the scene check warns about (``nsd.io.scene_check.lingered``:
   with ``modes``, ``stayed`` above 0.5 %; with ``median``, ``uncertain`` above 0.5 %), and
   ``warned_before``: those it warned about until 2026-12-01 (``uncertain`` above 0.5 %);
@@ -161,10 +162,10 @@ def main() -> None:
     notes = (
         "`bg_wrong`: share of background pixels more than 24 grey levels from the true "
         "backdrop (mean over the 4 cameras). `uncertain`: share with two stable colours; "
-        "`stayed`: the share of it where something stayed for a stretch (a clear stay kept, "
-        "or replaced), both means over the cameras; `warned`: the cameras the scene check "
-        "warns about (with `modes` those whose `stayed` exceeds 0.5 %, with `median` those "
-        "whose `uncertain` does); `warned_before`: those it warned about until 2026-12-01 "
+        "`stayed`: the share of it where something stayed for a stretch and the estimate "
+        "replaced it or kept a subject-like colour, both means over the cameras; `warned`: "
+        "the cameras the scene check warns about (with `modes` those whose `stayed` exceeds "
+        "0.5 %, with `median` those whose `uncertain` does); `warned_before`: those it warned about until 2026-12-01 "
         "(`uncertain` above 0.5 %, either method). Detection and mIoU: the hull-only "
         "decomposition (no learning; every 3rd frame), split into the frames while the "
         "first individual lingers and after it left, and over all frames (`_all`). "

@@ -2,12 +2,12 @@
 
 For every camera, ``<camera>.png`` (the background the decomposition compares frames
 with), ``<camera>.uncertain.png`` (the frame at half brightness; in red the pixels where
-something stayed for a stretch of the recording and its colour was kept, in yellow those
-where the colour of the frames without it was taken, in blue the other uncertain pixels,
-where subjects pass in most frames), and one ``report.json`` with the shares
-(:class:`nsd.cues.background.BackgroundEstimate`). A large share of stays means a subject
-stayed in place for part of the recording: the scene check warns about it by camera
-(:mod:`nsd.io.scene_check`).
+something stayed for a stretch of the recording and a subject-like colour was kept, in
+yellow those where the colour of the frames without it was taken, in blue the other
+uncertain pixels, where subjects pass in most frames or stood beside the kept floor), and
+one ``report.json`` with the shares (:class:`nsd.cues.background.BackgroundEstimate`). A
+large share of stays means a subject stayed in place for part of the recording: the scene
+check warns about it by camera (:mod:`nsd.io.scene_check`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from nsd.cues.background import BackgroundEstimate
 
 __all__ = ["uncertainty_image", "write_background_report"]
 
-STAYED = (255, 40, 40)  # RGB of pixels where something stayed, its colour kept
+STAYED = (255, 40, 40)  # RGB of pixels where something stayed, a subject-like colour kept
 REPLACED = (255, 220, 0)  # RGB of those where the colour of the frames without it was taken
 PASSING = (60, 120, 255)  # RGB of the other uncertain pixels: subjects pass in most frames
 

@@ -49,7 +49,9 @@ log = logging.getLogger(__name__)
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 BACKGROUND_SAMPLES = 50  # frames in the per-camera median background (NSD: 50)
-BACKGROUND_CACHE = 3  # the cached estimates' format (2: the stays in their own mask level; 3: only subject-like stays kept)
+# the cached estimates' format (2: the stays in their own mask level; 3: only the stays kept
+# in a subject-like colour)
+BACKGROUND_CACHE = 3
 # cameras whose frame counts differ by at most this many are trimmed to the shortest (with a
 # warning: camera software often drops the last frame); a larger difference is an error
 MAX_FRAME_TRIM = 10

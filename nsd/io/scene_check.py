@@ -251,9 +251,10 @@ def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str]) -> 
 def lingered(est: BackgroundEstimate, method: str) -> bool:
     """Does a camera's background estimate say a subject may have been taken for background?
 
-    With ``modes``: something stayed for a stretch (a clear stay kept, or replaced) on more
-    than ``LINGER_SHARE`` of the image; the other uncertain pixels, where subjects pass in most
-    frames, kept the right colour on every synthetic scene measured
+    With ``modes``: something stayed for a stretch and the estimate replaced it or kept a
+    subject-like colour (``BackgroundEstimate.stayed``) on more than ``LINGER_SHARE`` of the
+    image; the other uncertain pixels, where subjects pass in most frames or stood at the start
+    or the end beside the kept floor, kept the right colour on the synthetic scenes measured
     (docs/benchmarks/background.md). With ``median`` every uncertain pixel keeps the
     median, whatever it shows: more than ``LINGER_SHARE`` uncertain.
     """
