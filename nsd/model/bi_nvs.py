@@ -57,7 +57,14 @@ from nsd.model.focal_st import crop, paste
 from nsd.model.mask_refiner import MaskRefiner
 from nsd.model.window_masks import MASK_NORMALISATIONS, normalise_window_masks
 
-__all__ = ["BiNVS", "BiNVSConfig", "Rendering", "Windows"]
+__all__ = ["BiNVS", "BiNVSConfig", "Rendering", "Windows", "check_num_windows"]
+
+
+def check_num_windows(k: int | str) -> None:
+    """``model.num_windows`` is ``auto`` (settled for a scene: nsd.training.window_count) or an
+    integer >= 1; else a ConfigError naming the key."""
+    if k != "auto" and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+        raise ConfigError(f"model.num_windows must be auto or an integer >= 1, got {k!r}")
 
 
 @dataclass
@@ -91,9 +98,7 @@ class BiNVSConfig(ConfigSection):
     presence_gate: str
 
     def validate(self) -> None:
-        k = self.num_windows  # auto: settled for a scene (nsd.training.window_count)
-        if k != "auto" and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
-            raise ConfigError(f"model.num_windows must be auto or an integer >= 1, got {k!r}")
+        check_num_windows(self.num_windows)
         if self.mode not in ("bi_nvs", "autoencoder"):
             raise ConfigError(f"model.mode must be 'bi_nvs' or 'autoencoder', got {self.mode!r}")
         if self.mask_normalisation not in MASK_NORMALISATIONS:

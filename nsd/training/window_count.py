@@ -27,9 +27,9 @@ import logging
 import numpy as np
 from omegaconf import DictConfig
 
-from nsd.core.errors import ConfigError
 from nsd.cues.count import countable
 from nsd.io.scene_data import SceneData
+from nsd.model.bi_nvs import check_num_windows
 
 __all__ = ["AUTO", "UNCOUNTED_WINDOWS", "hull_count_warning", "settle_window_count",
            "window_count_warning"]
@@ -125,8 +125,7 @@ def settle_window_count(cfg: DictConfig, data: SceneData, individuals: int | Non
         log.info("%smodel.num_windows=auto: %d, %s; give the number of individuals "
                  "(model.num_windows=N) if you know it", where, k, source)
         return k
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ConfigError(f"model.num_windows must be auto or an integer >= 1, got {value!r}")
+    check_num_windows(value)
     presence = bool(cfg.model.detector.presence)
     if individuals is not None:
         problem = window_count_warning(value, presence, individuals)
