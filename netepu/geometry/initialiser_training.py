@@ -252,9 +252,10 @@ def train_initialiser(bank: Bank, cfg: InitialiserConfig, minutes: float, out: s
                      step, (time.perf_counter() - start) / 60, loss_avg, mean, median)
     mean, median = _heldout(net, test)
     took = (time.perf_counter() - start) / 60
+    # no wall time in the file (the caller records it): the same recipe gives the same bytes
     atomic_save_torch({"format": INITIALISER_FORMAT, "config": cfg.to_dict(),
                        "state": net.state_dict(),
-                       "trained": {"steps": step, "minutes": round(took, 2), "seed": seed,
+                       "trained": {"steps": step, "seed": seed,
                                    "batch": batch, "lr": lr,
                                    "heldout_mpjpe_mean": round(mean, 1),
                                    "heldout_mpjpe_median": round(median, 1)}}, out)

@@ -278,7 +278,8 @@ def evaluate_model(
             _count_associations(model, dec, data, settings, per_view, counts)
     finally:
         model.train(was)
-    out = {"nvs_psnr": float(np.mean(psnr)), "nvs_ssim": float(np.mean(ssim))}
+    out = {"nvs_psnr": float(np.mean(psnr)) if psnr else float("nan"),  # no frames: NaN
+           "nvs_ssim": float(np.mean(ssim)) if ssim else float("nan")}
     if gt is not None:
         out.update(tally.metrics())
         out.update(coco_ap(gt.coco, tally.results, tally.image_ids))
