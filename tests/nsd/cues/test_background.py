@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from nsd.cues.background import (
+    _densest,
     _likeness,
     _step,
     _subject_likeness,
@@ -275,3 +276,42 @@ def test_a_crowded_spot_is_reported_but_not_warned_about(tiny_scene, tmp_path):
     img = cv2.cvtColor(cv2.imread(str(tmp_path / "bg" / "left.uncertain.png")),
                        cv2.COLOR_BGR2RGB)
     assert (img[10, 10] == (60, 120, 255)).all() and report["cameras"]["left"]["stayed"] == 0
+
+
+def _densest_slowly(samples: np.ndarray, allowed: np.ndarray):
+    """_densest pixel by pixel, frame by frame: the allowed frame with the most allowed frames
+    within the tolerance on every channel (the first on a tie), its members and their
+    median."""
+    N, K = allowed.shape
+    colour, support, members = np.full((K, 3), np.nan), np.zeros(K, int), np.zeros((N, K), bool)
+    for k in range(K):
+        near = [[bool(allowed[i, k] and allowed[j, k]
+                      and np.abs(samples[i, k] - samples[j, k]).max() <= TOL)
+                 for j in range(N)] for i in range(N)]
+        best = int(np.argmax([sum(row) for row in near]))
+        members[:, k] = near[best]
+        support[k] = sum(near[best])
+        if support[k]:
+            colour[k] = np.median(samples[members[:, k], k], axis=0)
+    return colour, support, members
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_densest_colour_matches_a_slow_reference(seed):
+    """The vectorised densest colour (a channel at a time, medians by sorting) gives what a
+    loop over pixels and frame pairs gives: members, support and colour, also for pixels
+    without allowed frames (NaN) and an even number of members (the middle two averaged)."""
+    rng = np.random.default_rng(seed)
+    n, k = 12 + seed, 40
+    samples = rng.integers(0, 256, (n, k, 3))
+    steady = rng.random(k) < 0.6  # a stable colour with noise around it
+    samples[:, steady] = samples[:1, steady] + rng.integers(-30, 31, (n, int(steady.sum()), 3))
+    samples = np.clip(samples, 0, 255).astype(np.int16)
+    allowed = rng.random((n, k)) < 0.7
+    allowed[:, 0] = False  # a pixel with no allowed frame
+    colour, support, members = _densest(samples, allowed)
+    ref_colour, ref_support, ref_members = _densest_slowly(samples, allowed)
+    np.testing.assert_array_equal(members, ref_members)
+    np.testing.assert_array_equal(support, ref_support)
+    np.testing.assert_array_equal(colour, ref_colour)  # NaN where equal NaN
+    assert np.isnan(colour[0]).all() and (support % 2 == 0).any() and (support > 2).any()
