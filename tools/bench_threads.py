@@ -38,7 +38,7 @@ scene:
   one thread each (``8 // n`` pairs per rank, gradients averaged by gloo's ``all_reduce``);
 * ``export_frames_per_s``: a whole ``nsd-export`` of the 300 frames (decoding, model, files;
   median of 3), from a 20-step checkpoint, with the default ``workers: auto`` (one process
-  per core decomposes batches, :mod:`nsd.export.parallel`);
+  per core decomposes batches, :mod:`nsd.core.processes`);
   ``export_frames_per_s_one_process`` the same with ``workers=1`` (every thread in one
   process: the baseline before the workers);
 * ``frame_ms``: one multi-view decomposition of one frame (4 views) alone;

@@ -39,6 +39,7 @@ from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_text
 from nsd.core.errors import CheckpointError, ConfigError
+from nsd.core.processes import resolve_workers
 from nsd.core.stages import Stage, StageResult, config_hash
 from nsd.core.trainer import load_checkpoint
 from nsd.evaluation.checkpoint import evaluate_checkpoint, markdown_table
@@ -49,7 +50,6 @@ from nsd.evaluation.tracking import tracking_metrics
 from nsd.export.config import load_export_config
 from nsd.export.grids import write_grids
 from nsd.export.overlay import write_overlay_videos
-from nsd.export.parallel import resolve_workers
 from nsd.export.pose_tools import KeypointFile, write_pose_tool_files
 from nsd.export.positions import (
     mask_centroids,

@@ -70,7 +70,7 @@ from netepu.pipeline.heading import NEIGHBOUR_SECONDS, heading, turned_pose, tur
 from netepu.pipeline.travel import TRAVEL_SECONDS, face_travel, travel_velocity
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.errors import ConfigError
-from nsd.export.parallel import BatchPool
+from nsd.core.processes import BatchPool
 from nsd.export.positions import triangulate_positions
 from nsd.io.embeddings import read_tracklets
 from nsd.io.footage import footage_frame_rate
@@ -220,7 +220,7 @@ def invert_export(
             cold starts refine its prediction instead of screening the templates (None: the
             templates).
         workers: processes that invert subject-frames side by side (forked, the torch
-            threads shared among them: :class:`nsd.export.parallel.BatchPool`); with warm
+            threads shared among them: :class:`nsd.core.processes.BatchPool`); with warm
             starts each subject's frames stay in one process. The result does not depend
             on it, but on the threads each process has: sums split over more threads round
             otherwise, which a refit's 40 steps can carry to a different fit.

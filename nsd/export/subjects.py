@@ -19,7 +19,7 @@ association score) and the subjects are linked over time
       manifest.json         # version, checkpoint, config, scene, counts, checksums
 
 Streaming: frames are decoded one at a time and decomposed ``batch_size``
-instants at a time (by ``workers`` processes, :mod:`nsd.export.parallel`); COCO entries,
+instants at a time (by ``workers`` processes, :mod:`nsd.core.processes`); COCO entries,
 crops, embedding rows and MOT lines are written in frame order as they are produced, so
 memory does not grow with the footage's length (the projector and t-SNE use a bounded
 random sample).
@@ -53,11 +53,11 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from nsd.core.atomic import atomic_directory, atomic_write_text
+from nsd.core.processes import BatchPool, resolve_workers
 from nsd.core.threads import available_cores, set_threads
 from nsd.export.config import check_export_config
 from nsd.export.inputs import ExportInputs, prepare_inputs
 from nsd.export.manifest import Timing, build_manifest, share_folder, toolkit_version
-from nsd.export.parallel import BatchPool, resolve_workers
 from nsd.export.writer import SubjectWriter
 from nsd.inference.multiview import InferenceSettings
 from nsd.io.embedding_views import plot_tsne, write_projector

@@ -2,7 +2,7 @@
 
 Each batch of instants is decomposed (:meth:`SubjectWriter.decompose`:
 :func:`nsd.inference.multiview.decompose_views`, cross-view subject ids, COCO results and crops
-of each instant; this part may run in a worker process, :mod:`nsd.export.parallel`), then its
+of each instant; this part may run in a worker process, :mod:`nsd.core.processes`), then its
 subjects get track ids and every subject-camera-frame is written in order
 (:meth:`SubjectWriter.write`): a COCO annotation, a crop, a MOT line, a sampled vector and a
 table row (:data:`COLUMN_TYPES`; ``datasets/export.md`` lists every column).

@@ -31,6 +31,7 @@ from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.atomic import atomic_write_bytes, atomic_write_text
 from nsd.core.errors import CalibrationError, ConfigError, FootageError
+from nsd.core.processes import BatchPool, resolve_workers
 from nsd.cues.background import BACKGROUND_METHODS, BackgroundEstimate, estimate_background
 
 __all__ = [
@@ -424,12 +425,8 @@ class MultiViewFootage:
         resized. The cache is keyed by the footage's signature, so changed footage is
         recomputed.
         """
-        return np.stack(
-            [
-                self._resize(self.native_background(v, num_samples), v)
-                for v in range(self.num_views)
-            ]
-        )
+        return np.stack([self._resize(est.image, v) for v, est in
+                         enumerate(self.background_estimates(num_samples))])
 
     def plate(self, v: int) -> FrameSource | None:
         """Camera ``v``'s background plate, if the scene has one: ``background/<camera>.<image>``
@@ -463,6 +460,51 @@ class MultiViewFootage:
         (the plate or the estimate of :meth:`background_estimate`)."""
         return self.background_estimate(v, num_samples).image
 
+    def background_estimates(
+        self, num_samples: int = BACKGROUND_SAMPLES, workers: int = 0
+    ) -> list[BackgroundEstimate]:
+        """Every camera's :meth:`background_estimate`; those not cached are computed side by
+        side by ``workers`` forked processes (0: one per available core, at most
+        :data:`nsd.core.processes.MAX_AUTO_WORKERS`), one camera each: the estimate is NumPy
+        on one core, seconds per camera at 512 x 512 (docs/benchmarks/background_cost.md)."""
+        todo = [v for v in range(self.num_views)
+                if self._cached_background(v, num_samples) is None]
+        n = min(len(todo), resolve_workers("auto", workers, "cpu"))
+        done: dict[int, BackgroundEstimate] = {}
+        if n > 1:
+            with BatchPool(lambda v: self.background_estimate(v, num_samples), n, n,
+                           job="background estimate", remedy="threads=") as pool:
+                done = dict(pool.map(todo))
+        return [done[v] if v in done else self.background_estimate(v, num_samples)
+                for v in range(self.num_views)]
+
+    def _background_path(self, v: int, num_samples: int) -> Path:
+        """Where camera ``v``'s background estimate is cached (keyed by the footage's or the
+        plate's signature, the samples and the method)."""
+        plate = self.plate(v)
+        src = self.sources[v] if plate is None else plate
+        method = "median" if plate is not None else self.background_method
+        key = hashlib.sha1(f"{src.signature()}:{num_samples}:{method}:{BACKGROUND_CACHE}"
+                           .encode()).hexdigest()[:16]
+        return self.cache_dir / "background" / f"{src.camera}.{key}.png"
+
+    def _cached_background(self, v: int, num_samples: int) -> BackgroundEstimate | None:
+        """Camera ``v``'s cached background estimate, or None (not cached, or unreadable)."""
+        path = self._background_path(v, num_samples)
+        mask_path, meta_path = path.with_suffix(".uncertain.png"), path.with_suffix(".json")
+        if not (path.is_file() and mask_path.is_file() and meta_path.is_file()):
+            return None
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, ValueError):
+            return None
+        if img is None or mask is None:
+            return None
+        return BackgroundEstimate(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), mask >= 128,
+                                  mask == 255, int(meta.get("samples", 0)), mask >= 224)
+
     def background_estimate(
         self, v: int, num_samples: int = BACKGROUND_SAMPLES
     ) -> BackgroundEstimate:
@@ -473,25 +515,14 @@ class MultiViewFootage:
         Otherwise :func:`nsd.cues.background.estimate_background` with this footage's
         ``background`` method over ``num_samples`` frames spread evenly over the sequence.
         """
+        cached = self._cached_background(v, num_samples)
+        if cached is not None:
+            return cached
         plate = self.plate(v)
         src = self.sources[v] if plate is None else plate
         method = "median" if plate is not None else self.background_method
-        key = hashlib.sha1(f"{src.signature()}:{num_samples}:{method}:{BACKGROUND_CACHE}"
-                           .encode()).hexdigest()[:16]
-        path = self.cache_dir / "background" / f"{src.camera}.{key}.png"
-        mask_path = path.with_suffix(".uncertain.png")
-        meta_path = path.with_suffix(".json")
-        if path.is_file() and mask_path.is_file() and meta_path.is_file():
-            img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-            mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
-            try:
-                meta = json.loads(meta_path.read_text())
-            except (OSError, ValueError):
-                meta = None
-            if img is not None and mask is not None and meta is not None:
-                return BackgroundEstimate(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), mask >= 128,
-                                          mask == 255, int(meta.get("samples", 0)),
-                                          mask >= 224)
+        path = self._background_path(v, num_samples)
+        mask_path, meta_path = path.with_suffix(".uncertain.png"), path.with_suffix(".json")
         idx = np.unique(np.linspace(0, src.num_frames - 1, num_samples).round().astype(int))
         stack = np.stack([src.read(int(t)) for t in idx])
         est = estimate_background(stack, method)

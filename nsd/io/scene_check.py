@@ -269,8 +269,7 @@ def _background(
     shares of the plate-less ones, and a warning per plate-less camera whose estimate says a
     subject may have been taken for background (:func:`lingered`; footage long enough for an
     estimate)."""
-    estimates = {cam: footage.background_estimate(v)
-                 for v, cam in enumerate(footage.camera_names)}
+    estimates = dict(zip(footage.camera_names, footage.background_estimates(), strict=True))
     report, warnings = {}, []
     for cam, est in estimates.items():
         if cam in plates or footage.num_frames < MIN_MEDIAN_FRAMES:

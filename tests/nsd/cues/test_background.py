@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from nsd.core.errors import FootageError
 from nsd.cues.background import (
     _densest,
     _likeness,
@@ -231,6 +232,26 @@ def test_estimates_are_cached_with_their_masks(tiny_scene):
     assert np.array_equal(first.stayed, again.stayed) and first.stayed.any()
     median = MultiViewFootage(scene, background="median").background_estimate(0)
     assert not median.replaced.any()  # another method, another cache entry
+
+
+def test_the_cameras_estimated_side_by_side_are_those_estimated_one_by_one(tiny_scene):
+    """background_estimates with two worker processes gives every camera what
+    background_estimate gives it alone, and caches them; a frame that cannot be read stops it
+    with the camera and the file named, as it does in this process."""
+    scene = _scene(tiny_scene, range(0, 35))
+    both = MultiViewFootage(scene, background="modes").background_estimates(workers=2)
+    assert len(list((scene / ".cache" / "background").glob("*.uncertain.png"))) == 2
+    shutil.rmtree(scene / ".cache")
+    for v, est in enumerate(both):
+        alone = MultiViewFootage(scene, background="modes").background_estimate(v)
+        for part in ("image", "uncertain", "replaced", "stayed"):
+            assert np.array_equal(getattr(est, part), getattr(alone, part)), (v, part)
+    assert both[0].replaced.any() and both[1].replaced.any()
+    shutil.rmtree(scene / ".cache")
+    bad = sorted((scene / "right").glob("*.png"))[7]
+    bad.write_bytes(b"not a png")
+    with pytest.raises(FootageError, match=f"camera 'right'.*{bad.name}"):
+        MultiViewFootage(scene, background="modes").background_estimates(workers=2)
 
 
 def test_scene_check_warns_by_camera_and_the_report_is_written(tiny_scene, tmp_path):

@@ -496,7 +496,7 @@ def test_a_workers_error_reaches_the_caller_and_leaves_nothing(trained, tmp_path
 
 
 def test_workers_setting():
-    from nsd.export.parallel import MAX_AUTO_WORKERS, resolve_workers
+    from nsd.core.processes import MAX_AUTO_WORKERS, resolve_workers
 
     assert resolve_workers("auto", 64, "cpu") == MAX_AUTO_WORKERS
     assert resolve_workers("auto", 2, "cpu") == 2

@@ -1,15 +1,20 @@
-"""The export's batches decomposed by several processes, written in order by one.
+"""Work shared out to forked processes, taken back in order by this one (:class:`BatchPool`).
 
-A profile of ``nsd-export`` on one core (default scene) puts ~80 % of its time in
-:func:`nsd.inference.multiview.decompose_views`, and half of that is not torch (the visual
-hull's proposals and pixel owners are NumPy on one core), so more torch threads buy little
-(1.32x on two cores). Batches are independent until tracking links them (the hull's
+Used where the work is NumPy or torch on one core per item and the items are independent:
+the export's batches (:mod:`nsd.export.subjects`), the keypoints' subject-frames
+(:mod:`netepu.pipeline.subject_keypoints`) and each camera's background estimate
+(:meth:`nsd.io.footage.MultiViewFootage.background_estimates`).
+
+*The export*: a profile of ``nsd-export`` on one core (default scene) puts ~80 % of its
+time in :func:`nsd.inference.multiview.decompose_views`, and half of that is not torch (the
+visual hull's proposals and pixel owners are NumPy on one core), so more torch threads buy
+little (1.32x on two cores). Batches are independent until tracking links them (the hull's
 clustering, which carries its Gaussians from instant to instant, runs in the parent and
 hands each batch its labels: :meth:`nsd.export.writer.SubjectWriter.hull_clusters`), so
 each batch is decomposed by the next free one of ``P`` workers (forked processes with
 ``threads // P`` torch threads each) and the parent takes the results back in order,
 tracks and writes. At most ``2 P`` batches are in flight, so memory stays flat in the
-footage's length. A worker that dies (the out-of-memory killer) stops the export with a
+footage's length. A worker that dies (the out-of-memory killer) stops the work with a
 message, not a wait.
 
 ``workers: auto`` (conf/export.yaml) is one process per available core up to
