@@ -220,6 +220,11 @@ def coco_ap(gt_coco, results: list[dict], image_ids: Sequence[int]) -> dict[str,
             ev = COCOeval(gt_coco, dt, iou_type)
             ev.params.imgIds = list(image_ids)
             ev.params.useCats = 0
+            # without categories COCOeval still pools only the results whose category the
+            # ground truth lists: a scene of quadrupeds alone (category 2) scored every
+            # subject result (category 1) as missing, AP 0, until 2026-12-01
+            ev.params.catIds = sorted(set(gt_coco.getCatIds())
+                                      | {int(r["category_id"]) for r in results})
             ev.evaluate()
             ev.accumulate()
             ev.summarize()
