@@ -182,9 +182,11 @@ def cost(scenes: list[Path]) -> None:
         "512 x 512 are analysed at that size), by method; `before`: the densest colour as "
         "computed until 2026-12-01 (`tools/bench_background.py`'s `_densest_before`, the same "
         "output), `this commit`: a channel at a time into reused buffers, the median by "
-        "sorting. `median` does not call it and is the floor. The cost grows with the share "
+        "sorting. `median` finds its uncertain pixels (two stable colours) the same way, so "
+        "both methods pay for it. The cost grows with the share "
         "of pixels whose median colour is off in at least 15 % of the frames (those are "
-        "analysed), which lingering subjects raise."))
+        "analysed), which lingering subjects raise. Rows named by a folder: a scene given on "
+        "the command line."))
 
 
 def main() -> None:
