@@ -111,7 +111,7 @@ def scene_stage(cfg: DictConfig) -> Stage:
 
     def run(out: Path, up: dict[str, StageResult]) -> dict[str, Any]:
         check = check_scene(path, cameras, units=cfg.train.data.units,
-                            background=cfg.train.data.background)
+                            background=cfg.train.data.background, workers=int(cfg.threads))
         write_background_report(check.estimates, check.plates, out / "background",
                                 cfg.train.data.background)
         summary = {"path": str(path.resolve()), **check.summary(),

@@ -40,7 +40,7 @@ def _hydra_main(cfg: DictConfig) -> float:
                 cameras = list(cfg.data.cameras) if cfg.data.cameras else None
                 # before any long work
                 check_scene(resolve_scene(cfg.data.scene), cameras, units=cfg.data.units,
-                            background=cfg.data.background)
+                            background=cfg.data.background, workers=int(cfg.threads))
             metrics = train(cfg, out_dir)
             value = metrics.get(cfg.objective, float("nan"))
             log.info("final metrics: %s", metrics)

@@ -263,13 +263,14 @@ def lingered(est: BackgroundEstimate, method: str) -> bool:
 
 
 def _background(
-    footage: MultiViewFootage, plates: dict[str, str]
+    footage: MultiViewFootage, plates: dict[str, str], workers: int = 0
 ) -> tuple[dict[str, BackgroundEstimate], dict[str, dict[str, float]], list[str]]:
     """Every camera's background estimate (a plate's median where there is one), the
     shares of the plate-less ones, and a warning per plate-less camera whose estimate says a
     subject may have been taken for background (:func:`lingered`; footage long enough for an
     estimate)."""
-    estimates = dict(zip(footage.camera_names, footage.background_estimates(), strict=True))
+    estimates = dict(zip(footage.camera_names, footage.background_estimates(workers=workers),
+                         strict=True))
     report, warnings = {}, []
     for cam, est in estimates.items():
         if cam in plates or footage.num_frames < MIN_MEDIAN_FRAMES:
@@ -297,7 +298,7 @@ def _background(
 
 def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
                 sample: int = SAMPLE_FRAMES, units: str = "auto",
-                background: str = "median") -> SceneCheck:
+                background: str = "median", workers: int = 0) -> SceneCheck:
     """Check a scene folder; warnings are logged and returned.
 
     Args:
@@ -307,6 +308,8 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
         units: the calibration's length unit (:mod:`nsd.cameras.units`).
         background: the background method (``data.background``), whose estimates are
             made here (and cached for training) to report their uncertain pixels.
+        workers: processes estimating the cameras' backgrounds side by side (0: one per
+            available core; the run's ``threads`` where it sets them).
 
     Raises:
         NSDError: what cannot give a meaningful result (see the module docstring).
@@ -329,7 +332,7 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
               if (plate := footage.plate(v)) is not None}  # a plate of another size raises
     warnings = ([rig.units_note] if rig.units_note else []) + _unnamed_footage(
         scene, rig.names) + _content(footage, sample, plates)
-    estimates, report, lingering = _background(footage, plates)
+    estimates, report, lingering = _background(footage, plates, workers)
     warnings += lingering
     for w in warnings:
         if w != rig.units_note:  # logged when the calibration was read (nsd.cameras.units)

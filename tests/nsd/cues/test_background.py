@@ -254,6 +254,27 @@ def test_the_cameras_estimated_side_by_side_are_those_estimated_one_by_one(tiny_
         MultiViewFootage(scene, background="modes").background_estimates(workers=2)
 
 
+def test_a_run_on_one_thread_estimates_the_cameras_in_its_own_process(tiny_scene,
+                                                                      monkeypatch):
+    """threads=1 (check_scene's workers) forks no process; workers=2 uses the pool."""
+    import nsd.io.footage as footage_module
+
+    made = []
+
+    class Recorded(footage_module.BatchPool):
+        def __init__(self, *args, **kwargs):
+            made.append(args[1])
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(footage_module, "BatchPool", Recorded)
+    scene = _scene(tiny_scene, range(0, 35))
+    check_scene(scene, background="modes", workers=1)
+    assert made == []
+    shutil.rmtree(scene / ".cache")
+    check_scene(scene, background="modes", workers=2)
+    assert made == [2]
+
+
 def test_scene_check_warns_by_camera_and_the_report_is_written(tiny_scene, tmp_path):
     scene = _scene(tiny_scene, range(0, 35))
     check = check_scene(scene, background="modes")
