@@ -467,30 +467,32 @@ class MultiViewFootage:
         side by ``workers`` forked processes (0: one per available core, at most
         :data:`nsd.core.processes.MAX_AUTO_WORKERS`), one camera each: the estimate is NumPy
         on one core, seconds per camera at 512 x 512 (docs/benchmarks/background_cost.md)."""
-        todo = [v for v in range(self.num_views)
-                if self._cached_background(v, num_samples) is None]
+        known = [self._cached_background(self._background_source(v, num_samples)[2])
+                 for v in range(self.num_views)]  # each cache read once
+        todo = [v for v, est in enumerate(known) if est is None]
         n = min(len(todo), resolve_workers("auto", workers, "cpu"))
-        done: dict[int, BackgroundEstimate] = {}
         if n > 1:
             with BatchPool(lambda v: self.background_estimate(v, num_samples), n, n,
                            job="background estimate", remedy="threads=") as pool:
-                done = dict(pool.map(todo))
-        return [done[v] if v in done else self.background_estimate(v, num_samples)
-                for v in range(self.num_views)]
+                for v, est in pool.map(todo):
+                    known[v] = est
+        return [est if est is not None else self.background_estimate(v, num_samples)
+                for v, est in enumerate(known)]
 
-    def _background_path(self, v: int, num_samples: int) -> Path:
-        """Where camera ``v``'s background estimate is cached (keyed by the footage's or the
-        plate's signature, the samples and the method)."""
+    def _background_source(self, v: int, num_samples: int) -> tuple[FrameSource, str, Path]:
+        """What camera ``v``'s background is estimated from (its plate, else its footage),
+        by which method, and where the estimate is cached (keyed by the source's signature,
+        the samples and the method)."""
         plate = self.plate(v)
         src = self.sources[v] if plate is None else plate
         method = "median" if plate is not None else self.background_method
         key = hashlib.sha1(f"{src.signature()}:{num_samples}:{method}:{BACKGROUND_CACHE}"
                            .encode()).hexdigest()[:16]
-        return self.cache_dir / "background" / f"{src.camera}.{key}.png"
+        return src, method, self.cache_dir / "background" / f"{src.camera}.{key}.png"
 
-    def _cached_background(self, v: int, num_samples: int) -> BackgroundEstimate | None:
-        """Camera ``v``'s cached background estimate, or None (not cached, or unreadable)."""
-        path = self._background_path(v, num_samples)
+    @staticmethod
+    def _cached_background(path: Path) -> BackgroundEstimate | None:
+        """The background estimate cached at ``path``, or None (not cached, or unreadable)."""
         mask_path, meta_path = path.with_suffix(".uncertain.png"), path.with_suffix(".json")
         if not (path.is_file() and mask_path.is_file() and meta_path.is_file()):
             return None
@@ -515,18 +517,15 @@ class MultiViewFootage:
         Otherwise :func:`nsd.cues.background.estimate_background` with this footage's
         ``background`` method over ``num_samples`` frames spread evenly over the sequence.
         """
-        cached = self._cached_background(v, num_samples)
+        src, method, path = self._background_source(v, num_samples)
+        cached = self._cached_background(path)
         if cached is not None:
             return cached
-        plate = self.plate(v)
-        src = self.sources[v] if plate is None else plate
-        method = "median" if plate is not None else self.background_method
-        path = self._background_path(v, num_samples)
         mask_path, meta_path = path.with_suffix(".uncertain.png"), path.with_suffix(".json")
         idx = np.unique(np.linspace(0, src.num_frames - 1, num_samples).round().astype(int))
         stack = np.stack([src.read(int(t)) for t in idx])
         est = estimate_background(stack, method)
-        if plate is not None:
+        if src is not self.sources[v]:  # a plate
             est.uncertain[:] = False
         try:
             ok, buf = cv2.imencode(".png", cv2.cvtColor(est.image, cv2.COLOR_RGB2BGR))
