@@ -2,8 +2,10 @@
 
 Used where the work is NumPy or torch on one core per item and the items are independent:
 the export's batches (:mod:`nsd.export.subjects`), the keypoints' subject-frames
-(:mod:`netepu.pipeline.subject_keypoints`) and each camera's background estimate
-(:meth:`nsd.io.footage.MultiViewFootage.background_estimates`).
+(:mod:`netepu.pipeline.subject_keypoints`), and a camera per item: each camera's background
+estimate (:meth:`nsd.io.footage.MultiViewFootage.background_estimates`), its decoding into
+the frame store (:mod:`nsd.io.frame_store`) and the scene check's sampled frames
+(:mod:`nsd.io.scene_check`).
 
 *The export*: a profile of ``nsd-export`` on one core (default scene) puts ~80 % of its
 time in :func:`nsd.inference.multiview.decompose_views`, and half of that is not torch (the
@@ -73,7 +75,7 @@ def resolve_workers(setting: Any, threads: int, device: str) -> int:
         raise ConfigError(f"workers: a number >= 1 or auto, got {setting!r}")
     if n > 1 and (device != "cpu" or not forkable):
         raise ConfigError(f"workers={n} needs a CPU device on Linux (forked processes); "
-                          f"this export runs on {device!r} on {sys.platform}: use workers=1")
+                          f"this run is on {device!r} on {sys.platform}: use workers=1")
     return n
 
 

@@ -386,10 +386,16 @@ class MultiViewFootage:
         footage of any length.
         """
         stop = self.num_frames if stop is None else min(stop, self.num_frames)
-        its = [s.iter_range(start, stop) for s in self.sources]
+        its = [self.iter_view(v, start, stop) for v in range(self.num_views)]
         for t in range(start, stop):
-            views = [self._resize(next(it), v) for v, it in enumerate(its)]
-            yield t, np.stack(views)
+            yield t, np.stack([next(it) for it in its])
+
+    def iter_view(self, v: int, start: int = 0, stop: int | None = None) -> Iterator[np.ndarray]:
+        """Camera ``v``'s frames ``start .. stop-1`` at the footage's size, decoded in order:
+        uint8 (H, W, 3) each."""
+        stop = self.num_frames if stop is None else min(stop, self.num_frames)
+        for img in self.sources[v].iter_range(start, stop):
+            yield self._resize(img, v)
 
     def load(self, frames: Sequence[int] | None = None) -> np.ndarray:
         """Decode frames into memory: uint8 (T, V, H, W, 3) (all frames by default)."""
@@ -415,7 +421,7 @@ class MultiViewFootage:
         return t.astype(np.int64), v.astype(np.int64), w.astype(np.int64)
 
     # ------------------------------------------------------------------ background
-    def background(self, num_samples: int = BACKGROUND_SAMPLES) -> np.ndarray:
+    def background(self, num_samples: int = BACKGROUND_SAMPLES, workers: int = 0) -> np.ndarray:
         """Per-camera background: uint8 (V, H, W, 3), cached on disk.
 
         A background plate (:meth:`plate`) replaces the footage where the scene has one:
@@ -423,10 +429,10 @@ class MultiViewFootage:
         ``background`` method (:meth:`background_estimate`) from ``num_samples`` frames
         spread evenly over the sequence, computed at the native resolution and then
         resized. The cache is keyed by the footage's signature, so changed footage is
-        recomputed.
+        recomputed. ``workers``: see :meth:`background_estimates`.
         """
         return np.stack([self._resize(est.image, v) for v, est in
-                         enumerate(self.background_estimates(num_samples))])
+                         enumerate(self.background_estimates(num_samples, workers))])
 
     def plate(self, v: int) -> FrameSource | None:
         """Camera ``v``'s background plate, if the scene has one: ``background/<camera>.<image>``

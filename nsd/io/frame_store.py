@@ -11,6 +11,12 @@ the training size and the frame count, so changed footage is decoded again; a st
 complete only once its ``.json`` record is written (an interrupted decode starts over).
 Where the cache folder cannot be written, frames are held in memory as before (said).
 
+The cameras are decoded side by side, one forked process per camera up to one per core
+(:class:`nsd.core.processes.BatchPool`): each decodes its camera in order (videos are not
+seekable frame-exactly) and writes its slice ``[:, v]`` of the file, so the result does not
+depend on the number of processes (a test compares the files). Decoding and resizing HD
+footage is most of a first run's waiting on a big scene (docs/benchmarks/frame_store.md).
+
 Indexing returns torch uint8 tensors in the layout the model reads: ``store[t]`` is
 ``(V, 3, H, W)``, ``store[t_idx, v_idx]`` ``(n, 3, H, W)``.
 
@@ -34,6 +40,7 @@ import torch
 from torch import Tensor
 
 from nsd.core.atomic import atomic_write_text
+from nsd.core.processes import BatchPool, resolve_workers
 from nsd.io.footage import MultiViewFootage
 
 __all__ = ["FrameStore", "scratch_array"]
@@ -49,9 +56,12 @@ class FrameStore:
         footage: the scene's footage, resized to the training size.
         stop: frames of the footage to cover.
         stride: keep every this many frames (decoding still reads them all, in order).
+        workers: processes decoding the cameras side by side (0: one per available core,
+            at most one per camera; 1: this process alone).
     """
 
-    def __init__(self, footage: MultiViewFootage, stop: int, stride: int = 1) -> None:
+    def __init__(self, footage: MultiViewFootage, stop: int, stride: int = 1,
+                 workers: int = 0) -> None:
         V = footage.num_views
         H, W = footage.rig[0].size[1], footage.rig[0].size[0]
         self.stride = int(stride)
@@ -68,7 +78,7 @@ class FrameStore:
             if not (record.is_file() and self.path.is_file()
                     and self.path.stat().st_size == int(np.prod(self.shape_thwc))):
                 folder.mkdir(parents=True, exist_ok=True)
-                self._decode(footage, stop)
+                self._decode(footage, stop, workers)
                 log.info("decoded %d frames of %s into %s", self.shape_thwc[0], footage.scene,
                          self.path)
                 atomic_write_text(record, json.dumps({"shape": list(self.shape_thwc),
@@ -80,18 +90,29 @@ class FrameStore:
             self._array = np.stack([v for t, v in footage.iter_frames(0, stop)
                                     if t % self.stride == 0])
 
-    def _decode(self, footage: MultiViewFootage, stop: int) -> None:
+    def _decode(self, footage: MultiViewFootage, stop: int, workers: int) -> None:
+        """Decode into a temporary file next to the store, a camera per process, then move it
+        into place."""
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
-        out = np.memmap(tmp, np.uint8, "w+", shape=self.shape_thwc)
+        np.memmap(tmp, np.uint8, "w+", shape=self.shape_thwc).flush()  # the file, full size
         try:
-            for t, views in footage.iter_frames(0, stop):
-                if t % self.stride == 0:
-                    out[t // self.stride] = views
-            out.flush()
-            del out
+            n = min(footage.num_views, resolve_workers("auto", workers, "cpu"))
+            with BatchPool(lambda v: self._decode_view(footage, v, stop, tmp), n, n,
+                           job="frame decoding", remedy="threads=") as pool:
+                for _ in pool.map(range(footage.num_views)):
+                    pass
             os.replace(tmp, self.path)
         finally:
             tmp.unlink(missing_ok=True)
+
+    def _decode_view(self, footage: MultiViewFootage, v: int, stop: int, file: Path) -> None:
+        """Camera ``v``'s frames into its slice ``[:, v]`` of ``file``."""
+        out = np.memmap(file, np.uint8, "r+", shape=self.shape_thwc)
+        for t, img in enumerate(footage.iter_view(v, 0, stop)):
+            if t % self.stride == 0:
+                out[t // self.stride, v] = img
+        out.flush()
+        del out
 
     @property
     def shape(self) -> tuple[int, int, int, int, int]:

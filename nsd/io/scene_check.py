@@ -42,10 +42,12 @@ from nsd.cameras.calibration import CameraRig
 from nsd.cameras.calibration_io import read_calibration
 from nsd.cameras.units import camera_spacing
 from nsd.core.errors import CalibrationError, FootageError, SceneError
+from nsd.core.processes import BatchPool, resolve_workers
 from nsd.cues.background import BackgroundEstimate
 from nsd.io.footage import (
     IMAGE_EXTENSIONS,
     VIDEO_EXTENSIONS,
+    FrameSource,
     ImageFolderSource,
     MultiViewFootage,
 )
@@ -190,46 +192,58 @@ def _unnamed_footage(scene: Path, names: list[str]) -> list[str]:
             "the camera to the calibration to use it" for p in found]
 
 
-def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str]) -> list[str]:
+def _camera_content(src: FrameSource, frames: np.ndarray) -> tuple[list[str], bool]:
+    """One camera's warnings about what its sampled ``frames`` show (blank or saturated
+    frames, frames identical to the median) and whether nothing moves in them."""
+    small, kept = [], []
+    flat: dict[str, list[int]] = {"blank (dark)": [], "saturated (white)": [], "uniform": []}
+    for t in frames:
+        grey = cv2.cvtColor(src.read(int(t)), cv2.COLOR_RGB2GRAY)
+        scale = 160 / max(grey.shape)
+        if scale < 1:
+            grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        g = grey.astype(np.float32)
+        if g.std() < UNIFORM_STD:
+            kind = ("blank (dark)" if g.mean() < 64 else "saturated (white)"
+                    if g.mean() > 192 else "uniform")
+            flat[kind].append(int(t))
+        else:
+            small.append(g)
+            kept.append(int(t))
+    warnings = [f"camera '{src.camera}': frames {_ranges(ts)} are {kind}; they would be "
+                "decomposed into phantom subjects: remove them from the footage or leave "
+                "them out (frames= in nsd-export)" for kind, ts in flat.items() if ts]
+    still = False
+    if len(small) >= 2:
+        stack = np.stack(small)
+        median = np.median(stack, axis=0)
+        moving = (np.abs(stack - median) > MOTION_LEVEL).mean(axis=(1, 2))
+        if moving.max() < MOTION_SHARE:
+            still = True
+        elif (empty := [t for t, m in zip(kept, moving, strict=True) if m == 0]):
+            warnings.append(
+                f"camera '{src.camera}': frames {_ranges(empty)} (of {len(frames)} sampled) "
+                "are identical to the median background: no subject in view, or a frozen "
+                "camera; nothing is exported for them")
+    return warnings, still
+
+
+def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str],
+             workers: int = 0) -> list[str]:
     """Warnings about what the frames show: blank or saturated frames, no motion, footage
-    too short for a median background (cameras with a plate in ``plates`` need none)."""
+    too short for a median background (cameras with a plate in ``plates`` need none). The
+    cameras are read side by side by ``workers`` processes (0: one per available core):
+    reading sampled frames of a video is a seek and a decode each."""
     n = footage.num_frames
     frames = np.unique(np.linspace(0, n - 1, min(n, sample)).round().astype(int))
     warnings, still = [], []
-    for src in footage.sources:
-        small, kept = [], []
-        flat: dict[str, list[int]] = {"blank (dark)": [], "saturated (white)": [],
-                                      "uniform": []}
-        for t in frames:
-            grey = cv2.cvtColor(src.read(int(t)), cv2.COLOR_RGB2GRAY)
-            scale = 160 / max(grey.shape)
-            if scale < 1:
-                grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-            g = grey.astype(np.float32)
-            if g.std() < UNIFORM_STD:
-                kind = ("blank (dark)" if g.mean() < 64 else "saturated (white)"
-                        if g.mean() > 192 else "uniform")
-                flat[kind].append(int(t))
-            else:
-                small.append(g)
-                kept.append(int(t))
-        for kind, ts in flat.items():
-            if ts:
-                warnings.append(
-                    f"camera '{src.camera}': frames {_ranges(ts)} are {kind}; they would be "
-                    "decomposed into phantom subjects: remove them from the footage or leave "
-                    "them out (frames= in nsd-export)")
-        if len(small) >= 2:
-            stack = np.stack(small)
-            median = np.median(stack, axis=0)
-            moving = (np.abs(stack - median) > MOTION_LEVEL).mean(axis=(1, 2))
-            if moving.max() < MOTION_SHARE:
+    procs = min(footage.num_views, resolve_workers("auto", workers, "cpu"))
+    with BatchPool(lambda src: _camera_content(src, frames), procs, procs,
+                   job="scene check", remedy="threads=") as pool:
+        for src, (said, is_still) in pool.map(footage.sources):
+            warnings += said
+            if is_still:
                 still.append(src.camera)
-            elif (empty := [t for t, m in zip(kept, moving, strict=True) if m == 0]):
-                warnings.append(
-                    f"camera '{src.camera}': frames {_ranges(empty)} (of {len(frames)} sampled) "
-                    "are identical to the median background: no subject in view, or a frozen "
-                    "camera; nothing is exported for them")
     if still and len(still) == len(footage.sources):
         warnings.append(
             f"nothing moves in any camera ({len(frames)} frames sampled): the median "
@@ -308,8 +322,9 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
         units: the calibration's length unit (:mod:`nsd.cameras.units`).
         background: the background method (``data.background``), whose estimates are
             made here (and cached for training) to report their uncertain pixels.
-        workers: processes estimating the cameras' backgrounds side by side (0: one per
-            available core; the run's ``threads`` where it sets them).
+        workers: processes checking the cameras' frames and estimating their backgrounds
+            side by side (0: one per available core; the run's ``threads`` where it sets
+            them).
 
     Raises:
         NSDError: what cannot give a meaningful result (see the module docstring).
@@ -331,7 +346,7 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
     plates = {src.camera: str(plate.path) for v, src in enumerate(footage.sources)
               if (plate := footage.plate(v)) is not None}  # a plate of another size raises
     warnings = ([rig.units_note] if rig.units_note else []) + _unnamed_footage(
-        scene, rig.names) + _content(footage, sample, plates)
+        scene, rig.names) + _content(footage, sample, plates, workers)
     estimates, report, lingering = _background(footage, plates, workers)
     warnings += lingering
     for w in warnings:

@@ -111,6 +111,8 @@ class SceneData:
             this object are positions, footage frame :meth:`frame_index` ``(t)``.
         background: how cameras without a plate get their background
             (:data:`nsd.cues.background.BACKGROUND_METHODS`, ``data.background``).
+        workers: processes decoding the frames and estimating the backgrounds, a camera
+            each (0: one per available core; the run's ``threads`` where it sets them).
     """
 
     def __init__(
@@ -123,15 +125,16 @@ class SceneData:
         units: str = "auto",
         frame_stride: int = 1,
         background: str = "median",
+        workers: int = 0,
     ) -> None:
         self.footage = MultiViewFootage(scene, cameras=cameras, image_size=tuple(image_size),
                                         units=units, background=background)
         stop = (
             self.footage.num_frames if max_frames <= 0 else min(max_frames, self.footage.num_frames)
         )
-        self.frames = FrameStore(self.footage, stop, frame_stride)  # (T, V, 3, H, W) uint8
+        self.frames = FrameStore(self.footage, stop, frame_stride, workers)  # (T, V, 3, H, W)
         self.frame_stride = int(frame_stride)
-        bg = self.footage.background()
+        bg = self.footage.background(workers=workers)
         self.backgrounds = to_float(torch.from_numpy(bg).permute(0, 3, 1, 2).contiguous())
         rig: CameraRig = self.footage.rig
         R = torch.as_tensor(np.stack([c.R for c in rig]), dtype=torch.float32)

@@ -33,7 +33,7 @@ def train(cfg: DictConfig, out_dir: Path) -> dict[str, float]:
     scene = resolve_scene(cfg.data.scene)
     data = SceneData(
         scene, cfg.data.image_size, cfg.data.cameras, cfg.data.val_fraction, cfg.data.max_frames,
-        cfg.data.units, cfg.data.frame_stride, cfg.data.background,
+        cfg.data.units, cfg.data.frame_stride, cfg.data.background, int(cfg.threads),
     )
 
     gt = GroundTruth.load(scene) if GroundTruth.exists(scene) else None

@@ -6,8 +6,10 @@ import logging
 import warnings
 
 import numpy as np
+import pytest
 import torch
 
+from nsd.core.errors import FootageError
 from nsd.io.footage import MultiViewFootage
 from nsd.io.frame_store import FrameStore
 
@@ -136,3 +138,29 @@ def test_hull_owners_live_on_disk_and_equal_the_per_frame_hull(tiny_scene, tmp_p
     data.footage.cache_dir = blocked
     data.compute_multiview_proposals(2, 0.04, 0.04, resolution=12)
     assert torch.equal(data.owners, kept)
+
+
+def test_cameras_decoded_side_by_side_give_the_file_decoded_one_by_one(tiny_scene, tmp_path):
+    """Two processes (a camera each) write the same bytes as this process alone, also with a
+    frame stride; the file holds camera v's frames in its slice [:, v]."""
+    footage = MultiViewFootage(tiny_scene, image_size=(16, 12))
+    frames = np.stack([v for _, v in footage.iter_frames()])  # (T, V, H, W, 3)
+    for stride in (1, 3):
+        alone = FrameStore(footage, 4, stride, workers=1)
+        together = FrameStore(MultiViewFootage(tiny_scene, image_size=(16, 12),
+                                               cache_dir=tmp_path / f"c{stride}"),
+                              4, stride, workers=2)
+        assert alone.path.read_bytes() == together.path.read_bytes()
+        assert np.array_equal(np.asarray(together._array), frames[::stride])
+    assert not list(footage.cache_dir.glob("frames/.*.tmp"))
+
+
+def test_a_camera_that_fails_to_decode_names_its_file_and_leaves_no_store(tiny_scene):
+    """A frame that cannot be read in the second camera, decoded by a worker process: the
+    error names the camera, file and frame; neither the store nor its record is left."""
+    (tiny_scene / "right" / "000002.png").write_bytes(b"not a png")
+    footage = MultiViewFootage(tiny_scene, image_size=(16, 12))
+    with pytest.raises(FootageError, match=r"camera 'right'.*000002\.png, frame 2"):
+        FrameStore(footage, 4, workers=2)
+    left = list((footage.cache_dir / "frames").iterdir())
+    assert left == [], left
