@@ -16,6 +16,7 @@ returned as RGB ``uint8`` arrays, (H, W, 3) per view.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 import os
@@ -56,6 +57,8 @@ BACKGROUND_CACHE = 3
 # cameras whose frame counts differ by at most this many are trimmed to the shortest (with a
 # warning: camera software often drops the last frame); a larger difference is an error
 MAX_FRAME_TRIM = 10
+# a video's first frames whose times are compared when it is opened (variable frame rate)
+TIMELINE_PROBE = 32
 
 
 def _natural_key(p: Path) -> list:
@@ -85,6 +88,12 @@ class FrameSource(ABC):
     def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
         """Frames ``start .. stop-1`` in order (sequential decoding)."""
 
+    def iter_frames(self, ts: Sequence[int]) -> Iterator[np.ndarray]:
+        """Frames ``ts`` (increasing, repeats allowed) in order, RGB uint8 (H, W, 3) each:
+        a sample of a long recording, read without holding it."""
+        for t in ts:
+            yield self.read(int(t))
+
     def signature(self) -> str:
         """Changes when the footage changes (for cache keys)."""
         st = self.path.stat()
@@ -96,32 +105,74 @@ class FrameSource(ABC):
 
 
 class VideoSource(FrameSource):
-    """A video file read with OpenCV."""
+    """A video file read with OpenCV.
+
+    Frame ``t`` is the ``t``-th frame the decoder returns. OpenCV seeks to a frame number
+    through its time (``t / fps``), which is frame-exact only when the frames are evenly
+    spaced in time: the file's timeline is probed when it is opened (the first
+    ``TIMELINE_PROBE`` frame times and the last frame's), and a video of variable frame
+    rate is read in order from its start instead of seeking (with a warning naming it).
+    """
 
     def __init__(self, camera: str, path: str | os.PathLike) -> None:
         self.camera, self.path = camera, Path(path)
         if not self.path.is_file():
             raise self._error("video file does not exist")
         cap = self._open()
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        ok, first = cap.read()
-        if n <= 0 and ok:  # containers without a frame count: count by decoding
-            n = 1
-            while cap.grab():
-                n += 1
-        if ok and n > 1 and not self._readable(cap, n - 1):  # the container over-claims
-            claimed, n = n, self._decodable(cap, n)
-            log.warning("camera '%s' (%s): the container claims %d frames but only %d decode; "
-                        "using those %d", camera, self.path, claimed, n, n)
-        cap.release()
-        if not ok or n <= 0:
-            raise self._error("video has zero readable frames")
+        try:
+            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+            ok, first = cap.read()
+            if not ok:
+                raise self._error("video has zero readable frames")
+            times = [cap.get(cv2.CAP_PROP_POS_MSEC)]
+            while len(times) < TIMELINE_PROBE and cap.grab():
+                times.append(cap.get(cv2.CAP_PROP_POS_MSEC))
+            self.seekable, step, why = _even_timeline(np.asarray(times))
+            if n <= 0 or not self.seekable:  # no frame count, or seeking is not exact
+                claimed, n = n, self._count()
+                if claimed > 0 and claimed != n:
+                    log.warning("camera '%s' (%s): the container claims %d frames but %d "
+                                "decode; using those %d", camera, self.path, claimed, n, n)
+            elif n > 1:
+                last = self._landed(cap, n - 1)
+                if last is None:  # the container over-claims (an edit list)
+                    claimed, n = n, self._decodable(cap, n)
+                    log.warning("camera '%s' (%s): the container claims %d frames but only "
+                                "%d decode; using those %d", camera, self.path, claimed, n, n)
+                # uneven later on (a time before the first frame's: the container keeps no
+                # usable times after a seek, e.g. H.264 in AVI; nothing to compare)
+                elif last >= times[0] and abs(last - times[0] - (n - 1) * step) > step / 4:
+                    self.seekable = False
+                    why = (f"frame {n - 1} is at {last - times[0]:.0f} ms, not at "
+                           f"{(n - 1) * step:.0f} ms as a constant rate puts it")
+                    n = self._count()
+            if not self.seekable:
+                log.warning(
+                    "camera '%s' (%s): variable frame rate (%s); OpenCV cannot seek in it "
+                    "frame-exactly, so its frames are decoded in order from the start "
+                    "(slower where a frame is asked alone). Its frame t is the t-th frame "
+                    "it holds: if the camera dropped frames, it is out of step with the "
+                    "others after the drop. Re-encoding at a constant frame rate "
+                    "(ffmpeg's -fps_mode cfr) avoids both", camera, self.path, why)
+        finally:
+            cap.release()
         self._n, self._size = n, (first.shape[1], first.shape[0])
 
+    def _count(self) -> int:
+        """Frames that decode, counted by decoding from the start."""
+        cap, n = self._open(), 0
+        try:
+            while cap.grab():
+                n += 1
+        finally:
+            cap.release()
+        return n
+
     @staticmethod
-    def _readable(cap: cv2.VideoCapture, t: int) -> bool:
+    def _landed(cap: cv2.VideoCapture, t: int) -> float | None:
+        """The time (ms) of the frame a seek to frame ``t`` decodes; None if none does."""
         cap.set(cv2.CAP_PROP_POS_FRAMES, t)
-        return bool(cap.read()[0])
+        return cap.get(cv2.CAP_PROP_POS_MSEC) if cap.read()[0] else None
 
     def _decodable(self, cap: cv2.VideoCapture, claimed: int) -> int:
         """Frames that decode when frame ``claimed - 1`` does not: a binary search for the
@@ -129,13 +180,25 @@ class VideoSource(FrameSource):
         lo, hi = 0, claimed - 1
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            lo, hi = (mid, hi) if self._readable(cap, mid) else (lo, mid)
+            lo, hi = (mid, hi) if self._landed(cap, mid) is not None else (lo, mid)
         return lo + 1
 
     def _open(self) -> cv2.VideoCapture:
         cap = cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
             raise self._error("OpenCV cannot open this video (corrupt file or unknown codec)")
+        return cap
+
+    def _at(self, t: int) -> cv2.VideoCapture:
+        """An open capture whose next frame is frame ``t``."""
+        cap = self._open()
+        if t > 0 and self.seekable:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, t)
+        elif t > 0:
+            for s in range(t):
+                if not cap.grab():
+                    cap.release()
+                    raise self._error("frame cannot be decoded (truncated or corrupt video)", s)
         return cap
 
     @property
@@ -149,10 +212,8 @@ class VideoSource(FrameSource):
     def read(self, t: int) -> np.ndarray:
         if not 0 <= t < self._n:
             raise self._error(f"frame index out of range 0..{self._n - 1}", t)
-        cap = self._open()
+        cap = self._at(t)
         try:
-            if t > 0:
-                cap.set(cv2.CAP_PROP_POS_FRAMES, t)
             ok, frame = cap.read()
         finally:
             cap.release()
@@ -160,11 +221,34 @@ class VideoSource(FrameSource):
             raise self._error("frame cannot be decoded", t)
         return cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
 
-    def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
-        cap = self._open()
+    def iter_frames(self, ts: Sequence[int]) -> Iterator[np.ndarray]:
+        if self.seekable:
+            yield from super().iter_frames(ts)
+            return
+        ts = [int(t) for t in ts]
+        bad = [t for t in ts if not 0 <= t < self._n]
+        if bad:
+            raise self._error(f"frame index out of range 0..{self._n - 1}", bad[0])
+        if any(b < a for a, b in itertools.pairwise(ts)):
+            raise ValueError(f"iter_frames needs frames in increasing order, got {ts}")
+        cap, current = self._open(), -1
         try:
-            if start > 0:
-                cap.set(cv2.CAP_PROP_POS_FRAMES, start)
+            for t in ts:
+                while current < t:
+                    if not cap.grab():
+                        raise self._error("frame cannot be decoded (truncated or corrupt "
+                                          "video)", current + 1)
+                    current += 1
+                ok, frame = cap.retrieve()
+                if not ok:
+                    raise self._error("frame cannot be decoded", t)
+                yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+        finally:
+            cap.release()
+
+    def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
+        cap = self._at(start)
+        try:
             for t in range(start, stop):
                 ok, frame = cap.read()
                 if not ok:
@@ -172,6 +256,19 @@ class VideoSource(FrameSource):
                 yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
         finally:
             cap.release()
+
+
+def _even_timeline(times: np.ndarray) -> tuple[bool, float, str]:
+    """Whether frame times ``times`` (ms, (K,)) are evenly spaced (every gap within a
+    quarter of the median gap), the median gap (ms) and, when uneven, how. Times that do
+    not increase (a container without them) count as even: nothing says otherwise."""
+    gaps = np.diff(times)
+    if len(gaps) == 0 or not np.all(np.isfinite(gaps)) or np.median(gaps) <= 0:
+        return True, 0.0, ""
+    step = float(np.median(gaps))
+    even = bool(np.all(np.abs(gaps - step) <= step / 4))
+    return even, step, (f"its first {len(times)} frames are {gaps.min():.0f}-"
+                        f"{gaps.max():.0f} ms apart")
 
 
 class ImageFolderSource(FrameSource):
@@ -529,7 +626,7 @@ class MultiViewFootage:
             return cached
         mask_path, meta_path = path.with_suffix(".uncertain.png"), path.with_suffix(".json")
         idx = np.unique(np.linspace(0, src.num_frames - 1, num_samples).round().astype(int))
-        stack = np.stack([src.read(int(t)) for t in idx])
+        stack = np.stack(list(src.iter_frames(idx)))
         est = estimate_background(stack, method)
         if src is not self.sources[v]:  # a plate
             est.uncertain[:] = False

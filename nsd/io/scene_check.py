@@ -197,8 +197,8 @@ def _camera_content(src: FrameSource, frames: np.ndarray) -> tuple[list[str], bo
     frames, frames identical to the median) and whether nothing moves in them."""
     small, kept = [], []
     flat: dict[str, list[int]] = {"blank (dark)": [], "saturated (white)": [], "uniform": []}
-    for t in frames:
-        grey = cv2.cvtColor(src.read(int(t)), cv2.COLOR_RGB2GRAY)
+    for t, img in zip(frames, src.iter_frames(frames), strict=True):
+        grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
         scale = 160 / max(grey.shape)
         if scale < 1:
             grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
@@ -233,7 +233,8 @@ def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str],
     """Warnings about what the frames show: blank or saturated frames, no motion, footage
     too short for a median background (cameras with a plate in ``plates`` need none). The
     cameras are read side by side by ``workers`` processes (0: one per available core):
-    reading sampled frames of a video is a seek and a decode each."""
+    reading sampled frames of a video is a seek and a decode each (one pass in order for
+    a video of variable frame rate, :class:`nsd.io.footage.VideoSource`)."""
     n = footage.num_frames
     frames = np.unique(np.linspace(0, n - 1, min(n, sample)).round().astype(int))
     warnings, still = [], []
