@@ -127,7 +127,7 @@ class VideoSource(FrameSource):
             times = [cap.get(cv2.CAP_PROP_POS_MSEC)]
             while len(times) < TIMELINE_PROBE and cap.grab():
                 times.append(cap.get(cv2.CAP_PROP_POS_MSEC))
-            self.seekable, step, why = _even_timeline(np.asarray(times))
+            self.seekable, step, drift, why = _even_timeline(np.asarray(times))
             if n <= 0 or not self.seekable:  # no frame count, or seeking is not exact
                 claimed, n = n, self._count()
                 if claimed > 0 and claimed != n:
@@ -141,7 +141,8 @@ class VideoSource(FrameSource):
                                 "%d decode; using those %d", camera, self.path, claimed, n, n)
                 # uneven later on (a time before the first frame's: the container keeps no
                 # usable times after a seek, e.g. H.264 in AVI; nothing to compare)
-                elif last >= times[0] and abs(last - times[0] - (n - 1) * step) > step / 4:
+                elif last >= times[0] and (abs(last - times[0] - (n - 1) * step)
+                                           > step / 4 + (n - 1) * drift):
                     self.seekable = False
                     why = (f"frame {n - 1} is at {last - times[0]:.0f} ms, not at "
                            f"{(n - 1) * step:.0f} ms as a constant rate puts it")
@@ -258,17 +259,26 @@ class VideoSource(FrameSource):
             cap.release()
 
 
-def _even_timeline(times: np.ndarray) -> tuple[bool, float, str]:
-    """Whether frame times ``times`` (ms, (K,)) are evenly spaced (every gap within a
-    quarter of the median gap), the median gap (ms) and, when uneven, how. Times that do
-    not increase (a container without them) count as even: nothing says otherwise."""
+def _even_timeline(times: np.ndarray) -> tuple[bool, float, float, str]:
+    """Whether frame times ``times`` (ms, (K,)) lie on one constant rate, and what it is.
+
+    A line is fitted to the times; they are even when every time lies within a tenth of a
+    frame (at least 1.5 ms: times rounded to the millisecond) of it: OpenCV's seek, which
+    finds frame ``t`` at ``t / fps``, is then exact. Returns (even, frame interval in ms,
+    three standard errors of that interval: how far a later frame may drift per frame
+    from the line without saying anything, how the times are uneven). Times that do not
+    increase (a container without them) count as even: nothing says otherwise.
+    """
+    k = np.arange(len(times), dtype=np.float64)
     gaps = np.diff(times)
-    if len(gaps) == 0 or not np.all(np.isfinite(gaps)) or np.median(gaps) <= 0:
-        return True, 0.0, ""
-    step = float(np.median(gaps))
-    even = bool(np.all(np.abs(gaps - step) <= step / 4))
-    return even, step, (f"its first {len(times)} frames are {gaps.min():.0f}-"
-                        f"{gaps.max():.0f} ms apart")
+    if len(gaps) < 2 or not np.all(np.isfinite(gaps)) or np.median(gaps) <= 0:
+        return True, 0.0, 0.0, ""
+    step, start = np.polyfit(k, times, 1)
+    residual = times - (start + step * k)
+    se = float(np.sqrt(residual @ residual / (len(k) - 2) / ((k - k.mean()) ** 2).sum()))
+    even = bool(np.abs(residual).max() <= max(step / 10, 1.5))
+    return even, float(step), 3 * se, (f"its first {len(times)} frames are {gaps.min():.0f}-"
+                                       f"{gaps.max():.0f} ms apart")
 
 
 class ImageFolderSource(FrameSource):

@@ -96,8 +96,11 @@ def test_a_dropped_frame_after_the_probed_start_is_found_at_the_last_frame(tmp_p
                                  "not at 4760 ms")
 
 
-def test_a_constant_frame_rate_video_seeks_without_a_warning(tmp_path, caplog):
-    path = _write(tmp_path / "cam.mp4", np.arange(N) * 40.0)
+@pytest.mark.parametrize("times", [np.arange(N) * 40.0,
+                                   np.round(np.arange(N) * 1001 / 30)],  # 29.97 fps, in ms
+                         ids=["25 fps", "29.97 fps rounded to ms"])
+def test_a_constant_frame_rate_video_seeks_without_a_warning(tmp_path, caplog, times):
+    path = _write(tmp_path / "cam.mp4", times)
     with caplog.at_level(logging.WARNING, logger="nsd.io.footage"):
         src = VideoSource("side", path)
     assert src.seekable and caplog.text == ""
