@@ -70,6 +70,7 @@ class FrameSource(ABC):
 
     camera: str
     path: Path
+    notes: tuple[str, ...] = ()  # what the user should know about this camera's footage
 
     @property
     @abstractmethod
@@ -118,6 +119,7 @@ class VideoSource(FrameSource):
         self.camera, self.path = camera, Path(path)
         if not self.path.is_file():
             raise self._error("video file does not exist")
+        notes: list[str] = []
         cap = self._open()
         try:
             n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
@@ -131,14 +133,14 @@ class VideoSource(FrameSource):
             if n <= 0 or not self.seekable:  # no frame count, or seeking is not exact
                 claimed, n = n, self._count()
                 if claimed > 0 and claimed != n:
-                    log.warning("camera '%s' (%s): the container claims %d frames but %d "
-                                "decode; using those %d", camera, self.path, claimed, n, n)
+                    notes.append(f"the container claims {claimed} frames but {n} decode; "
+                                 f"using those {n}")
             elif n > 1:
                 last = self._landed(cap, n - 1)
                 if last is None:  # the container over-claims (an edit list)
                     claimed, n = n, self._decodable(cap, n)
-                    log.warning("camera '%s' (%s): the container claims %d frames but only "
-                                "%d decode; using those %d", camera, self.path, claimed, n, n)
+                    notes.append(f"the container claims {claimed} frames but only {n} "
+                                 f"decode; using those {n}")
                 # uneven later on (a time before the first frame's: the container keeps no
                 # usable times after a seek, e.g. H.264 in AVI; nothing to compare)
                 elif last >= times[0] and (abs(last - times[0] - (n - 1) * step)
@@ -148,16 +150,19 @@ class VideoSource(FrameSource):
                            f"{(n - 1) * step:.0f} ms as a constant rate puts it")
                     n = self._count()
             if not self.seekable:
-                log.warning(
-                    "camera '%s' (%s): variable frame rate (%s); OpenCV cannot seek in it "
-                    "frame-exactly, so its frames are decoded in order from the start "
-                    "(slower where a frame is asked alone). Its frame t is the t-th frame "
-                    "it holds: if the camera dropped frames, it is out of step with the "
-                    "others after the drop. Re-encoding at a constant frame rate "
-                    "(ffmpeg's -fps_mode cfr) avoids both", camera, self.path, why)
+                notes.append(
+                    f"variable frame rate ({why}); OpenCV cannot seek in it frame-exactly, "
+                    "so its frames are decoded in order from the start (slower where a "
+                    "frame is asked alone). Its frame t is the t-th frame it holds: if the "
+                    "camera dropped frames, it is out of step with the others after the "
+                    "drop. Re-encoding at a constant frame rate (ffmpeg's -fps_mode cfr) "
+                    "avoids both")
         finally:
             cap.release()
         self._n, self._size = n, (first.shape[1], first.shape[0])
+        self.notes = tuple(f"camera '{camera}' ({self.path}): {note}" for note in notes)
+        for note in self.notes:
+            log.warning("%s", note)
 
     def _count(self) -> int:
         """Frames that decode, counted by decoding from the start."""
@@ -424,6 +429,8 @@ class MultiViewFootage:
                 )
             rig = rig.select(list(cameras))
         self.sources = [find_source(self.scene, c.name) for c in rig]
+        # what the user should know about the footage (logged too): the cameras' notes, a trim
+        self.notes = [note for s in self.sources for note in s.notes]
         counts = [s.num_frames for s in self.sources]
         self._num_frames = min(counts)
         if max(counts) != min(counts):
@@ -431,9 +438,11 @@ class MultiViewFootage:
             if max(counts) - min(counts) > MAX_FRAME_TRIM:
                 raise FootageError(f"cameras hold different numbers of frames: {detail}; "
                                    "they must show the same instants")
-            log.warning("cameras hold different numbers of frames (%s): the last frames of the "
-                        "longer ones are left out (%d frames used); camera software often "
-                        "drops a frame at the end", detail, self._num_frames)
+            trimmed = (f"cameras hold different numbers of frames ({detail}): the last frames "
+                       f"of the longer ones are left out ({self._num_frames} frames used); "
+                       "camera software often drops a frame at the end")
+            log.warning("%s", trimmed)
+            self.notes.append(trimmed)
         fixed = []
         for cam, src in zip(rig, self.sources, strict=True):
             if cam.size is None:

@@ -346,13 +346,13 @@ def check_scene(scene: str | os.PathLike, cameras: list[str] | None = None,
     _check_names(folders)
     plates = {src.camera: str(plate.path) for v, src in enumerate(footage.sources)
               if (plate := footage.plate(v)) is not None}  # a plate of another size raises
-    warnings = ([rig.units_note] if rig.units_note else []) + _unnamed_footage(
-        scene, rig.names) + _content(footage, sample, plates, workers)
+    logged = ([rig.units_note] if rig.units_note else []) + footage.notes  # where they arose
+    warnings = logged + _unnamed_footage(scene, rig.names) + _content(footage, sample, plates,
+                                                                       workers)
     estimates, report, lingering = _background(footage, plates, workers)
     warnings += lingering
-    for w in warnings:
-        if w != rig.units_note:  # logged when the calibration was read (nsd.cameras.units)
-            log.warning("scene %s: %s", scene.name, w)
+    for w in warnings[len(logged):]:
+        log.warning("scene %s: %s", scene.name, w)
     return SceneCheck(scene, footage.camera_names, footage.num_frames, sizes, spacing,
                       warnings, plates, report, estimates)
 

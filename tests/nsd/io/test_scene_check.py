@@ -141,3 +141,12 @@ def test_footage_too_short_for_a_median_background_is_warned_unless_plates_repla
     assert any("4 frames" in w for w in check_scene(tiny_scene).warnings)  # one camera left
     cv2.imwrite(str(tiny_scene / "background" / "left.png"), np.zeros((24, 32, 3), np.uint8))
     assert not any("4 frames" in w for w in check_scene(tiny_scene).warnings)
+
+
+def test_what_the_footage_reader_found_is_among_the_warnings(tiny_scene):
+    """A camera one frame short is trimmed: said by the footage reader, listed by the check
+    (nsd-check prints only the check's warnings)."""
+    _frames(tiny_scene, "right")[3].unlink()
+    w = check_scene(tiny_scene).warnings
+    assert any(re.search(r"different numbers of frames \('left' .*: 4, 'right' .*: 3\)", x)
+               for x in w)

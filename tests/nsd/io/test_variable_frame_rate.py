@@ -8,6 +8,7 @@ times), H.264 with B-frames as camera software writes it.
 from __future__ import annotations
 
 import logging
+import shutil
 from fractions import Fraction
 from pathlib import Path
 
@@ -16,7 +17,8 @@ import cv2
 import numpy as np
 import pytest
 
-from nsd.io.footage import VideoSource
+from nsd.io.footage import ImageFolderSource, VideoSource
+from nsd.io.scene_check import check_scene
 
 N = 120
 
@@ -37,15 +39,17 @@ def _which(frame: np.ndarray) -> int:
     return sum(1 << bit for bit in range(BITS) if frame[:, 8 * bit + 2:8 * bit + 6].mean() > 128)
 
 
-def _write(path: Path, times_ms: np.ndarray) -> Path:
-    """An H.264 video of N frames, frame t showing t at ``times_ms[t]``."""
+def _write(path: Path, times_ms: np.ndarray, images: list[np.ndarray] | None = None) -> Path:
+    """An H.264 video, frame t showing ``images[t]`` (default: the number t, (48, 64, 3))
+    at ``times_ms[t]``."""
+    images = images or [_image(t) for t in range(len(times_ms))]
     with av.open(str(path), "w") as out:
         stream = out.add_stream("libx264", rate=25)
-        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
-        stream.options = {"bf": "2", "g": "12"}
+        stream.height, stream.width = images[0].shape[:2]
+        stream.pix_fmt, stream.options = "yuv420p", {"bf": "2", "g": "12"}
         stream.codec_context.time_base = Fraction(1, 1000)
-        for t, ms in enumerate(times_ms):
-            frame = av.VideoFrame.from_ndarray(_image(t), format="rgb24")
+        for img, ms in zip(images, times_ms, strict=True):
+            frame = av.VideoFrame.from_ndarray(img, format="rgb24")
             frame.pts, frame.time_base = int(ms), Fraction(1, 1000)
             for packet in stream.encode(frame):
                 out.mux(packet)
@@ -116,3 +120,13 @@ def test_frames_asked_out_of_order_are_refused(tmp_path):
         list(src.iter_frames([5, 2]))
     with pytest.raises(Exception, match=r"camera 'side'.*frame 200"):
         list(src.iter_frames([2, 200]))
+
+
+def test_the_scene_check_lists_a_camera_of_variable_frame_rate(tiny_scene):
+    left = ImageFolderSource("left", tiny_scene / "left")
+    images = [left.read(t) for t in range(left.num_frames)]
+    shutil.rmtree(tiny_scene / "left")
+    _write(tiny_scene / "left.mp4", np.array([0.0, 30.0, 75.0, 108.0]), images)
+    w = check_scene(tiny_scene).warnings
+    assert [x for x in w if "variable frame rate" in x] == [
+        next(x for x in w if x.startswith(f"camera 'left' ({tiny_scene / 'left.mp4'})"))]
