@@ -14,7 +14,7 @@ from nsd.core.app import check_command_line, reported
 from nsd.core.atomic import atomic_write_bytes
 from nsd.core.errors import NSDError
 from nsd.io.calibration_preview import preview, rig_table
-from nsd.io.footage import find_source
+from nsd.io.frame_sources import find_source
 
 __all__ = ["main"]
 

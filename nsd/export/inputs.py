@@ -20,8 +20,9 @@ from nsd.cameras.batch import CameraBatch
 from nsd.cameras.calibration_io import read_calibration
 from nsd.core.device import resolve_device
 from nsd.core.errors import FootageError
-from nsd.io.footage import ImageFolderSource, MultiViewFootage
+from nsd.io.footage import MultiViewFootage
 from nsd.io.frame_selection import select_frames
+from nsd.io.frame_sources import ImageFolderSource
 from nsd.io.scenes import resolve_scene
 from nsd.model.checkpoint import TrainedDecomposition, load_decomposition
 

@@ -52,7 +52,8 @@ from sleap_io.io import nwb_predictions
 from nsd.cameras.calibration import CameraRig
 from nsd.core.atomic import atomic_write_text
 from nsd.export.positions import mask_centroid
-from nsd.io.footage import ImageFolderSource, find_source, footage_frame_rate
+from nsd.io.footage import footage_frame_rate
+from nsd.io.frame_sources import ImageFolderSource, find_source
 
 __all__ = ["POSE_TOOL_FORMATS", "KeypointFile", "one_row_per_identity", "read_trc",
            "write_c3d", "write_pose_tool_files", "write_trc"]

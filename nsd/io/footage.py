@@ -16,12 +16,9 @@ returned as RGB ``uint8`` arrays, (H, W, 3) per view.
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
 import logging
 import os
-import re
-from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -34,22 +31,19 @@ from nsd.core.atomic import atomic_write_bytes, atomic_write_text
 from nsd.core.errors import CalibrationError, ConfigError, FootageError
 from nsd.core.processes import BatchPool, resolve_workers
 from nsd.cues.background import BACKGROUND_METHODS, BackgroundEstimate, estimate_background
+from nsd.io.frame_sources import (
+    IMAGE_EXTENSIONS,
+    VIDEO_EXTENSIONS,
+    FrameSource,
+    ImageFolderSource,
+    VideoSource,
+    find_source,
+)
 
-__all__ = [
-    "IMAGE_EXTENSIONS",
-    "VIDEO_EXTENSIONS",
-    "FrameSource",
-    "ImageFolderSource",
-    "MultiViewFootage",
-    "VideoSource",
-    "find_source",
-    "footage_frame_rate",
-]
+__all__ = ["MultiViewFootage", "footage_frame_rate"]
 
 log = logging.getLogger(__name__)
 
-VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 BACKGROUND_SAMPLES = 50  # frames in the per-camera median background (NSD: 50)
 # the cached estimates' format (2: the stays in their own mask level; 3: only the stays kept
 # in a subject-like colour)
@@ -57,297 +51,7 @@ BACKGROUND_CACHE = 3
 # cameras whose frame counts differ by at most this many are trimmed to the shortest (with a
 # warning: camera software often drops the last frame); a larger difference is an error
 MAX_FRAME_TRIM = 10
-# a video's first frames whose times are compared when it is opened (variable frame rate)
-TIMELINE_PROBE = 32
 
-
-def _natural_key(p: Path) -> list:
-    return [int(s) if s.isdigit() else s for s in re.split(r"(\d+)", p.name)]
-
-
-class FrameSource(ABC):
-    """The frames of one camera."""
-
-    camera: str
-    path: Path
-    notes: tuple[str, ...] = ()  # what the user should know about this camera's footage
-
-    @property
-    @abstractmethod
-    def num_frames(self) -> int: ...
-
-    @property
-    @abstractmethod
-    def size(self) -> tuple[int, int]:
-        """Native frame size (width, height)."""
-
-    @abstractmethod
-    def read(self, t: int) -> np.ndarray:
-        """Frame ``t`` as RGB uint8 (H, W, 3)."""
-
-    @abstractmethod
-    def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
-        """Frames ``start .. stop-1`` in order (sequential decoding)."""
-
-    def iter_frames(self, ts: Sequence[int]) -> Iterator[np.ndarray]:
-        """Frames ``ts`` (increasing, repeats allowed) in order, RGB uint8 (H, W, 3) each:
-        a sample of a long recording, read without holding it."""
-        for t in ts:
-            yield self.read(int(t))
-
-    def signature(self) -> str:
-        """Changes when the footage changes (for cache keys)."""
-        st = self.path.stat()
-        return f"{self.path.resolve()}:{st.st_size}:{st.st_mtime_ns}:{self.num_frames}"
-
-    def _error(self, what: str, t: int | None = None) -> FootageError:
-        frame = "" if t is None else f", frame {t}"
-        return FootageError(f"camera '{self.camera}' ({self.path}{frame}): {what}")
-
-
-class VideoSource(FrameSource):
-    """A video file read with OpenCV.
-
-    Frame ``t`` is the ``t``-th frame the decoder returns. OpenCV seeks to a frame number
-    through its time (``t / fps``), which is frame-exact only when the frames are evenly
-    spaced in time: the file's timeline is probed when it is opened (the first
-    ``TIMELINE_PROBE`` frame times and the last frame's), and a video of variable frame
-    rate is read in order from its start instead of seeking (with a warning naming it).
-    """
-
-    def __init__(self, camera: str, path: str | os.PathLike) -> None:
-        self.camera, self.path = camera, Path(path)
-        if not self.path.is_file():
-            raise self._error("video file does not exist")
-        notes: list[str] = []
-        cap = self._open()
-        try:
-            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-            ok, first = cap.read()
-            if not ok:
-                raise self._error("video has zero readable frames")
-            times = [cap.get(cv2.CAP_PROP_POS_MSEC)]
-            while len(times) < TIMELINE_PROBE and cap.grab():
-                times.append(cap.get(cv2.CAP_PROP_POS_MSEC))
-            self.seekable, step, drift, why = _even_timeline(np.asarray(times))
-            if n <= 0 or not self.seekable:  # no frame count, or seeking is not exact
-                claimed, n = n, self._count()
-                if claimed > 0 and claimed != n:
-                    notes.append(f"the container claims {claimed} frames but {n} decode; "
-                                 f"using those {n}")
-            elif n > 1:
-                last = self._landed(cap, n - 1)
-                if last is None:  # the container over-claims (an edit list)
-                    claimed, n = n, self._decodable(cap, n)
-                    notes.append(f"the container claims {claimed} frames but only {n} "
-                                 f"decode; using those {n}")
-                # uneven later on (a time before the first frame's: the container keeps no
-                # usable times after a seek, e.g. H.264 in AVI; nothing to compare)
-                elif last >= times[0] and (abs(last - times[0] - (n - 1) * step)
-                                           > step / 4 + (n - 1) * drift):
-                    self.seekable = False
-                    why = (f"frame {n - 1} is at {last - times[0]:.0f} ms, not at "
-                           f"{(n - 1) * step:.0f} ms as a constant rate puts it")
-                    n = self._count()
-            if not self.seekable:
-                notes.append(
-                    f"variable frame rate ({why}); OpenCV cannot seek in it frame-exactly, "
-                    "so its frames are decoded in order from the start (slower where a "
-                    "frame is asked alone). Its frame t is the t-th frame it holds: if the "
-                    "camera dropped frames, it is out of step with the others after the "
-                    "drop. Re-encoding at a constant frame rate (ffmpeg's -fps_mode cfr) "
-                    "avoids both")
-        finally:
-            cap.release()
-        self._n, self._size = n, (first.shape[1], first.shape[0])
-        self.notes = tuple(f"camera '{camera}' ({self.path}): {note}" for note in notes)
-        for note in self.notes:
-            log.warning("%s", note)
-
-    def _count(self) -> int:
-        """Frames that decode, counted by decoding from the start."""
-        cap, n = self._open(), 0
-        try:
-            while cap.grab():
-                n += 1
-        finally:
-            cap.release()
-        return n
-
-    @staticmethod
-    def _landed(cap: cv2.VideoCapture, t: int) -> float | None:
-        """The time (ms) of the frame a seek to frame ``t`` decodes; None if none does."""
-        cap.set(cv2.CAP_PROP_POS_FRAMES, t)
-        return cap.get(cv2.CAP_PROP_POS_MSEC) if cap.read()[0] else None
-
-    def _decodable(self, cap: cv2.VideoCapture, claimed: int) -> int:
-        """Frames that decode when frame ``claimed - 1`` does not: a binary search for the
-        last decodable frame (frame 0 decodes)."""
-        lo, hi = 0, claimed - 1
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            lo, hi = (mid, hi) if self._landed(cap, mid) is not None else (lo, mid)
-        return lo + 1
-
-    def _open(self) -> cv2.VideoCapture:
-        cap = cv2.VideoCapture(str(self.path))
-        if not cap.isOpened():
-            raise self._error("OpenCV cannot open this video (corrupt file or unknown codec)")
-        return cap
-
-    def _at(self, t: int) -> cv2.VideoCapture:
-        """An open capture whose next frame is frame ``t``."""
-        cap = self._open()
-        if t > 0 and self.seekable:
-            cap.set(cv2.CAP_PROP_POS_FRAMES, t)
-        elif t > 0:
-            for s in range(t):
-                if not cap.grab():
-                    cap.release()
-                    raise self._error("frame cannot be decoded (truncated or corrupt video)", s)
-        return cap
-
-    @property
-    def num_frames(self) -> int:
-        return self._n
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self._size
-
-    def read(self, t: int) -> np.ndarray:
-        if not 0 <= t < self._n:
-            raise self._error(f"frame index out of range 0..{self._n - 1}", t)
-        cap = self._at(t)
-        try:
-            ok, frame = cap.read()
-        finally:
-            cap.release()
-        if not ok:
-            raise self._error("frame cannot be decoded", t)
-        return cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-
-    def iter_frames(self, ts: Sequence[int]) -> Iterator[np.ndarray]:
-        if self.seekable:
-            yield from super().iter_frames(ts)
-            return
-        ts = [int(t) for t in ts]
-        bad = [t for t in ts if not 0 <= t < self._n]
-        if bad:
-            raise self._error(f"frame index out of range 0..{self._n - 1}", bad[0])
-        if any(b < a for a, b in itertools.pairwise(ts)):
-            raise ValueError(f"iter_frames needs frames in increasing order, got {ts}")
-        cap, current = self._open(), -1
-        try:
-            for t in ts:
-                while current < t:
-                    if not cap.grab():
-                        raise self._error("frame cannot be decoded (truncated or corrupt "
-                                          "video)", current + 1)
-                    current += 1
-                ok, frame = cap.retrieve()
-                if not ok:
-                    raise self._error("frame cannot be decoded", t)
-                yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-        finally:
-            cap.release()
-
-    def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
-        cap = self._at(start)
-        try:
-            for t in range(start, stop):
-                ok, frame = cap.read()
-                if not ok:
-                    raise self._error("frame cannot be decoded (truncated or corrupt video)", t)
-                yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-        finally:
-            cap.release()
-
-
-def _even_timeline(times: np.ndarray) -> tuple[bool, float, float, str]:
-    """Whether frame times ``times`` (ms, (K,)) lie on one constant rate, and what it is.
-
-    A line is fitted to the times; they are even when every time lies within a tenth of a
-    frame (at least 1.5 ms: times rounded to the millisecond) of it: OpenCV's seek, which
-    finds frame ``t`` at ``t / fps``, is then exact. Returns (even, frame interval in ms,
-    three standard errors of that interval: how far a later frame may drift per frame
-    from the line without saying anything, how the times are uneven). Times that do not
-    increase (a container without them) count as even: nothing says otherwise.
-    """
-    k = np.arange(len(times), dtype=np.float64)
-    gaps = np.diff(times)
-    if len(gaps) < 2 or not np.all(np.isfinite(gaps)) or np.median(gaps) <= 0:
-        return True, 0.0, 0.0, ""
-    step, start = np.polyfit(k, times, 1)
-    residual = times - (start + step * k)
-    se = float(np.sqrt(residual @ residual / (len(k) - 2) / ((k - k.mean()) ** 2).sum()))
-    even = bool(np.abs(residual).max() <= max(step / 10, 1.5))
-    return even, float(step), 3 * se, (f"its first {len(times)} frames are {gaps.min():.0f}-"
-                                       f"{gaps.max():.0f} ms apart")
-
-
-class ImageFolderSource(FrameSource):
-    """A folder of images, one per frame, sorted in natural order (or the given ``files``)."""
-
-    def __init__(self, camera: str, path: str | os.PathLike,
-                 files: Sequence[Path] | None = None) -> None:
-        self.camera, self.path = camera, Path(path)
-        if not self.path.is_dir():
-            raise self._error("image folder does not exist")
-        self.files = list(files) if files is not None else sorted(
-            (p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS),
-            key=_natural_key,
-        )
-        if not self.files:
-            raise self._error(f"image folder holds no images ({', '.join(IMAGE_EXTENSIONS)})")
-        self._size: tuple[int, int] | None = None
-
-    @property
-    def num_frames(self) -> int:
-        return len(self.files)
-
-    @property
-    def size(self) -> tuple[int, int]:
-        if self._size is None:
-            first = self.read(0)
-            self._size = (first.shape[1], first.shape[0])
-        return self._size
-
-    def read(self, t: int) -> np.ndarray:
-        if not 0 <= t < len(self.files):
-            raise self._error(f"frame index out of range 0..{len(self.files) - 1}", t)
-        img = cv2.imread(str(self.files[t]), cv2.IMREAD_COLOR)
-        if img is None:
-            raise FootageError(
-                f"camera '{self.camera}' ({self.files[t]}, frame {t}): image cannot be read"
-            )
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-    def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
-        for t in range(start, stop):
-            yield self.read(t)
-
-    def signature(self) -> str:
-        last = self.files[-1].stat()
-        return f"{self.path.resolve()}:{len(self.files)}:{last.st_size}:{last.st_mtime_ns}"
-
-
-def find_source(scene: str | os.PathLike, camera: str) -> FrameSource:
-    """The video or image folder of ``camera`` in a scene folder."""
-    scene = Path(scene)
-    for folder in (scene, scene / "videos", scene / "images"):
-        d = folder / camera
-        if d.is_dir():
-            return ImageFolderSource(camera, d)
-        for ext in VIDEO_EXTENSIONS:
-            for cand in (folder / f"{camera}{ext}", folder / f"{camera}{ext.upper()}"):
-                if cand.is_file():
-                    return VideoSource(camera, cand)
-    raise FootageError(
-        f"camera '{camera}': no video ({scene}/{camera}.mp4 or another of "
-        f"{', '.join(VIDEO_EXTENSIONS)}) and no image folder ({scene}/{camera}/); "
-        "also looked in videos/ and images/"
-    )
 
 
 def footage_frame_rate(scene: str | os.PathLike, cameras: Sequence[str]) -> float | None:

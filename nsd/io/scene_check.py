@@ -44,12 +44,12 @@ from nsd.cameras.units import camera_spacing
 from nsd.core.errors import CalibrationError, FootageError, SceneError
 from nsd.core.processes import BatchPool, resolve_workers
 from nsd.cues.background import BackgroundEstimate
-from nsd.io.footage import (
+from nsd.io.footage import MultiViewFootage
+from nsd.io.frame_sources import (
     IMAGE_EXTENSIONS,
     VIDEO_EXTENSIONS,
     FrameSource,
     ImageFolderSource,
-    MultiViewFootage,
 )
 
 __all__ = ["MAX_CAMERA_SPACING", "SceneCheck", "check_scene", "lingered", "scene_fingerprint"]
@@ -234,7 +234,7 @@ def _content(footage: MultiViewFootage, sample: int, plates: dict[str, str],
     too short for a median background (cameras with a plate in ``plates`` need none). The
     cameras are read side by side by ``workers`` processes (0: one per available core):
     reading sampled frames of a video is a seek and a decode each (one pass in order for
-    a video of variable frame rate, :class:`nsd.io.footage.VideoSource`)."""
+    a video of variable frame rate, :class:`nsd.io.frame_sources.VideoSource`)."""
     n = footage.num_frames
     frames = np.unique(np.linspace(0, n - 1, min(n, sample)).round().astype(int))
     warnings, still = [], []

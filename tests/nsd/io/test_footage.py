@@ -13,7 +13,8 @@ import pytest
 
 from nsd.cameras.calibration_io import read_toml, write_toml
 from nsd.core.errors import CalibrationError, FootageError
-from nsd.io.footage import MAX_FRAME_TRIM, MultiViewFootage, VideoSource
+from nsd.io.footage import MAX_FRAME_TRIM, MultiViewFootage
+from nsd.io.frame_sources import VideoSource
 from tests.conftest import write_video
 
 

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
-from nsd.io.footage import ImageFolderSource, VideoSource
+from nsd.io.frame_sources import ImageFolderSource, VideoSource
 from nsd.io.scene_check import check_scene
 
 N = 120
@@ -72,7 +72,7 @@ ASKED = [0, 3, 45, 59, 60, 61, 90, 118, N - 1]
 
 
 def _read_exactly_with_a_warning(path: Path, caplog, why: str) -> None:
-    with caplog.at_level(logging.WARNING, logger="nsd.io.footage"):
+    with caplog.at_level(logging.WARNING, logger="nsd.io.frame_sources"):
         src = VideoSource("side", path)
     assert not src.seekable
     assert "camera 'side'" in caplog.text and str(path) in caplog.text
@@ -105,7 +105,7 @@ def test_a_dropped_frame_after_the_probed_start_is_found_at_the_last_frame(tmp_p
                          ids=["25 fps", "29.97 fps rounded to ms"])
 def test_a_constant_frame_rate_video_seeks_without_a_warning(tmp_path, caplog, times):
     path = _write(tmp_path / "cam.mp4", times)
-    with caplog.at_level(logging.WARNING, logger="nsd.io.footage"):
+    with caplog.at_level(logging.WARNING, logger="nsd.io.frame_sources"):
         src = VideoSource("side", path)
     assert src.seekable and caplog.text == ""
     assert src.num_frames == N
