@@ -178,11 +178,22 @@ class VideoSource(FrameSource):
         if t > 0 and self.seekable:
             cap.set(cv2.CAP_PROP_POS_FRAMES, t)
         elif t > 0:
-            for s in range(t):
-                if not cap.grab():
-                    cap.release()
-                    raise self._error("frame cannot be decoded (truncated or corrupt video)", s)
+            try:
+                self._skip(cap, -1, t - 1)
+            except FootageError:
+                cap.release()
+                raise
         return cap
+
+    def _skip(self, cap: cv2.VideoCapture, current: int, to: int) -> int:
+        """Grab frames of ``cap``, whose last grabbed frame is ``current``, up to frame ``to``
+        (decoding in order); returns ``to``."""
+        while current < to:
+            if not cap.grab():
+                raise self._error("frame cannot be decoded (truncated or corrupt video)",
+                                  current + 1)
+            current += 1
+        return current
 
     @property
     def num_frames(self) -> int:
@@ -217,11 +228,7 @@ class VideoSource(FrameSource):
         cap, current = self._open(), -1
         try:
             for t in ts:
-                while current < t:
-                    if not cap.grab():
-                        raise self._error("frame cannot be decoded (truncated or corrupt "
-                                          "video)", current + 1)
-                    current += 1
+                current = self._skip(cap, current, t)
                 ok, frame = cap.retrieve()
                 if not ok:
                     raise self._error("frame cannot be decoded", t)

@@ -12,10 +12,11 @@ complete only once its ``.json`` record is written (an interrupted decode starts
 Where the cache folder cannot be written, frames are held in memory as before (said).
 
 The cameras are decoded side by side, one forked process per camera up to one per core
-(:class:`nsd.core.processes.BatchPool`): each decodes its camera in order (videos are not
-seekable frame-exactly) and writes its slice ``[:, v]`` of the file, so the result does not
-depend on the number of processes (a test compares the files). Decoding and resizing HD
-footage is most of a first run's waiting on a big scene (docs/benchmarks/frame_store.md).
+(:class:`nsd.core.processes.BatchPool`): each decodes its camera in order from its first
+frame (exact for every video, whatever its timeline) and writes its slice ``[:, v]`` of the
+file, so the result does not depend on the number of processes (a test compares the files).
+Decoding and resizing HD footage is most of a first run's waiting on a big scene
+(docs/benchmarks/frame_store.md).
 
 Indexing returns torch uint8 tensors in the layout the model reads: ``store[t]`` is
 ``(V, 3, H, W)``, ``store[t_idx, v_idx]`` ``(n, 3, H, W)``.
