@@ -1,19 +1,20 @@
 """One camera's frames: a video file or a folder of images.
 
 Frame ``t`` of a camera is its ``t``-th frame: the ``t``-th image in natural name order, or
-the ``t``-th frame a video's decoder returns (read frame-exactly also where OpenCV's seek is
-not: :class:`VideoSource`). Frames are RGB ``uint8`` arrays, (H, W, 3). The cameras of a
-scene together: :mod:`nsd.io.footage`.
+a video's ``t``-th instant (read frame-exactly also where OpenCV's seek is not, a frame the
+camera dropped filled with the one before: :class:`VideoSource`). Frames are RGB ``uint8``
+arrays, (H, W, 3). The cameras of a scene together: :mod:`nsd.io.footage`.
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import os
 import re
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import cv2
@@ -22,6 +23,7 @@ import numpy as np
 from nsd.core.errors import FootageError
 
 __all__ = [
+    "ESTIMATED_COUNT",
     "IMAGE_EXTENSIONS",
     "VIDEO_EXTENSIONS",
     "FrameSource",
@@ -36,6 +38,9 @@ VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".m
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 # a video's first frames whose times are compared when it is opened (variable frame rate)
 TIMELINE_PROBE = 32
+# containers without a frame count (OpenCV estimates it from the duration, so a dropped
+# frame's gap counts as a frame): every frame's time is read when they are opened
+ESTIMATED_COUNT = (".mkv", ".webm", ".mpg", ".mpeg")
 
 
 def _natural_key(p: Path) -> list:
@@ -85,11 +90,16 @@ class FrameSource(ABC):
 class VideoSource(FrameSource):
     """A video file read with OpenCV.
 
-    Frame ``t`` is the ``t``-th frame the decoder returns. OpenCV seeks to a frame number
-    through its time (``t / fps``), which is frame-exact only when the frames are evenly
-    spaced in time: the file's timeline is probed when it is opened (the first
-    ``TIMELINE_PROBE`` frame times and the last frame's), and a video of variable frame
-    rate is read in order from its start instead of seeking (with a warning naming it).
+    Frame ``t`` is the ``t``-th instant of the camera's constant frame rate. OpenCV seeks to
+    a frame number through its time (``t / fps``), which is frame-exact only when the frames
+    are evenly spaced in time: the file's timeline is probed when it is opened (the first
+    ``TIMELINE_PROBE`` frame times and the last frame's; every frame's time in a container
+    without a frame count, ``ESTIMATED_COUNT``, and wherever the probe finds the times
+    uneven). Where the timeline is regular except for instants without a frame (the camera
+    dropped them), each missing frame is filled with the frame before it, so that frame
+    ``t`` stays the other cameras' instant ``t``; a timeline of uneven times (variable
+    frame rate) gives frame ``t`` as the ``t``-th frame the decoder returns. Either is read
+    in order from the start instead of seeking, with a warning naming the camera and file.
     """
 
     def __init__(self, camera: str, path: str | os.PathLike) -> None:
@@ -97,6 +107,9 @@ class VideoSource(FrameSource):
         if not self.path.is_file():
             raise self._error("video file does not exist")
         notes: list[str] = []
+        # (num_frames,) the decoded frame shown at each instant, where frames were dropped
+        self._frame_of: np.ndarray | None = None
+        estimated = self.path.suffix.lower() in ESTIMATED_COUNT
         cap = self._open()
         try:
             n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
@@ -107,11 +120,10 @@ class VideoSource(FrameSource):
             while len(times) < TIMELINE_PROBE and cap.grab():
                 times.append(cap.get(cv2.CAP_PROP_POS_MSEC))
             self.seekable, step, drift, why = _even_timeline(np.asarray(times))
-            if n <= 0 or not self.seekable:  # no frame count, or seeking is not exact
-                claimed, n = n, self._count()
-                if claimed > 0 and claimed != n:
-                    notes.append(f"the container claims {claimed} frames but {n} decode; "
-                                 f"using those {n}")
+            why = "" if self.seekable else why
+            whole = None  # every frame's time (ms), where the count or the probe is not enough
+            if n <= 0 or not self.seekable or estimated:
+                whole = self._timeline()
             elif n > 1:
                 last = self._landed(cap, n - 1)
                 if last is None:  # the container over-claims (an edit list)
@@ -125,8 +137,27 @@ class VideoSource(FrameSource):
                     self.seekable = False
                     why = (f"frame {n - 1} is at {last - times[0]:.0f} ms, not at "
                            f"{(n - 1) * step:.0f} ms as a constant rate puts it")
-                    n = self._count()
-            if not self.seekable:
+                    whole = self._timeline()
+            if whole is not None:
+                claimed, n = n, len(whole)
+                if claimed > 0 and claimed != n and not estimated:
+                    notes.append(f"the container claims {claimed} frames but {n} decode; "
+                                 f"using those {n}")
+                slots, uneven = _frame_slots(whole)
+                if slots is None:
+                    self.seekable, why = False, why or uneven
+                elif slots[-1] != n - 1:  # instants without a frame: dropped
+                    self.seekable = False
+                    instants = np.arange(slots[-1] + 1)
+                    self._frame_of = np.searchsorted(slots, instants, side="right") - 1
+                    notes.append(_dropped(whole, slots, np.setdiff1d(instants, slots)))
+                    n = len(instants)
+                elif self.seekable and n > 1:  # even: does OpenCV's seek find its frames?
+                    last = self._landed(cap, n - 1)
+                    if last is None or abs(last - whole[-1]) > np.median(np.diff(whole)) / 4:
+                        self.seekable = False
+                        notes.append(_astray(last, whole, cap.get(cv2.CAP_PROP_FPS)))
+            if not self.seekable and self._frame_of is None:
                 notes.append(
                     f"variable frame rate ({why}); OpenCV cannot seek in it frame-exactly, "
                     "so its frames are decoded in order from the start (slower where a "
@@ -141,15 +172,11 @@ class VideoSource(FrameSource):
         for note in self.notes:
             log.warning("%s", note)
 
-    def _count(self) -> int:
-        """Frames that decode, counted by decoding from the start."""
-        cap, n = self._open(), 0
-        try:
-            while cap.grab():
-                n += 1
-        finally:
-            cap.release()
-        return n
+    def _timeline(self) -> np.ndarray:
+        """Every frame's time (ms, (frames that decode,)), by decoding from the start (once
+        per file and process)."""
+        st = self.path.stat()
+        return _decoded_times(str(self.path), st.st_size, st.st_mtime_ns)
 
     @staticmethod
     def _landed(cap: cv2.VideoCapture, t: int) -> float | None:
@@ -172,17 +199,11 @@ class VideoSource(FrameSource):
             raise self._error("OpenCV cannot open this video (corrupt file or unknown codec)")
         return cap
 
-    def _at(self, t: int) -> cv2.VideoCapture:
-        """An open capture whose next frame is frame ``t``."""
+    def _seek(self, t: int) -> cv2.VideoCapture:
+        """An open capture whose next frame is frame ``t`` (a seekable video)."""
         cap = self._open()
-        if t > 0 and self.seekable:
+        if t > 0:
             cap.set(cv2.CAP_PROP_POS_FRAMES, t)
-        elif t > 0:
-            try:
-                self._skip(cap, -1, t - 1)
-            except FootageError:
-                cap.release()
-                raise
         return cap
 
     def _skip(self, cap: cv2.VideoCapture, current: int, to: int) -> int:
@@ -195,6 +216,35 @@ class VideoSource(FrameSource):
             current += 1
         return current
 
+    def _in_order(self, ts: Sequence[int]) -> Iterator[np.ndarray]:
+        """Frames ``ts`` (increasing, repeats allowed), decoded in order from the start."""
+        ts = [int(t) for t in ts]
+        bad = [t for t in ts if not 0 <= t < self._n]
+        if bad:
+            raise self._error(f"frame index out of range 0..{self._n - 1}", bad[0])
+        if any(b < a for a, b in itertools.pairwise(ts)):
+            raise ValueError(f"iter_frames needs frames in increasing order, got {ts}")
+        cap, last = self._open(), [-1]  # the last frame grabbed
+
+        def grab(t: int) -> tuple[bool, np.ndarray | None]:
+            last[0] = self._skip(cap, last[0],
+                                 t if self._frame_of is None else int(self._frame_of[t]))
+            return cap.retrieve()
+        return self._decoded(cap, ts, grab)
+
+    def _decoded(self, cap: cv2.VideoCapture, ts: Sequence[int],
+                 get: Callable[[int], tuple[bool, np.ndarray | None]]) -> Iterator[np.ndarray]:
+        """Frames ``ts`` as RGB, ``get(t)`` decoding frame ``t`` from ``cap`` (released at
+        the end)."""
+        try:
+            for t in ts:
+                ok, frame = get(t)
+                if not ok:
+                    raise self._error("frame cannot be decoded (truncated or corrupt video)", t)
+                yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+        finally:
+            cap.release()
+
     @property
     def num_frames(self) -> int:
         return self._n
@@ -206,46 +256,83 @@ class VideoSource(FrameSource):
     def read(self, t: int) -> np.ndarray:
         if not 0 <= t < self._n:
             raise self._error(f"frame index out of range 0..{self._n - 1}", t)
-        cap = self._at(t)
-        try:
-            ok, frame = cap.read()
-        finally:
-            cap.release()
-        if not ok:
-            raise self._error("frame cannot be decoded", t)
-        return cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+        return next(self.iter_range(t, t + 1))
 
     def iter_frames(self, ts: Sequence[int]) -> Iterator[np.ndarray]:
         if self.seekable:
             yield from super().iter_frames(ts)
-            return
-        ts = [int(t) for t in ts]
-        bad = [t for t in ts if not 0 <= t < self._n]
-        if bad:
-            raise self._error(f"frame index out of range 0..{self._n - 1}", bad[0])
-        if any(b < a for a, b in itertools.pairwise(ts)):
-            raise ValueError(f"iter_frames needs frames in increasing order, got {ts}")
-        cap, current = self._open(), -1
-        try:
-            for t in ts:
-                current = self._skip(cap, current, t)
-                ok, frame = cap.retrieve()
-                if not ok:
-                    raise self._error("frame cannot be decoded", t)
-                yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-        finally:
-            cap.release()
+        else:
+            yield from self._in_order(ts)
 
     def iter_range(self, start: int, stop: int) -> Iterator[np.ndarray]:
-        cap = self._at(start)
-        try:
-            for t in range(start, stop):
-                ok, frame = cap.read()
-                if not ok:
-                    raise self._error("frame cannot be decoded (truncated or corrupt video)", t)
-                yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-        finally:
-            cap.release()
+        if not self.seekable:
+            yield from self._in_order(range(start, stop))
+            return
+        cap = self._seek(start)
+        yield from self._decoded(cap, range(start, stop), lambda t: cap.read())
+
+
+@functools.lru_cache(maxsize=64)
+def _decoded_times(path: str, size: int, mtime_ns: int) -> np.ndarray:
+    """The time (ms) of every frame of the video at ``path`` that decodes, in order,
+    ((frames,), read-only); ``size`` and ``mtime_ns`` key the cache to the file's contents."""
+    cap, times = cv2.VideoCapture(path), []
+    try:
+        while cap.grab():
+            times.append(cap.get(cv2.CAP_PROP_POS_MSEC))
+    finally:
+        cap.release()
+    out = np.asarray(times, dtype=np.float64)
+    out.setflags(write=False)
+    return out
+
+
+def _frame_slots(times: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """The instant of each frame on one constant rate: frame times ``times`` (ms, (K,)) as
+    whole numbers of frame intervals from the first, ((K,) increasing int64, "") where every
+    time lies within a tenth of a frame (1.5 ms at least) of a line through them; (None,
+    how the times are uneven) where they do not (variable frame rate). A gap of about two
+    intervals is one instant without a frame. Times that do not increase (a container
+    without them) are the frames' own numbers: nothing says otherwise.
+    """
+    gaps = np.diff(times)
+    if len(gaps) < 2 or not np.all(np.isfinite(gaps)) or np.median(gaps) <= 0:
+        return np.arange(len(times)), ""
+    whole = np.rint(gaps / np.median(gaps))
+    slots = np.r_[0, np.cumsum(whole)].astype(np.int64)
+    why = f"its frames are {gaps.min():.0f}-{gaps.max():.0f} ms apart"
+    if whole.min() < 1:
+        return None, why
+    step, start = np.polyfit(slots, times, 1)
+    off = np.abs(times - (start + step * slots)).max()
+    if off > max(step / 10, 1.5):
+        return None, f"{why}, up to {off:.0f} ms off one constant rate"
+    return slots, ""
+
+
+def _astray(landed: float | None, times: np.ndarray, fps: float) -> str:
+    """The warning about a video of even frame times ``times`` (ms, (K,)) in which OpenCV's
+    seek to the last frame lands at ``landed`` (ms; None: on no frame), going by the rate
+    ``fps`` the file declares."""
+    where = "on no frame" if landed is None else f"at {landed - times[0]:.0f} ms"
+    return (f"OpenCV's seek is not frame-exact in it: a seek to its last frame, "
+            f"{len(times) - 1}, lands {where}, not at {times[-1] - times[0]:.0f} ms (the "
+            f"file declares {fps:.3f} fps, its frames come every "
+            f"{np.median(np.diff(times)):.1f} ms), so its frames are decoded in order from "
+            "the start (slower where a frame is asked alone)")
+
+
+def _dropped(times: np.ndarray, slots: np.ndarray, missing: np.ndarray) -> str:
+    """The warning about the instants ``missing`` without a frame in a regular timeline:
+    frame times ``times`` (ms, (K,)) at instants ``slots`` ((K,))."""
+    step, start = np.polyfit(slots, times, 1)
+    shown = ", ".join(f"{m} ({start + m * step - times[0]:.0f} ms)" for m in missing[:5])
+    more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+    return (f"{len(missing)} frame(s) missing from its timeline of one frame every "
+            f"{step:.1f} ms: frame(s) {shown}{more} (the camera dropped them). Each is "
+            "filled with the frame before it, so that frame t stays the other cameras' "
+            "instant t; the video is decoded in order from the start (slower where a frame "
+            "is asked alone)")
 
 
 def _even_timeline(times: np.ndarray) -> tuple[bool, float, float, str]:
