@@ -143,20 +143,21 @@ class VideoSource(FrameSource):
                 if claimed > 0 and claimed != n and not estimated:
                     notes.append(f"the container claims {claimed} frames but {n} decode; "
                                  f"using those {n}")
-                slots, uneven = _frame_slots(whole)
+                slots, step, start, uneven = _frame_slots(whole)
                 if slots is None:
                     self.seekable, why = False, why or uneven
                 elif slots[-1] != n - 1:  # instants without a frame: dropped
                     self.seekable = False
                     instants = np.arange(slots[-1] + 1)
                     self._frame_of = np.searchsorted(slots, instants, side="right") - 1
-                    notes.append(_dropped(whole, slots, np.setdiff1d(instants, slots)))
+                    notes.append(_dropped(whole[0], step, start,
+                                          np.setdiff1d(instants, slots)))
                     n = len(instants)
-                elif self.seekable and n > 1:  # even: does OpenCV's seek find its frames?
+                elif self.seekable and n > 1 and step > 0:  # even: does the seek find them?
                     last = self._landed(cap, n - 1)
-                    if last is None or abs(last - whole[-1]) > np.median(np.diff(whole)) / 4:
+                    if last is None or abs(last - whole[-1]) > step / 4:
                         self.seekable = False
-                        notes.append(_astray(last, whole, cap.get(cv2.CAP_PROP_FPS)))
+                        notes.append(_astray(last, whole, step, cap.get(cv2.CAP_PROP_FPS)))
             if not self.seekable and self._frame_of is None:
                 notes.append(
                     f"variable frame rate ({why}); OpenCV cannot seek in it frame-exactly, "
@@ -287,46 +288,66 @@ def _decoded_times(path: str, size: int, mtime_ns: int) -> np.ndarray:
     return out
 
 
-def _frame_slots(times: np.ndarray) -> tuple[np.ndarray | None, str]:
+def _timeless(gaps: np.ndarray) -> bool:
+    """Whether frame-time gaps ``gaps`` (ms, (K-1,)) say nothing: too few, not finite, or
+    not increasing (a container without times)."""
+    return len(gaps) < 2 or not np.all(np.isfinite(gaps)) or np.median(gaps) <= 0
+
+
+def _rate_line(instants: np.ndarray, times: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """The constant rate through frame times ``times`` (ms, (K,)) at ``instants`` ((K,)):
+    (frame interval in ms, time of instant 0, residuals (K,)), and whether the times lie on
+    it: every one within a tenth of a frame (at least 1.5 ms: times rounded to the
+    millisecond) is ``np.abs(residual).max() <= _tolerance(step)``."""
+    step, start = np.polyfit(instants, times, 1)
+    return float(step), float(start), times - (start + step * instants)
+
+
+def _tolerance(step: float) -> float:
+    """How far (ms) a frame time may lie off a constant rate of interval ``step`` (ms)."""
+    return max(step / 10, 1.5)
+
+
+def _frame_slots(times: np.ndarray) -> tuple[np.ndarray | None, float, float, str]:
     """The instant of each frame on one constant rate: frame times ``times`` (ms, (K,)) as
-    whole numbers of frame intervals from the first, ((K,) increasing int64, "") where every
-    time lies within a tenth of a frame (1.5 ms at least) of a line through them; (None,
-    how the times are uneven) where they do not (variable frame rate). A gap of about two
-    intervals is one instant without a frame. Times that do not increase (a container
-    without them) are the frames' own numbers: nothing says otherwise.
+    whole numbers of frame intervals from the first. Returns (instants ((K,) increasing
+    int64), frame interval (ms), time of instant 0 (ms), "") where every time lies on a
+    line through them (:func:`_rate_line`); (None, 0, 0, how the times are uneven) where
+    they do not (variable frame rate). A gap of about two intervals is one instant without
+    a frame. Times that do not increase (a container without them) are the frames' own
+    numbers: nothing says otherwise.
     """
     gaps = np.diff(times)
-    if len(gaps) < 2 or not np.all(np.isfinite(gaps)) or np.median(gaps) <= 0:
-        return np.arange(len(times)), ""
+    if _timeless(gaps):
+        return np.arange(len(times)), 0.0, 0.0, ""
     whole = np.rint(gaps / np.median(gaps))
     slots = np.r_[0, np.cumsum(whole)].astype(np.int64)
     why = f"its frames are {gaps.min():.0f}-{gaps.max():.0f} ms apart"
     if whole.min() < 1:
-        return None, why
-    step, start = np.polyfit(slots, times, 1)
-    off = np.abs(times - (start + step * slots)).max()
-    if off > max(step / 10, 1.5):
-        return None, f"{why}, up to {off:.0f} ms off one constant rate"
-    return slots, ""
+        return None, 0.0, 0.0, why
+    step, start, residual = _rate_line(slots, times)
+    off = np.abs(residual).max()
+    if off > _tolerance(step):
+        return None, 0.0, 0.0, f"{why}, up to {off:.0f} ms off one constant rate"
+    return slots, step, start, ""
 
 
-def _astray(landed: float | None, times: np.ndarray, fps: float) -> str:
-    """The warning about a video of even frame times ``times`` (ms, (K,)) in which OpenCV's
-    seek to the last frame lands at ``landed`` (ms; None: on no frame), going by the rate
-    ``fps`` the file declares."""
+def _astray(landed: float | None, times: np.ndarray, step: float, fps: float) -> str:
+    """The warning about a video of frame times ``times`` (ms, (K,)) evenly ``step`` ms
+    apart in which OpenCV's seek to the last frame lands at ``landed`` (ms; None: on no
+    frame), going by the rate ``fps`` the file declares."""
     where = "on no frame" if landed is None else f"at {landed - times[0]:.0f} ms"
     return (f"OpenCV's seek is not frame-exact in it: a seek to its last frame, "
             f"{len(times) - 1}, lands {where}, not at {times[-1] - times[0]:.0f} ms (the "
-            f"file declares {fps:.3f} fps, its frames come every "
-            f"{np.median(np.diff(times)):.1f} ms), so its frames are decoded in order from "
-            "the start (slower where a frame is asked alone)")
+            f"file declares {fps:.3f} fps, its frames come every {step:.1f} ms), so its "
+            "frames are decoded in order from the start (slower where a frame is asked "
+            "alone)")
 
 
-def _dropped(times: np.ndarray, slots: np.ndarray, missing: np.ndarray) -> str:
-    """The warning about the instants ``missing`` without a frame in a regular timeline:
-    frame times ``times`` (ms, (K,)) at instants ``slots`` ((K,))."""
-    step, start = np.polyfit(slots, times, 1)
-    shown = ", ".join(f"{m} ({start + m * step - times[0]:.0f} ms)" for m in missing[:5])
+def _dropped(first: float, step: float, start: float, missing: np.ndarray) -> str:
+    """The warning about the instants ``missing`` without a frame in a timeline of one frame
+    every ``step`` ms from ``start`` (ms), the first frame at ``first`` (ms)."""
+    shown = ", ".join(f"{m} ({start + m * step - first:.0f} ms)" for m in missing[:5])
     more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
     return (f"{len(missing)} frame(s) missing from its timeline of one frame every "
             f"{step:.1f} ms: frame(s) {shown}{more} (the camera dropped them). Each is "
@@ -336,25 +357,22 @@ def _dropped(times: np.ndarray, slots: np.ndarray, missing: np.ndarray) -> str:
 
 
 def _even_timeline(times: np.ndarray) -> tuple[bool, float, float, str]:
-    """Whether frame times ``times`` (ms, (K,)) lie on one constant rate, and what it is.
-
-    A line is fitted to the times; they are even when every time lies within a tenth of a
-    frame (at least 1.5 ms: times rounded to the millisecond) of it: OpenCV's seek, which
-    finds frame ``t`` at ``t / fps``, is then exact. Returns (even, frame interval in ms,
-    three standard errors of that interval: how far a later frame may drift per frame
-    from the line without saying anything, how the times are uneven). Times that do not
-    increase (a container without them) count as even: nothing says otherwise.
+    """Whether frame times ``times`` (ms, (K,)) lie on one constant rate (:func:`_rate_line`),
+    and what it is: OpenCV's seek, which finds frame ``t`` at ``t / fps``, is then exact.
+    Returns (even, frame interval in ms, three standard errors of that interval: how far a
+    later frame may drift per frame from the line without saying anything, how the times
+    are uneven). Times that do not increase (a container without them) count as even:
+    nothing says otherwise.
     """
     k = np.arange(len(times), dtype=np.float64)
     gaps = np.diff(times)
-    if len(gaps) < 2 or not np.all(np.isfinite(gaps)) or np.median(gaps) <= 0:
+    if _timeless(gaps):
         return True, 0.0, 0.0, ""
-    step, start = np.polyfit(k, times, 1)
-    residual = times - (start + step * k)
+    step, _, residual = _rate_line(k, times)
     se = float(np.sqrt(residual @ residual / (len(k) - 2) / ((k - k.mean()) ** 2).sum()))
-    even = bool(np.abs(residual).max() <= max(step / 10, 1.5))
-    return even, float(step), 3 * se, (f"its first {len(times)} frames are {gaps.min():.0f}-"
-                                       f"{gaps.max():.0f} ms apart")
+    even = bool(np.abs(residual).max() <= _tolerance(step))
+    return even, step, 3 * se, (f"its first {len(times)} frames are {gaps.min():.0f}-"
+                                f"{gaps.max():.0f} ms apart")
 
 
 class ImageFolderSource(FrameSource):
